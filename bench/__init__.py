@@ -1,0 +1,1 @@
+"""Speed-against-error benchmark, hard-case stability suite and synthetic test frames."""

@@ -1,0 +1,133 @@
+"""`python -m service ...`: denoise a sequence folder, list pipelines, inspect an EXR file.
+
+Exit status: 0 on success, 2 with a one-line `error: ...` on bad input or options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service import pipelines
+from service.exr import read_channels
+from service.frame import FrameError
+from service.sequence import denoise_folder
+
+
+def _parse_options(items: Sequence[str]) -> dict[str, Any]:
+    """`KEY=VALUE` strings -> dict; values are parsed as JSON when they are JSON (numbers, true, ...)."""
+    options: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"option '{item}' is not KEY=VALUE")
+        try:
+            options[key] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key] = value
+    return options
+
+
+def cmd_denoise(args: argparse.Namespace) -> int:
+    pipeline = pipelines.get(args.pipeline, **_parse_options(args.option))
+    print(f"{'frame':<24} {'ms':>9} {'relL2 in':>10} {'relL2 out':>10} {'NaN/Inf':>8}")
+    results = []
+    for r in denoise_folder(pipeline, args.in_dir, args.out_dir, png=args.png):
+        results.append(r)
+        noisy = "" if r.rel_l2_noisy is None else f"{r.rel_l2_noisy:.4f}"
+        out = "" if r.rel_l2_out is None else f"{r.rel_l2_out:.4f}"
+        print(f"{r.name:<24} {r.ms:>9.1f} {noisy:>10} {out:>10} {r.nonfinite:>8}", flush=True)
+    ms = [r.ms for r in results]
+    line = f"{pipeline.name}: {len(results)} frames, mean {np.mean(ms):.1f} ms/frame"
+    scored = [r for r in results if r.rel_l2_out is not None]
+    if scored:
+        noisy = np.mean([r.rel_l2_noisy for r in scored])
+        out = np.mean([r.rel_l2_out for r in scored])
+        line += f", relL2 (0.1% trimmed) {noisy:.4f} -> {out:.4f}"
+    print(line)
+    print(f"outputs in {args.out_dir}")
+    return 0
+
+
+def cmd_pipelines(args: argparse.Namespace) -> int:
+    infos = pipelines.describe()
+    if args.json:
+        print(json.dumps(infos, indent=2))
+        return 0
+    for info in infos:
+        flag = " (temporal)" if info["temporal"] else ""
+        default = " [default]" if info["name"] == pipelines.DEFAULT else ""
+        print(f"{info['name']}{flag}{default}: {info['summary']}")
+        print(f"    requires: {', '.join(info['requires']) or '-'}")
+        print(f"    optional: {', '.join(info['optional']) or '-'}")
+    return 0
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    channels, header = read_channels(args.file)
+    first = next(iter(channels.values()))
+    print(f"{args.file}: {first.shape[1]}x{first.shape[0]}, {len(channels)} channels, "
+          f"compression {header.get('compression')}")
+    print(f"{'channel':<16} {'type':<8} {'min':>12} {'max':>12} {'mean':>12} {'NaN':>7} {'Inf':>7}")
+    for name in sorted(channels):
+        pixels = channels[name]
+        kind = {"float16": "half", "float32": "float", "uint32": "uint"}.get(pixels.dtype.name, pixels.dtype.name)
+        values = pixels.astype(np.float64)
+        finite = values[np.isfinite(values)]
+        lo, hi, mean = (finite.min(), finite.max(), finite.mean()) if finite.size else (np.nan,) * 3
+        print(f"{name:<16} {kind:<8} {lo:>12.5g} {hi:>12.5g} {mean:>12.5g} "
+              f"{int(np.isnan(values).sum()):>7} {int(np.isinf(values).sum()):>7}")
+    return 0
+
+
+Command = tuple[str, str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
+
+
+def _args_denoise(p: argparse.ArgumentParser) -> None:
+    p.add_argument("in_dir", type=Path, help="sequence folder of frame EXR files")
+    p.add_argument("out_dir", type=Path, help="folder for the denoised EXR files (same names)")
+    p.add_argument("--pipeline", default=pipelines.DEFAULT, help=f"pipeline name (default {pipelines.DEFAULT})")
+    p.add_argument("--option", "-o", action="append", default=[], metavar="KEY=VALUE",
+                   help="pipeline option, repeatable (see `pipelines --json`)")
+    p.add_argument("--png", action="store_true", help="also write tone-mapped PNG previews")
+
+
+def _args_pipelines(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+
+
+def _args_inspect(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", type=Path, help="an OpenEXR file")
+
+
+COMMANDS: list[Command] = [
+    ("denoise", "denoise every frame of a sequence folder", _args_denoise, cmd_denoise),
+    ("pipelines", "list pipelines with their required and optional layers", _args_pipelines, cmd_pipelines),
+    ("inspect", "layers, channel types, size and value statistics of an EXR file", _args_inspect, cmd_inspect),
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m service", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, help_text, add_args, run in COMMANDS:
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        add_args(p)
+        p.set_defaults(run=run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except (FrameError, ValueError, KeyError, OSError) as err:
+        message = str(err).splitlines()[0] if str(err) else type(err).__name__
+        print(f"error: {message}", file=sys.stderr)
+        return 2

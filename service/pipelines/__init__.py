@@ -1,0 +1,65 @@
+"""Registry of denoising pipelines. Every module in this package that defines a `Pipeline` subclass
+decorated with `register` is imported here, so adding a denoiser is adding one module."""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from typing import Any
+
+from service.pipelines.base import Pipeline, SequenceState
+
+__all__ = ["Pipeline", "SequenceState", "register", "get", "names", "describe", "auto", "DEFAULT"]
+
+_REGISTRY: dict[str, type[Pipeline]] = {}
+
+DEFAULT = "bilateral"  # used when a caller names no pipeline
+# Preference of `auto`, best first: the first registered pipeline whose required layers a frame has.
+_PREFERENCE = ("crossreg", "statistical", "crossregression", "flr", "bmfr", "svgf", "bilateral")
+
+
+class UnknownPipelineError(KeyError):
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+def register(cls: type[Pipeline]) -> type[Pipeline]:
+    """Class decorator adding a pipeline to the registry under `cls.name`."""
+    if cls.name in _REGISTRY:
+        raise ValueError(f"pipeline '{cls.name}' registered twice")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def names() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def pipeline_class(name: str) -> type[Pipeline]:
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise UnknownPipelineError(f"unknown pipeline '{name}'; available: {', '.join(names())}") from None
+
+
+def get(name: str, **options: Any) -> Pipeline:
+    """A new pipeline object; `options` are fields of its Options dataclass."""
+    return pipeline_class(name)(**options)
+
+
+def describe() -> list[dict[str, Any]]:
+    return [_REGISTRY[n].describe() for n in names()]
+
+
+def auto(layers: set[str] | frozenset[str]) -> str:
+    """Name of the preferred registered pipeline whose required layers are all in `layers`."""
+    for name in (*_PREFERENCE, *names()):
+        cls = _REGISTRY.get(name)
+        if cls is not None and set(cls.requires) <= set(layers):
+            return name
+    raise UnknownPipelineError(f"no pipeline can denoise a frame with layers {sorted(layers)}")
+
+
+for _module in pkgutil.iter_modules(__path__):
+    if _module.name != "base":
+        importlib.import_module(f"{__name__}.{_module.name}")

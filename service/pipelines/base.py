@@ -1,0 +1,109 @@
+"""The one interface every denoiser implements (shared ARCHITECTURE.md):
+
+    pipeline = pipelines.get(name, **options)
+    state = pipeline.start(height, width)
+    out, state = pipeline.step(frame, state)
+
+`Pipeline.step` does what all denoisers share, in order: check the frame against the declared layers
+and the sequence size (before any work), split off `emission` from the radiance layers, call the
+denoiser's `denoise`, add emission back, and make sure nothing non-finite leaves.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from service.frame import RADIANCE_LAYERS, Frame, FrameError
+
+
+@dataclass
+class SequenceState:
+    """Per-sequence state. Pipelines with history subclass it; the pipeline owns and may mutate it."""
+
+    height: int
+    width: int
+    frame_index: int = 0  # frames completed in this sequence
+
+
+@dataclass(frozen=True)
+class NoOptions:
+    """A pipeline without options."""
+
+
+class Pipeline(ABC):
+    """A denoiser behind the common interface. Subclasses set the class attributes and `denoise`."""
+
+    name: ClassVar[str]
+    summary: ClassVar[str]  # one line: what it is and what it is good at
+    requires: ClassVar[tuple[str, ...]]  # layers a frame must have
+    optional: ClassVar[tuple[str, ...]] = ()  # layers used when present
+    temporal: ClassVar[bool] = False  # whether the output depends on earlier frames
+    Options: ClassVar[type] = NoOptions  # frozen dataclass of algorithm options
+
+    def __init__(self, **options: Any):
+        known = {f.name for f in dataclasses.fields(self.Options)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise ValueError(
+                f"pipeline '{self.name}' has no option {', '.join(map(repr, unknown))}; "
+                f"options: {', '.join(sorted(known)) or 'none'}"
+            )
+        self.options = self.Options(**options)
+
+    def start(self, height: int, width: int) -> SequenceState:
+        """State for a new sequence of frames of `height` x `width` pixels."""
+        if height < 1 or width < 1:
+            raise ValueError(f"frame size must be at least 1x1, got {width}x{height}")
+        return self.new_state(height, width)
+
+    def new_state(self, height: int, width: int) -> SequenceState:
+        return SequenceState(height, width)
+
+    def check(self, frame: Frame, state: SequenceState) -> None:
+        """Raise FrameError when `frame` lacks a required layer or does not match the sequence size."""
+        frame.require(self.requires, who=f"pipeline '{self.name}'")
+        if (frame.height, frame.width) != (state.height, state.width):
+            raise FrameError(
+                f"frame is {frame.width}x{frame.height} but the sequence is {state.width}x{state.height}"
+            )
+
+    def step(self, frame: Frame, state: SequenceState) -> tuple[Frame, SequenceState]:
+        """Denoise the next frame of the sequence.
+
+        frame: validated Frame with at least `requires`. Returns (Frame with `color`: (H, W, 3)
+        float32 linear radiance, finite, plus documented diagnostics; the updated state).
+        The input's NaN/Inf repair counts are carried to the output frame's `nonfinite`.
+        """
+        self.check(frame, state)
+        emission = frame.get("emission")
+        if emission is not None:
+            frame = frame.replace(**{k: frame[k] - emission for k in RADIANCE_LAYERS if k in frame})
+        buffers, state = self.denoise(frame, state)
+        if emission is not None:
+            buffers["color"] = buffers["color"] + emission
+        for name, value in buffers.items():
+            if not np.isfinite(value).all():  # a guard: stages are tested never to get here
+                raise FloatingPointError(f"pipeline '{self.name}' produced non-finite '{name}'")
+        state.frame_index += 1
+        return Frame(buffers, dict(frame.nonfinite)), state
+
+    @abstractmethod
+    def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        """The denoiser proper: emission already removed; returns buffers with at least `color`."""
+
+    @classmethod
+    def describe(cls) -> dict[str, Any]:
+        """What clients see: name, summary, layers, temporal flag, options with defaults."""
+        return {
+            "name": cls.name,
+            "summary": cls.summary,
+            "requires": list(cls.requires),
+            "optional": list(cls.optional),
+            "temporal": cls.temporal,
+            "options": {f.name: f.default for f in dataclasses.fields(cls.Options)},
+        }

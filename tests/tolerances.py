@@ -1,0 +1,5 @@
+"""Tolerances used across the tests, in one table."""
+
+FLOAT32_EXACT = 0.0  # bit-identical round trips (float EXR channels)
+HALF_RTOL = 1e-3  # float16 round trip: 10-bit mantissa, relative
+FILTER_ATOL = 1e-5  # filters on O(1) values that should return their input (constants)
