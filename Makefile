@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 SAMPLE ?= models/data/samples/sample
 DEMO_PIPELINE ?= bilateral
 
-.PHONY: setup demo test lint clean
+.PHONY: setup demo test lint clean bench bench-data
 
 setup: $(STAMP)
 
@@ -36,3 +36,26 @@ test: $(STAMP) lint
 
 clean:
 	rm -rf $(VENV) out
+
+# Benchmark (README, "Benchmark"): every pipeline and the OIDN anchors on the bundled sample(s) plus the
+# rendered sequences below; writes results.json, report.md, pareto.png and report.html to $(BENCH_OUT).
+# BENCH_SCENES: models.data scenes that stress what the sample does not (disocclusion for temporal
+# pipelines, fireflies, high-frequency textures); rendered once into $(BENCH_DATA), skipped when present.
+# Seed 0 is the canonical animation, held out of the training set (models/data/dataset.py uses seeds 1..n).
+BENCH_DATA ?= out/bench-data
+BENCH_OUT ?= out/bench/report
+BENCH_SCENES ?= disocclusion fireflies textures
+BENCH_RENDER ?= --frames 8 --size 128x128 --spp 4 --ref-spp 512 --seed 0
+
+bench-data: $(STAMP)
+	@for scene in $(BENCH_SCENES); do \
+		if [ -d "$(BENCH_DATA)/$$scene" ]; then echo "bench-data: $$scene exists, skipped"; continue; fi; \
+		rm -rf "$(BENCH_DATA)/.partial-$$scene"; \
+		$(PY) -m models.data render --scene $$scene $(BENCH_RENDER) --out "$(BENCH_DATA)/.partial-$$scene" \
+			&& mv "$(BENCH_DATA)/.partial-$$scene" "$(BENCH_DATA)/$$scene" || exit 1; \
+	done
+
+bench: $(STAMP) bench-data
+	$(PY) -m bench run --out $(BENCH_OUT) --sequences \
+		$$($(PY) -c "from models.data import SAMPLE_DIRS; print(' '.join(str(p) for p in SAMPLE_DIRS if p.is_dir()))") \
+		$(addprefix $(BENCH_DATA)/,$(BENCH_SCENES))

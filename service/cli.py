@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from service import pipelines
+from service.api.cli import add_serve_args, add_stream_args, run_serve, run_stream
 from service.exr import read_channels
 from service.frame import FrameError
 from service.sequence import denoise_folder
@@ -110,6 +111,8 @@ COMMANDS: list[Command] = [
     ("denoise", "denoise every frame of a sequence folder", _args_denoise, cmd_denoise),
     ("pipelines", "list pipelines with their required and optional layers", _args_pipelines, cmd_pipelines),
     ("inspect", "layers, channel types, size and value statistics of an EXR file", _args_inspect, cmd_inspect),
+    ("serve", "serve every pipeline over HTTP: REST frames, sessions, WebSocket streams", add_serve_args, run_serve),
+    ("stream", "stream a sequence folder through a running service, write the results", add_stream_args, run_stream),
 ]
 
 

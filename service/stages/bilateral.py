@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from service.stages.window import Slice2, overlap, window_offsets
 
@@ -99,3 +100,18 @@ def joint_bilateral(color: np.ndarray, features: np.ndarray, params: BilateralPa
         den[centre] += rho
         den[neighbour] += rho
     return num / den[..., None]
+
+
+@njit(cache=True, inline="always")
+def pair_weight(features: np.ndarray, y: int, x: int, yn: int, xn: int, position_term: np.float32) -> np.float32:
+    """rho_ij of eq. 16 for one pixel pair, for compiled filters that visit pairs one at a time.
+
+    features: (H, W, F) float32 from `guide_features`; (y, x) and (yn, xn): the two pixels;
+    position_term: float32 (dy^2 + dx^2) / sigma2_position. Returns float32 in (0, 1], the value
+    `base_weights` yields for the pair (same float32 arithmetic up to summation order).
+    """
+    distance2 = position_term
+    for k in range(features.shape[2]):
+        diff = features[yn, xn, k] - features[y, x, k]
+        distance2 += diff * diff
+    return np.exp(np.float32(-0.5) * distance2)

@@ -1,0 +1,155 @@
+"""Per-frame and per-sequence scores of one method's outputs against the reference.
+
+The metrics themselves live in service/metrics.py (one definition for the demo, training and the
+benchmark); this module only decides which frames and pixels each one sees and how frames add up:
+
+- relL2: `rel_l2` with the 0.1% trim, mean over frames.
+- 1-SSIM (`dssim`) and FLIP (`flip_error`): mean over frames.
+- temporal: `temporal_rel_l2` of consecutive outputs against consecutive references, mean over frames
+  1..N-1 (it needs a previous frame).
+- disoccluded relL2: untrimmed relL2 over the pixels the reprojection stage marks invalid (surfaces
+  not visible in the previous frame, `~valid` of service.stages.reprojection.reproject), pooled over
+  frames 1..N-1. That is where a temporal pipeline has no history to lean on.
+
+A metric or stage that is not importable yet scores None, and `unavailable()` names it, so the
+report says what is missing instead of failing.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.frame import Frame
+from service.metrics import TRIM_FRACTION, rel_l2, rel_l2_map
+
+_MISSING: dict[str, str] = {}  # "module.name" -> reason, for the report
+
+
+def _lookup(module: str, name: str) -> Any | None:
+    """`module.name`, or None (remembered in _MISSING) while another engineer has not added it yet."""
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as err:
+        _MISSING[f"{module}.{name}"] = f"{type(err).__name__}: {err}"
+        return None
+
+
+def unavailable() -> dict[str, str]:
+    """Metrics and stages that could not be imported during this process, with the reason."""
+    return dict(_MISSING)
+
+
+def disoccluded_mask(frame: Frame, prev: Frame) -> np.ndarray | None:
+    """(H, W) bool: pixels of `frame` whose surface was not visible in `prev` (motion invalid).
+
+    Uses the reprojection stage with every G-buffer both frames have. None when the frame has no
+    `motion` layer or the stage is not available.
+    """
+    reproject = _lookup("service.stages.reprojection", "reproject")
+    if reproject is None or "motion" not in frame:
+        return None
+    _, valid = reproject(
+        prev["color"],
+        frame["motion"],
+        depth=frame.get("depth"),
+        prev_depth=prev.get("depth"),
+        normal=frame.get("normal"),
+        prev_normal=prev.get("normal"),
+    )
+    return ~np.asarray(valid, bool)
+
+
+@dataclass
+class FrameScore:
+    """Scores of one output frame; None where a metric is unavailable or does not apply."""
+
+    rel_l2: float
+    dssim: float | None
+    flip: float | None
+    temporal: float | None  # None on the first frame
+    disoccluded_sum: float | None  # sum of per-pixel relL2 over disoccluded pixels
+    disoccluded_pixels: int  # how many pixels were disoccluded
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "rel_l2": self.rel_l2,
+            "dssim": self.dssim,
+            "flip": self.flip,
+            "temporal": self.temporal,
+            "disoccluded_rel_l2": (
+                None if not self.disoccluded_pixels or self.disoccluded_sum is None
+                else self.disoccluded_sum / self.disoccluded_pixels
+            ),
+            "disoccluded_pixels": self.disoccluded_pixels,
+        }
+
+
+def score_frame(
+    image: np.ndarray,
+    reference: np.ndarray,
+    prev: tuple[np.ndarray, np.ndarray] | None,
+    mask: np.ndarray | None,
+    *,
+    flip: bool = True,
+) -> FrameScore:
+    """Scores of `image` against `reference`.
+
+    image, reference: (H, W, 3) float32 linear radiance. prev: (previous output, previous reference)
+    or None on the first frame. mask: (H, W) bool disoccluded pixels or None. flip: whether to compute
+    FLIP (the slowest metric).
+    """
+    dssim = _lookup("service.metrics", "dssim")
+    flip_error = _lookup("service.metrics", "flip_error") if flip else None
+    temporal_rel_l2 = _lookup("service.metrics", "temporal_rel_l2")
+    temporal = None
+    if prev is not None and temporal_rel_l2 is not None:
+        temporal = float(temporal_rel_l2(prev[0], image, prev[1], reference))
+    dis_sum, dis_count = None, 0
+    if mask is not None:
+        dis_count = int(mask.sum())
+        dis_sum = float(rel_l2_map(image, reference)[mask].sum()) if dis_count else 0.0
+    return FrameScore(
+        rel_l2=rel_l2(image, reference, trim=TRIM_FRACTION),
+        dssim=None if dssim is None else float(dssim(image, reference)),
+        flip=None if flip_error is None else float(flip_error(image, reference)),
+        temporal=temporal,
+        disoccluded_sum=dis_sum,
+        disoccluded_pixels=dis_count,
+    )
+
+
+def _mean(values: list[float | None]) -> float | None:
+    kept = [v for v in values if v is not None]
+    return float(np.mean(kept)) if kept else None
+
+
+@dataclass
+class SequenceScore:
+    """Per-frame scores and timings of one method on one sequence, and their summaries."""
+
+    frames: list[FrameScore] = field(default_factory=list)
+    ms: list[float] = field(default_factory=list)  # pipeline.step wall time per frame, milliseconds
+
+    def summary(self, megapixels: float) -> dict[str, Any]:
+        dis_frames = [f for f in self.frames if f.disoccluded_sum is not None]
+        dis_pixels = sum(f.disoccluded_pixels for f in dis_frames)
+        ms = float(np.median(self.ms)) if self.ms else None
+        return {
+            "ms_per_frame": ms,
+            "ms_per_megapixel": None if ms is None else ms / megapixels,
+            "ms_mean": float(np.mean(self.ms)) if self.ms else None,
+            "rel_l2": _mean([f.rel_l2 for f in self.frames]),
+            "dssim": _mean([f.dssim for f in self.frames]),
+            "flip": _mean([f.flip for f in self.frames]),
+            "temporal": _mean([f.temporal for f in self.frames]),
+            "disoccluded_rel_l2": (
+                sum(f.disoccluded_sum for f in dis_frames) / dis_pixels if dis_pixels else None
+            ),
+            "disoccluded_fraction": (
+                dis_pixels / (len(dis_frames) * megapixels * 1e6) if dis_frames else None
+            ),
+        }

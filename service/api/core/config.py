@@ -1,0 +1,106 @@
+"""Deployment settings of the HTTP service: one validated, frozen object built from environment variables.
+
+Every variable is optional; the defaults below are the documented ones (README "HTTP service"). Values
+that would make the service unsafe or unable to work (a limit of zero, a short API key, a key with
+whitespace) are refused with a `SettingsError` naming the variable, before the server starts.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+
+PREFIX = "MCDENOISE_"
+MIN_KEY_LENGTH = 16  # characters; shorter keys are guessable
+
+
+class SettingsError(ValueError):
+    """An environment variable with a value the service refuses."""
+
+
+def _cpus() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Deployment settings; field `x` is read from `MCDENOISE_X` (upper case)."""
+
+    max_body_mb: int = 256  # largest request body / WebSocket message, MiB
+    max_width: int = 4096  # largest frame width, pixels
+    max_height: int = 4096  # largest frame height, pixels
+    max_sessions: int = 16  # live sessions at once; more answers 429
+    session_idle_s: float = 300.0  # a session without a request for this long is ended, seconds
+    worker_threads: int = 0  # frames processed at once (thread pool size); 0 = number of CPUs
+    frame_threads: int = 0  # threads one frame may use inside ONNX Runtime/numba/BLAS; 0 = CPUs / workers
+    max_inflight: int = 0  # frames accepted (running + queued) at once; more answers 503; 0 = 4 x workers
+    queue_wait_s: float = 30.0  # how long a streamed frame waits for a free slot before a `busy` error, s
+    retry_after_s: int = 1  # Retry-After of a 503 `busy` answer, seconds
+    api_key: str = ""  # empty: no auth; one key, or comma-separated keys (one per client)
+
+    def __post_init__(self) -> None:
+        for name in ("max_body_mb", "max_width", "max_height", "max_sessions", "retry_after_s"):
+            if getattr(self, name) < 1:
+                raise SettingsError(f"{PREFIX}{name.upper()} must be at least 1, got {getattr(self, name)}")
+        for name in ("worker_threads", "frame_threads", "max_inflight"):
+            if getattr(self, name) < 0:
+                raise SettingsError(f"{PREFIX}{name.upper()} must be 0 (automatic) or more, got {getattr(self, name)}")
+        if self.session_idle_s <= 0 or self.queue_wait_s < 0:
+            raise SettingsError(
+                f"{PREFIX}SESSION_IDLE_S must be > 0 and {PREFIX}QUEUE_WAIT_S >= 0, "
+                f"got {self.session_idle_s} and {self.queue_wait_s}"
+            )
+        if self.max_body_mb > 4096:
+            raise SettingsError(f"{PREFIX}MAX_BODY_MB must be at most 4096, got {self.max_body_mb}")
+        for key in self.api_keys:
+            if len(key) < MIN_KEY_LENGTH or any(c.isspace() for c in key):
+                raise SettingsError(
+                    f"{PREFIX}API_KEY: every key must have at least {MIN_KEY_LENGTH} characters and no whitespace"
+                )
+        if self.api_key and not self.api_keys:
+            raise SettingsError(f"{PREFIX}API_KEY holds no key")
+        # Resolve the automatic values once, so every reader sees the same numbers.
+        workers = self.worker_threads or _cpus()
+        object.__setattr__(self, "worker_threads", workers)
+        object.__setattr__(self, "frame_threads", self.frame_threads or max(1, _cpus() // workers))
+        object.__setattr__(self, "max_inflight", self.max_inflight or 4 * workers)
+        if self.max_inflight < workers:
+            raise SettingsError(f"{PREFIX}MAX_INFLIGHT ({self.max_inflight}) must be at least "
+                                f"{PREFIX}WORKER_THREADS ({workers})")
+
+    @property
+    def api_keys(self) -> tuple[str, ...]:
+        """The accepted keys; empty when auth is off."""
+        return tuple(k.strip() for k in self.api_key.split(",") if k.strip())
+
+    @property
+    def max_body_bytes(self) -> int:
+        return self.max_body_mb * 1024 * 1024
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None) -> Settings:
+        """Settings from `MCDENOISE_*` variables of `environ` (default: the process environment)."""
+        environ = os.environ if environ is None else environ
+        values: dict[str, object] = {}
+        for f in fields(cls):
+            raw = environ.get(PREFIX + f.name.upper())
+            if raw is None or (raw.strip() == "" and f.name != "api_key"):
+                continue
+            kind = type(f.default)
+            try:
+                values[f.name] = raw if kind is str else kind(raw.strip())
+            except ValueError:
+                raise SettingsError(
+                    f"{PREFIX}{f.name.upper()} must be {'an integer' if kind is int else 'a number'}, got {raw!r}"
+                ) from None
+        return cls(**values)
+
+    def public(self) -> dict[str, object]:
+        """The settings without secrets (for logs and /readyz)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "api_key"}
+        out["auth"] = "per-client keys" if len(self.api_keys) > 1 else ("one key" if self.api_keys else "off")
+        return out

@@ -1,0 +1,124 @@
+"""The one place where errors become HTTP answers (and WebSocket error messages).
+
+`ApiError` is what the API's own checks raise; `to_api_error` turns every domain error (FrameError,
+UnknownPipelineError, ...) into one, and `install` registers the handlers that answer them as
+`{"code", "message", "layer"?}` JSON with the right status and headers. The WebSocket stream sends the
+same JSON, plus `frame`, as a text message.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import HTTPConnection
+
+from service.frame import FrameError
+from service.pipelines import UnknownPipelineError
+
+log = logging.getLogger("mcdenoise.api")
+
+
+class ApiError(Exception):
+    """An answer other than success: HTTP `status`, stable machine-readable `code`, human `message`."""
+
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        *,
+        layer: str | None = None,
+        retry_after: int | None = None,
+        headers: dict[str, str] | None = None,
+    ):
+        super().__init__(message)
+        self.status, self.code, self.message, self.layer = status, code, message, layer
+        self.headers = dict(headers or {})
+        if retry_after is not None:
+            self.headers["Retry-After"] = str(retry_after)
+
+    def body(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"code": self.code, "message": self.message}
+        if self.layer is not None:
+            out["layer"] = self.layer
+        return out
+
+
+class InvalidExrError(Exception):
+    """Request bytes that are not a readable OpenEXR image (not EXR, truncated)."""
+
+
+class InvalidOptionsError(Exception):
+    """Pipeline options the pipeline refuses, or an `online` flag it cannot honour."""
+
+
+class UnknownSessionError(Exception):
+    def __init__(self, session_id: str):
+        shown = session_id if len(session_id) <= 64 else session_id[:64] + "..."
+        super().__init__(f"unknown session '{shown}' (never created, ended, or expired)")
+
+
+def to_api_error(exc: Exception) -> ApiError:
+    """Map an exception raised while serving a request to the answer it gets (status 500 when unexpected)."""
+    if isinstance(exc, ApiError):
+        return exc
+    if isinstance(exc, InvalidExrError):
+        return ApiError(400, "invalid_exr", str(exc))
+    if isinstance(exc, FrameError):
+        return ApiError(422, "invalid_frame", str(exc), layer=exc.layer)
+    if isinstance(exc, UnknownPipelineError):
+        return ApiError(400, "unknown_pipeline", str(exc))
+    if isinstance(exc, InvalidOptionsError):
+        return ApiError(400, "invalid_options", str(exc))
+    if isinstance(exc, UnknownSessionError):
+        return ApiError(404, "unknown_session", str(exc))
+    return ApiError(500, "internal_error", f"internal error: {type(exc).__name__}")
+
+
+def report(exc: Exception) -> ApiError:
+    """`to_api_error`, logging the traceback of an unexpected error (500)."""
+    error = to_api_error(exc)
+    if error.status >= 500 and error.code == "internal_error":
+        log.error("unexpected error while serving a request", exc_info=exc)
+    return error
+
+
+def unauthorized(message: str) -> ApiError:
+    return ApiError(401, "unauthorized", message, headers={"WWW-Authenticate": "Bearer"})
+
+
+def _respond(error: ApiError) -> JSONResponse:
+    return JSONResponse(error.body(), status_code=error.status, headers=error.headers)
+
+
+async def _domain_error(conn: HTTPConnection, exc: Exception) -> JSONResponse:
+    return _respond(report(exc))
+
+
+async def _validation_error(conn: HTTPConnection, exc: RequestValidationError) -> JSONResponse:
+    first = exc.errors()[0] if exc.errors() else {"loc": (), "msg": "invalid request"}
+    where = ".".join(str(p) for p in first.get("loc", ()) if p != "body")
+    message = f"{where}: {first['msg']}" if where else str(first["msg"])
+    return _respond(ApiError(422, "invalid_request", message))
+
+
+async def _http_error(conn: HTTPConnection, exc: StarletteHTTPException) -> JSONResponse:
+    codes = {404: "not_found", 405: "method_not_allowed"}
+    error = ApiError(exc.status_code, codes.get(exc.status_code, "http_error"), str(exc.detail),
+                     headers=dict(exc.headers or {}))
+    return _respond(error)
+
+
+def install(app: FastAPI) -> None:
+    """Register the handlers: domain errors, request validation, plain HTTP errors, anything else (500)."""
+    for kind in (ApiError, InvalidExrError, FrameError, UnknownPipelineError, InvalidOptionsError,
+                 UnknownSessionError):
+        app.add_exception_handler(kind, _domain_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(Exception, _domain_error)  # last resort: a JSON 500, logged

@@ -1,0 +1,115 @@
+"""The operations the routes call: denoise one stateless frame, open a session, denoise a session's next frame.
+
+Each frame is one job in the worker pool (decode, step, encode), accounted in the metrics whether it
+succeeds or fails. A session's frames run under its lock, so they step its state strictly in order;
+a refused frame changes nothing in the session but its error count.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+
+from service import pipelines
+from service.api import codec
+from service.api.core.errors import ApiError, to_api_error
+from service.api.sessions import Session, SessionSpec, build_session, close_state
+from service.api.state import Services
+from service.api.telemetry import UNKNOWN_PIPELINE
+from service.pipelines import Pipeline, SequenceState
+
+
+@dataclass(frozen=True)
+class Denoised:
+    """One answered frame."""
+
+    body: bytes  # EXR or PNG bytes
+    media_type: str
+    frame_index: int  # index of this frame in its sequence (0 for a stateless frame)
+    step_ms: float  # wall time of pipeline.step, milliseconds
+    nonfinite: int  # NaN/Inf input values repaired
+
+
+def _step(
+    pipeline: Pipeline, state: SequenceState | None, body: bytes, output: codec.Output, services: Services
+) -> tuple[Denoised, SequenceState]:
+    """Decode, check, step and encode one frame (in a pool thread). `state` None: a first frame."""
+    frame = codec.decode(body, services.settings.max_width, services.settings.max_height)
+    if state is None:
+        state = pipeline.start(frame.height, frame.width)
+    index = state.frame_index
+    start = time.perf_counter()
+    out, state = pipeline.step(frame, state)
+    step_ms = 1e3 * (time.perf_counter() - start)
+    return Denoised(codec.encode(out, output), output.media_type, index, step_ms, frame.nonfinite_total), state
+
+
+async def denoise_once(services: Services, name: str, body: bytes, output: codec.Output) -> Denoised:
+    """Denoise one frame as the first frame of a sequence of pipeline `name` (default options)."""
+    received = time.perf_counter()
+    try:
+        pipelines.pipeline_class(name)
+    except pipelines.UnknownPipelineError:
+        services.metrics.frame_failed(UNKNOWN_PIPELINE, "unknown_pipeline")
+        raise
+
+    def job() -> Denoised:
+        return _step(services.stateless_pipeline(name), None, body, output, services)[0]
+
+    try:
+        result = await services.pool.run(job)
+    except Exception as exc:
+        services.metrics.frame_failed(name, to_api_error(exc).code)
+        raise
+    services.metrics.frame_done(name, "rest", result.step_ms / 1e3, time.perf_counter() - received)
+    return result
+
+
+async def open_session(services: Services, spec: SessionSpec, owner: str | None) -> Session:
+    """Create a session (429 when the store is full; pipeline construction runs in the pool)."""
+    limits = services.settings
+    if spec.width > limits.max_width or spec.height > limits.max_height:
+        raise ApiError(413, "too_large", f"sessions take frames of at most {limits.max_width}x{limits.max_height} "
+                                         f"(width x height), asked {spec.width}x{spec.height}")
+    with services.sessions.reserve():
+        session = await services.pool.run(build_session, spec, owner)
+        services.sessions.add(session)
+    services.metrics.session_started()
+    return session
+
+
+async def end_session(services: Services, session: Session) -> None:
+    """End `session`: it is gone at once for new requests; its state is closed after the frame in progress."""
+    services.sessions.pop(session.id, session.owner)
+    async with session.lock:
+        await asyncio.get_running_loop().run_in_executor(None, close_state, session)
+
+
+async def session_frame(
+    services: Services, session: Session, body: bytes, output: codec.Output, *, route: str, wait: float = 0.0
+) -> Denoised:
+    """Denoise the next frame of `session`, in order with its other frames.
+
+    A frame refused for its content (FrameError, not EXR, too large, another size) leaves the state
+    as it was: pipelines check a frame before any work.
+    """
+    received = time.perf_counter()
+
+    def job() -> Denoised:
+        result, session.state = _step(session.pipeline, session.state, body, output, services)
+        session.record(result.step_ms)
+        return result
+
+    session.busy += 1
+    try:
+        result = await services.pool.run(job, wait=wait, hold=session.lock)
+    except Exception as exc:
+        session.errors += 1
+        services.metrics.frame_failed(session.spec.pipeline, to_api_error(exc).code)
+        raise
+    finally:
+        session.busy -= 1
+        session.last_used = time.monotonic()
+    services.metrics.frame_done(session.spec.pipeline, route, result.step_ms / 1e3, time.perf_counter() - received)
+    return result

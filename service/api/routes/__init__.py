@@ -1,0 +1,53 @@
+"""One small module per resource; `frame_response` is the answer every frame route shares."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import Response
+
+from service.api import codec
+from service.api.frames import Denoised
+from service.api.schemas import ErrorBody
+
+FRAME_HEADERS = {
+    "X-Frame-Index": "index of the frame in its sequence (0 for a stateless frame)",
+    "X-Step-Ms": "time in the pipeline step, milliseconds",
+    "X-Nonfinite-Repaired": "NaN/Inf input values that were repaired",
+}
+# OpenAPI description of a route that takes one EXR frame and answers one frame.
+FRAME_OPENAPI: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "description": "one frame as an OpenEXR file (channels LAYER.CHANNEL, see FRAME_FORMAT.md)",
+        "content": {codec.EXR: {"schema": {"type": "string", "format": "binary"}}},
+    }
+}
+FRAME_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {
+        "description": "the denoised frame: EXR with layer `color`, or a PNG preview with Accept: image/png",
+        "content": {codec.EXR: {"schema": {"type": "string", "format": "binary"}},
+                    codec.PNG: {"schema": {"type": "string", "format": "binary"}}},
+        "headers": {name: {"description": text, "schema": {"type": "string"}} for name, text in FRAME_HEADERS.items()},
+    },
+    **{status: {"model": ErrorBody, "description": text} for status, text in (
+        (400, "not EXR, truncated, unknown pipeline"),
+        (401, "missing or wrong API key"),
+        (413, "body or frame too large"),
+        (415, "Content-Type is not image/x-exr"),
+        (422, "missing or malformed layer (named), or a size other than the session's"),
+        (503, "every frame slot is taken; see Retry-After"),
+    )},
+}
+
+
+def frame_response(result: Denoised) -> Response:
+    return Response(
+        result.body,
+        media_type=result.media_type,
+        headers={
+            "X-Frame-Index": str(result.frame_index),
+            "X-Step-Ms": f"{result.step_ms:.3f}",
+            "X-Nonfinite-Repaired": str(result.nonfinite),
+        },
+    )

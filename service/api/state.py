@@ -1,0 +1,86 @@
+"""What one app instance holds while it runs: settings, worker pool, sessions, metrics, shared pipelines."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import sys
+from dataclasses import dataclass, field
+
+from service import pipelines
+from service.api.core.config import Settings
+from service.api.sessions import SessionStore, close_state
+from service.api.telemetry import Metrics
+from service.api.workers import WorkerPool
+from service.pipelines import Pipeline
+
+log = logging.getLogger("mcdenoise.api")
+
+# Libraries that read a thread count from the environment when they load (ONNX Runtime sessions are
+# configured by service.runtime, which may read MCDENOISE_FRAME_THREADS).
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+@dataclass
+class Services:
+    settings: Settings
+    pool: WorkerPool
+    sessions: SessionStore
+    metrics: Metrics = field(default_factory=Metrics)
+    ready: bool = False
+    # One shared pipeline object per name for stateless REST frames (its state is per request).
+    _stateless: dict[str, Pipeline] = field(default_factory=dict)
+    _expiry: asyncio.Task | None = None
+
+    @classmethod
+    def start(cls, settings: Settings) -> Services:
+        """Build the services and start the idle-expiry loop (call inside the running event loop)."""
+        limit_threads(settings.frame_threads)
+        services = cls(
+            settings,
+            WorkerPool(settings.worker_threads, settings.max_inflight, settings.retry_after_s),
+            SessionStore(settings.max_sessions, settings.session_idle_s),
+        )
+        services._expiry = asyncio.get_running_loop().create_task(services._expire_forever())
+        services.ready = True
+        log.info("mcdenoise service ready: %s", settings.public())
+        return services
+
+    async def stop(self) -> None:
+        self.ready = False
+        if self._expiry is not None:
+            self._expiry.cancel()
+        for session in self.sessions.all():
+            self.sessions.pop(session.id, session.owner)
+            close_state(session)
+        self.pool.shutdown()
+
+    def stateless_pipeline(self, name: str) -> Pipeline:
+        """The shared pipeline `name` with default options (raises UnknownPipelineError)."""
+        if name not in self._stateless:
+            self._stateless[name] = pipelines.get(name)
+        return self._stateless[name]
+
+    async def _expire_forever(self) -> None:
+        period = min(5.0, self.settings.session_idle_s / 4)
+        while True:
+            await asyncio.sleep(period)
+            expired = self.sessions.expire()
+            if expired:
+                self.metrics.session_expired(len(expired))
+                log.info("expired %d idle session(s)", len(expired))
+                for session in expired:
+                    await asyncio.get_running_loop().run_in_executor(None, close_state, session)
+
+
+def limit_threads(n: int) -> None:
+    """Cap the threads one frame may use in libraries not yet loaded (env) and in numba if loaded."""
+    for name in (*_THREAD_VARIABLES, "MCDENOISE_FRAME_THREADS"):
+        os.environ.setdefault(name, str(n))
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        try:
+            numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+        except Exception:  # a numba without threading layer: keep its default
+            log.warning("could not limit numba to %d threads", n)

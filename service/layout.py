@@ -1,0 +1,142 @@
+"""The one source of truth for how arrays meet networks: channel order, padding alignment, layout.
+
+numpy stages work in (H, W, C); networks in (N, C, H, W). Every network input is a stack of named
+channel groups in a fixed order, each with the transform applied before stacking. `models/` (training),
+`export/` (ONNX export, which writes this contract into the file's metadata) and `service/` (inference,
+which reads it back) all import these names; nothing else hard-codes an order or an alignment.
+
+Pure numpy: no torch here (service/ must import without it). Torch callers convert with
+`torch.from_numpy(hwc_to_nchw(...))`, or apply `pad_amounts` with `torch.nn.functional.pad`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+# Transforms a channel group may go through before it enters a network.
+TRANSFORM_NONE = "none"
+TRANSFORM_LOG1P = "log1p"  # log(1 + x) of linear HDR radiance (Bako et al. 2017; Choi 2024 sec. 4.4)
+
+
+@dataclass(frozen=True)
+class ChannelGroup:
+    """A named group of consecutive channels in a network tensor."""
+
+    name: str  # e.g. "pilotA"
+    channels: int  # number of channels
+    transform: str  # TRANSFORM_*: what was applied to the quantity before stacking
+    meaning: str  # one line, with units
+
+
+# Choi et al. 2024, sec. 4.2 / Fig. 3, in the order of the authors' code (CGLab-GIST/cross-denoiser:
+# color1, color2, prev, albedo, normal). The pilots and the previous output arrive in log1p space already
+# (the cross-regression stage works there), so `transform` records the space, not a step to repeat.
+CROSSREG_INPUTS: tuple[ChannelGroup, ...] = (
+    ChannelGroup("pilotA", 3, TRANSFORM_LOG1P, "cross-regression pilot estimate A, log1p radiance"),
+    ChannelGroup("pilotB", 3, TRANSFORM_LOG1P, "cross-regression pilot estimate B, log1p radiance"),
+    ChannelGroup("previous", 3, TRANSFORM_LOG1P, "previous output reprojected to this frame, log1p radiance"),
+    ChannelGroup("albedo", 3, TRANSFORM_NONE, "albedo of the first visible surface, [0, 1]"),
+    ChannelGroup("normal", 3, TRANSFORM_NONE, "world-space unit shading normal, [-1, 1]"),
+)
+
+# The six per-pixel filter parameters theta (Choi 2024 sec. 4.2) as the network emits them after its head:
+# the five bandwidths as precisions 1 / (theta^2 + eps) (eq. 9 denominators, positive by construction) and
+# the temporal blending weight sigmoid(theta_alpha) in (0, 1) (eq. 8).
+CROSSREG_OUTPUTS: tuple[ChannelGroup, ...] = (
+    ChannelGroup("precisionA", 1, TRANSFORM_NONE, "1 / (theta_A^2 + eps), per (log1p radiance)^2"),
+    ChannelGroup("precisionB", 1, TRANSFORM_NONE, "1 / (theta_B^2 + eps), per (log1p radiance)^2"),
+    ChannelGroup("precisionAlbedo", 1, TRANSFORM_NONE, "1 / (theta_albedo^2 + eps), per albedo^2"),
+    ChannelGroup("precisionNormal", 1, TRANSFORM_NONE, "1 / (theta_normal^2 + eps), per normal^2"),
+    ChannelGroup("precisionPosition", 1, TRANSFORM_NONE, "1 / (theta_position^2 + eps), per (offset / 5 px)^2"),
+    ChannelGroup("alpha", 1, TRANSFORM_NONE, "sigmoid(theta_alpha): weight of the current frame, (0, 1)"),
+)
+
+# What the online / offline training step needs beyond the network input (Choi 2024 eqs. 11-13), stacked
+# after CROSSREG_INPUTS in one (H, W, 15 + 7) training sample. Where reprojection failed, the previous
+# pilots are replaced by the current ones (so the temporal term falls back to the spatial one) and
+# `valid` is 0 (the filter ignores the history there).
+CROSSREG_TARGETS: tuple[ChannelGroup, ...] = (
+    ChannelGroup("valid", 1, TRANSFORM_NONE, "1 where the reprojected history is usable, else 0"),
+    ChannelGroup("previousPilotA", 3, TRANSFORM_LOG1P, "previous frame's pilot A reprojected, log1p radiance"),
+    ChannelGroup("previousPilotB", 3, TRANSFORM_LOG1P, "previous frame's pilot B reprojected, log1p radiance"),
+)
+CROSSREG_SAMPLE = CROSSREG_INPUTS + CROSSREG_TARGETS
+
+
+def total_channels(groups: Sequence[ChannelGroup]) -> int:
+    return sum(g.channels for g in groups)
+
+
+def channel_slices(groups: Sequence[ChannelGroup]) -> dict[str, slice]:
+    """name -> slice of the channel axis that group occupies."""
+    out: dict[str, slice] = {}
+    start = 0
+    for group in groups:
+        out[group.name] = slice(start, start + group.channels)
+        start += group.channels
+    return out
+
+
+def stack_channels(groups: Sequence[ChannelGroup], arrays: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Stack the (H, W, c) float32 arrays named by `groups`, in their order, into (H, W, C) float32.
+
+    Raises ValueError naming a missing group or a wrong channel count.
+    """
+    parts = []
+    for group in groups:
+        if group.name not in arrays:
+            raise ValueError(f"network input '{group.name}' is missing")
+        arr = arrays[group.name]
+        if arr.ndim != 3 or arr.shape[2] != group.channels:
+            raise ValueError(f"network input '{group.name}' has shape {arr.shape}; expected (H, W, {group.channels})")
+        parts.append(arr)
+    return np.ascontiguousarray(np.concatenate(parts, axis=-1), dtype=np.float32)
+
+
+def groups_to_json(groups: Sequence[ChannelGroup]) -> list[dict[str, object]]:
+    return [{"name": g.name, "channels": g.channels, "transform": g.transform, "meaning": g.meaning} for g in groups]
+
+
+def groups_from_json(items: Sequence[Mapping[str, object]]) -> tuple[ChannelGroup, ...]:
+    return tuple(
+        ChannelGroup(str(i["name"]), int(i["channels"]), str(i["transform"]), str(i.get("meaning", "")))  # type: ignore[arg-type]
+        for i in items
+    )
+
+
+def pad_amounts(height: int, width: int, alignment: int) -> tuple[int, int]:
+    """(rows, columns) to add at the bottom and right so both sizes are multiples of `alignment`."""
+    if alignment < 1:
+        raise ValueError(f"alignment must be >= 1, got {alignment}")
+    return (-height) % alignment, (-width) % alignment
+
+
+def pad_hwc(arr: np.ndarray, alignment: int) -> np.ndarray:
+    """Pad (H, W, C) at the bottom and right by edge replication up to multiples of `alignment`.
+
+    Returns the input itself when no padding is needed. Undo with `crop_hwc(out, H, W)`.
+    """
+    rows, cols = pad_amounts(arr.shape[0], arr.shape[1], alignment)
+    if rows == 0 and cols == 0:
+        return arr
+    return np.pad(arr, ((0, rows), (0, cols), (0, 0)), mode="edge")
+
+
+def crop_hwc(arr: np.ndarray, height: int, width: int) -> np.ndarray:
+    """The top-left (height, width, C) part of (H', W', C), H' >= height, W' >= width."""
+    return arr[:height, :width]
+
+
+def hwc_to_nchw(arr: np.ndarray) -> np.ndarray:
+    """(H, W, C) -> contiguous (1, C, H, W) float32."""
+    return np.ascontiguousarray(arr.transpose(2, 0, 1)[None], dtype=np.float32)
+
+
+def nchw_to_hwc(arr: np.ndarray) -> np.ndarray:
+    """(1, C, H, W) -> contiguous (H, W, C) float32."""
+    if arr.ndim != 4 or arr.shape[0] != 1:
+        raise ValueError(f"expected (1, C, H, W), got {arr.shape}")
+    return np.ascontiguousarray(arr[0].transpose(1, 2, 0), dtype=np.float32)

@@ -1,0 +1,222 @@
+"""Serving side of online fine-tuning: a torch worker process that trains the crossreg U-Net while a
+sequence streams, and hands back new weights (Choi et al. 2024, sec. 4.3: one Adam step per frame).
+
+    trainer = OnlineTrainer(model_bytes, None, OnlineConfig(publish_every=4, crop=128))
+    trainer.submit(sample, frame_index)      # never blocks: a full inbox drops the frame from training
+    weights = trainer.poll()                 # newest published weights, or None; never blocks
+    trainer.status()                         # running / lagging / crashed, counters, weights version
+
+The worker (models/train/online_worker.py) runs in a separate process started with the multiprocessing
+`spawn` method; this module imports neither torch nor models/ (the child imports them). Samples travel
+through a bounded multiprocessing queue as random crops (`crop` pixels a side) of the frame's
+(H, W, 22) training sample (service.layout.CROSSREG_SAMPLE): a crop keeps a CPU training step in the
+tens of milliseconds and the pickled message small, at the price of training on a part of each frame
+(over a sequence the crops cover the frame) and of a filter window cut at the crop edge.
+
+Failure model: a worker that raises reports its traceback and exits; a worker that dies is seen by
+`status()` through its exit code. Either way inference continues on the last weights the caller
+accepted; the caller refuses non-finite weights (service.runtime.OnnxModel.swap_weights).
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import multiprocessing as mp
+import queue
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+WORKER_MODULE = "models.train.online_worker"  # imported in the child process only
+
+
+class OnlineUnavailableError(RuntimeError):
+    """Online training was asked for but torch (the `train` extra) is not installed."""
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """Options of online fine-tuning (crossreg pipeline options of the same names)."""
+
+    publish_every: int = 4  # K: frames trained between weight publications
+    crop: int = 128  # side of the random training crop, pixels (0: the whole frame)
+    steps_per_frame: int = 1  # gradient steps per received frame (Choi 2024: 1)
+    learning_rate: float = 1e-3  # Adam (Choi 2024 sec. 4.4)
+    inbox_frames: int = 2  # frames that may wait for the worker; more are dropped from training
+    worker_threads: int = 1  # torch threads of the worker (leaves the other cores to inference)
+    seed: int = 0  # crop positions
+    alignment: int = 4  # crops are multiples of it (the network's, from the ONNX metadata)
+
+    def __post_init__(self) -> None:
+        for name in ("publish_every", "steps_per_frame", "inbox_frames", "worker_threads", "alignment"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"online option {name} must be >= 1, got {getattr(self, name)}")
+        if self.crop < 0:
+            raise ValueError(f"online option crop must be >= 0 (0: whole frame), got {self.crop}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"online option learning_rate must be > 0, got {self.learning_rate}")
+
+
+def require_torch() -> None:
+    """Raise OnlineUnavailableError when torch cannot be imported."""
+    if importlib.util.find_spec("torch") is None:
+        raise OnlineUnavailableError(
+            "online training needs torch, which is not installed; install the train extra "
+            "(pip install 'mcdenoise[train]') or run without --online / online=false"
+        )
+
+
+def _child_main(
+    inbox: Any, outbox: Any, config: dict[str, Any], model_bytes: bytes, weights: dict[str, np.ndarray] | None
+) -> None:
+    """Entry point of the spawned process: import the torch worker there, not here."""
+    importlib.import_module(WORKER_MODULE).run(inbox, outbox, config, model_bytes, weights)
+
+
+def random_crop(sample: np.ndarray, size: int, alignment: int, rng: np.random.Generator) -> np.ndarray:
+    """A random window of `sample` (H, W, C) whose sides are `size` (or the frame's) cut down to multiples
+    of `alignment`; a frame smaller than the alignment is edge-padded up to it. size 0: whole frame."""
+    height, width = sample.shape[:2]
+    if height < alignment or width < alignment:
+        sample = np.pad(sample, ((0, max(0, alignment - height)), (0, max(0, alignment - width)), (0, 0)), "edge")
+        height, width = sample.shape[:2]
+    ch = min(size, height) if size > 0 else height
+    cw = min(size, width) if size > 0 else width
+    ch, cw = ch - ch % alignment, cw - cw % alignment
+    y = int(rng.integers(0, height - ch + 1))
+    x = int(rng.integers(0, width - cw + 1))
+    return np.ascontiguousarray(sample[y : y + ch, x : x + cw], dtype=np.float32)
+
+
+class OnlineTrainer:
+    """Owns one worker process for one sequence. Not thread-safe: one caller (the pipeline step)."""
+
+    def __init__(
+        self,
+        model_bytes: bytes,
+        initial_weights: dict[str, np.ndarray] | None = None,
+        config: OnlineConfig | None = None,
+    ):
+        """model_bytes: the ONNX model the serving session runs (graph and, unless `initial_weights` is
+        given, the starting weights: its initializers). initial_weights: name -> float32 array to start
+        from instead (e.g. a random initialisation the session also swapped in)."""
+        require_torch()
+        self.config = config or OnlineConfig()
+        ctx = mp.get_context("spawn")
+        self._inbox = ctx.Queue(maxsize=self.config.inbox_frames)
+        self._outbox = ctx.Queue()
+        self._rng = np.random.default_rng(self.config.seed)
+        self.frames_submitted = 0
+        self.frames_dropped = 0
+        self.frames_trained = 0
+        self.last_loss: float | None = None
+        self.losses: list[tuple[int, float]] = []  # (frame index, loss before its step): the training curve
+        self.published = 0  # weight sets received from the worker
+        self.last_error: str | None = None
+        self._ready = False
+        self._failed = False
+        self._last_dropped = False
+        self._closed = False
+        self._process = ctx.Process(
+            target=_child_main,
+            args=(self._inbox, self._outbox, asdict(self.config), model_bytes, initial_weights),
+            name="crossreg-online-worker",
+            daemon=True,
+        )
+        self._process.start()
+
+    @property
+    def pid(self) -> int | None:
+        return self._process.pid
+
+    def alive(self) -> bool:
+        return self._process.is_alive() and not self._failed
+
+    def submit(self, sample: np.ndarray, frame_index: int) -> bool:
+        """Offer one frame's training sample (H, W, 22) float32; returns False when it was dropped (worker
+        busy or gone). Never blocks: cropping and one non-blocking put."""
+        self.frames_submitted += 1
+        if self._closed or not self.alive():
+            self.frames_dropped += 1
+            self._last_dropped = True
+            return False
+        crop = random_crop(sample, self.config.crop, self.config.alignment, self._rng)
+        try:
+            self._inbox.put_nowait((frame_index, crop))
+        except queue.Full:
+            self.frames_dropped += 1
+            self._last_dropped = True
+            return False
+        self._last_dropped = False
+        return True
+
+    def poll(self) -> tuple[int, dict[str, np.ndarray]] | None:
+        """Drain the worker's messages; returns (version, weights) of the newest published set, or None."""
+        newest = None
+        while True:
+            try:
+                kind, payload = self._outbox.get_nowait()
+            except (queue.Empty, EOFError, OSError):
+                break
+            if kind == "ready":
+                self._ready = True
+            elif kind == "trained":
+                self.frames_trained = payload["frames"]
+                self.last_loss = payload["loss"]
+                self.losses.append((payload["frame_index"], payload["loss"]))
+            elif kind == "weights":
+                self.published += 1
+                newest = (payload["version"], payload["weights"])
+            elif kind == "error":
+                self.last_error = payload
+                self._failed = True
+        return newest
+
+    def status(self) -> dict[str, Any]:
+        """running / lagging / starting / crashed / stopped, with counters (see crossreg online_status)."""
+        if self._closed:
+            state = "stopped"
+        elif self._failed or not self._process.is_alive():
+            state = "crashed"
+            if self.last_error is None:
+                self.last_error = f"worker process exited with code {self._process.exitcode}"
+        elif not self._ready:
+            state = "starting"
+        elif self._last_dropped:
+            state = "lagging"
+        else:
+            state = "running"
+        return {
+            "state": state,
+            "running": state in ("starting", "running", "lagging"),
+            "crashed": state == "crashed",
+            "lagging": state == "lagging",
+            "frames_submitted": self.frames_submitted,
+            "frames_trained": self.frames_trained,
+            "frames_dropped": self.frames_dropped,
+            "weights_published": self.published,
+            "last_loss": self.last_loss,
+            "last_error": self.last_error,
+            "pid": self._process.pid,
+        }
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop the worker (sentinel, then terminate after `timeout` seconds). Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._inbox.put_nowait(None)
+        except (queue.Full, ValueError, OSError):
+            pass
+        deadline = time.monotonic() + timeout
+        self._process.join(max(0.0, deadline - time.monotonic()))
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(1.0)
+        for q in (self._inbox, self._outbox):
+            q.cancel_join_thread()
+            q.close()

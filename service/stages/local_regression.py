@@ -1,0 +1,628 @@
+"""Weighted local linear regression: the one solver behind cross-regression, BMFR and FLR.
+
+Three pieces, each a pure function on arrays:
+
+- `solve_ridge`: many small normal equations (X^T W X + R) beta = X^T W Y at once, Tikhonov-regularised
+  so that singular systems (constant G-buffers, black frames) give finite, zero-slope solutions.
+- `block_regression` (= `block_moments` -> `solve_ridge` -> `block_reconstruct`): block-wise regression
+  of Choi et al. 2024 (sec. 3, eqs. 3-5, after Koskela et al. 2019 and Moon et al. 2015). Normal equations
+  are solved only at centre pixels on every `sparsity`-th row and column; each centre fits a linear
+  function of pair features x_i - x_c over its (2r+1)^2 window, and every pixel averages the predictions
+  of the centres whose window holds it (eq. 5). Pair weights have the form of Choi eq. 7.
+- `clamp_fireflies`: clips each value to its 3x3 neighbourhood mean +- k std before any regression, so a
+  single 1e6 sample cannot leak through a whole window of fits (our addition, not in the papers).
+
+Layout: the solver works on channel-first planes, (K, H, W) float32, so the numba kernels stream along x.
+Every fast numba kernel has a plain-numpy `*_reference` twin with the same signature; tests hold them
+together. Windows are clipped at the frame border (no padding), as in `service.stages.window`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import llvmlite.ir
+import numba
+import numpy as np
+from numba import types
+from numba.extending import intrinsic
+
+from service.stages.window import overlap, window_offsets
+
+RIDGE_RELATIVE = 1e-3  # Tikhonov: fraction of each feature's own weighted second moment added to its diagonal
+RIDGE_ABSOLUTE = 1e-6  # Tikhonov floor, x sum of weights: keeps features that never vary (constant G-buffer) at 0
+WEIGHT_FLOOR = 1e-7  # added to every pair weight, as the Choi 2024 code does (ops/regression.cu)
+EPS_VARIANCE = 1e-4  # Choi 2024 eq. 7 epsilon (value of their code), colour^2 units
+EPS_SIGMA = 1e-2  # Choi 2024 eq. 6 epsilon (value of their code), colour units
+FIREFLY_K = 4.0  # clamp_fireflies: neighbourhood standard deviations a value may lie from the neighbour mean
+
+
+@dataclass(frozen=True)
+class BlockParams:
+    """Geometry and regularisation of a block regression."""
+
+    radius: int = 8  # window half-size in pixels: 8 gives the 17x17 window of Choi 2024 sec. 3
+    sparsity: int = 4  # centres on every `sparsity`-th row and column (Choi 2024 sec. 3: 1/16 of the pixels)
+    ridge_relative: float = RIDGE_RELATIVE  # see module constant
+    ridge_absolute: float = RIDGE_ABSOLUTE  # see module constant
+    sigma_position: float | None = None  # pixels; Gaussian falloff of the pair weight with distance, None: flat
+
+    def __post_init__(self) -> None:
+        if self.sparsity < 1:
+            raise ValueError(f"sparsity must be >= 1, got {self.sparsity}")
+        if self.radius < self.sparsity - 1:
+            raise ValueError(
+                f"radius {self.radius} leaves pixels without a centre; it must be >= sparsity - 1 = {self.sparsity - 1}"
+            )
+        if not (self.ridge_relative >= 0 and self.ridge_absolute > 0):
+            raise ValueError("ridge_relative must be >= 0 and ridge_absolute > 0")
+        if self.sigma_position is not None and not self.sigma_position > 0:
+            raise ValueError(f"sigma_position must be > 0 or None, got {self.sigma_position}")
+
+
+@dataclass(frozen=True)
+class PairTerms:
+    """Per-pixel inputs of a block regression, all channel-first float32 planes of one H x W frame.
+
+    Pair features of centre c and pixel i, per group g: [1, shared_i - shared_c, grouped_i - grouped_c],
+    where grouped feature k is divided by (sigma_i + sigma_c + EPS_SIGMA) when scaled[k] (Choi eq. 6).
+    Pair weight: exp(-|h_i - h_c|^2 / (v_i + v_c + EPS_VARIANCE)) (Choi eq. 7), times the spatial falloff
+    of `BlockParams.sigma_position`, plus WEIGHT_FLOOR.
+    """
+
+    shared: np.ndarray  # (Ks, H, W): features common to all groups (normals, depth, ...)
+    grouped: np.ndarray  # (G, Kg, H, W): features of one group of target channels (Kg may be 0)
+    scaled: np.ndarray  # (Kg,) bool: which grouped features are divided by sigma_i + sigma_c + eps
+    sigma: np.ndarray  # (H, W): standard deviation used by `scaled`, units of the scaled features
+    weight_guide: np.ndarray  # (D, H, W): h of the weight (D may be 0: flat weights)
+    weight_variance: np.ndarray  # (H, W): v of the weight, units of h^2
+
+    @property
+    def groups(self) -> int:
+        return self.grouped.shape[0]
+
+    @property
+    def features(self) -> int:
+        """K1: coefficients per group, constant included."""
+        return 1 + self.shared.shape[0] + self.grouped.shape[1]
+
+
+def plain_terms(shared: np.ndarray, groups: int = 1) -> PairTerms:
+    """PairTerms with only shared features, flat weights and no scaling (BMFR-style regression).
+
+    shared: (Ks, H, W) float32 planes. Returns PairTerms with `groups` groups and no grouped features.
+    """
+    _, height, width = shared.shape
+    zeros = np.zeros((height, width), np.float32)
+    return PairTerms(
+        np.ascontiguousarray(shared, dtype=np.float32),
+        np.zeros((groups, 0, height, width), np.float32),
+        np.zeros(0, bool),
+        zeros,
+        np.zeros((0, height, width), np.float32),
+        zeros,
+    )
+
+
+# --------------------------------------------------------------------------------------------- solver
+
+
+def solve_ridge(
+    gram: np.ndarray, rhs: np.ndarray, ridge_relative: float = RIDGE_RELATIVE, ridge_absolute: float = RIDGE_ABSOLUTE
+) -> np.ndarray:
+    """Solve many small symmetric systems (gram + R) beta = rhs with a Tikhonov term R.
+
+    gram: (..., k, k) float32/64, symmetric positive semi-definite (X^T W X); entry [0, 0] is the sum of
+    weights when column 0 of X is the constant (then R scales with it). rhs: (..., k, m) (X^T W Y).
+    R = diag(ridge_relative * gram_jj + ridge_absolute * s) with s = gram[..., 0, 0] clipped to >= 1e-30:
+    relative to each feature's own scale, so it is the same ridge in any feature units, and never zero.
+    A feature that is constant in a window has gram_jj = 0 and rhs_j = 0, hence beta_j = 0.
+    Returns beta: (..., k, m) float32, finite. Cholesky in float64, vectorised over the leading axes.
+    """
+    a = np.moveaxis(np.asarray(gram, np.float64), (-2, -1), (0, 1)).copy()  # (k, k, ...)
+    b = np.moveaxis(np.asarray(rhs, np.float64), (-2, -1), (0, 1)).copy()  # (k, m, ...)
+    k = a.shape[0]
+    scale = np.maximum(a[0, 0], 1e-30)
+    diag = [a[j, j].copy() for j in range(k)]
+    for j in range(k):
+        a[j, j] += ridge_relative * np.maximum(diag[j], 0.0) + ridge_absolute * scale
+    # Cholesky a = L L^T, L stored in the lower triangle of `a`.
+    for j in range(k):
+        for p in range(j):
+            a[j, j] -= a[j, p] * a[j, p]
+        # Rounding may eat the pivot of a near-singular system; the ridge term is its floor.
+        a[j, j] = np.sqrt(np.maximum(a[j, j], ridge_absolute * scale))
+        for i in range(j + 1, k):
+            for p in range(j):
+                a[i, j] -= a[i, p] * a[j, p]
+            a[i, j] /= a[j, j]
+    for i in range(k):  # forward: L z = b
+        for p in range(i):
+            b[i] -= a[i, p] * b[p]
+        b[i] /= a[i, i]
+    for i in reversed(range(k)):  # backward: L^T beta = z
+        for p in range(i + 1, k):
+            b[i] -= a[p, i] * b[p]
+        b[i] /= a[i, i]
+    return np.ascontiguousarray(np.moveaxis(b, (0, 1), (-2, -1)), dtype=np.float32)
+
+
+# ------------------------------------------------------------------------------------ shared helpers
+
+
+def centre_count(size: int, sparsity: int) -> int:
+    """Number of centres along an axis of `size` pixels: positions 0, s, 2s, ... < size."""
+    return (size + sparsity - 1) // sparsity
+
+
+def spatial_weights(params: BlockParams) -> np.ndarray:
+    """(2r+1, 2r+1) float32 spatial factor of the pair weight: ones, or a Gaussian of the offset in pixels."""
+    r = params.radius
+    if params.sigma_position is None:
+        return np.ones((2 * r + 1, 2 * r + 1), np.float32)
+    d = np.arange(-r, r + 1, dtype=np.float32)
+    g = np.exp(-0.5 * (d / np.float32(params.sigma_position)) ** 2)
+    return np.ascontiguousarray(np.outer(g, g), dtype=np.float32)
+
+
+def neighbour_mean(planes: np.ndarray) -> np.ndarray:
+    """Mean of the up-to-8 neighbours of each pixel in its 3x3 window, the pixel itself excluded.
+
+    planes: (K, H, W) float32. Neighbours outside the frame are left out of the mean; a 1x1 frame has no
+    neighbour and gets its own value. Returns (K, H, W) float32.
+    """
+    k, height, width = planes.shape
+    total = np.zeros_like(planes)
+    count = np.zeros((height, width), np.float32)
+    for dy, dx in window_offsets(1):
+        if dy == 0 and dx == 0:
+            continue
+        pair = overlap(height, width, dy, dx)
+        if pair is None:
+            continue
+        (cy, cx), (ny, nx) = pair
+        total[:, cy, cx] += planes[:, ny, nx]
+        count[cy, cx] += 1.0
+    lonely = count == 0
+    total[:, lonely] = planes[:, lonely]
+    return total / np.maximum(count, 1.0)
+
+
+def clamp_fireflies(planes: np.ndarray, k: float = FIREFLY_K) -> np.ndarray:
+    """Clip every value to [m - k s, m + k s], m and s the mean and standard deviation of its neighbours.
+
+    planes: (C, H, W) float32 radiance (any sign). The neighbourhood is the 3x3 window without the pixel
+    (frame border: the neighbours that exist). An isolated outlier (a firefly of 1e6, or -1e6) is brought
+    back to its neighbourhood; a constant image, and any pixel within k s of its neighbours, is unchanged.
+    Returns (C, H, W) float32.
+    """
+    mean = neighbour_mean(planes)
+    second = neighbour_mean(planes * planes)
+    spread = np.float32(k) * np.sqrt(np.maximum(second - mean * mean, 0.0))
+    return np.clip(planes, mean - spread, mean + spread).astype(np.float32, copy=False)
+
+
+# -------------------------------------------------------------------------------- fast exp for numba
+
+
+@intrinsic
+def _bits_to_float32(typingctx, bits):
+    """Reinterpret int32 bits as float32 (vectorises, unlike a call to expf)."""
+    sig = types.float32(types.int32)
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], llvmlite.ir.FloatType())
+
+    return sig, codegen
+
+
+@numba.njit(inline="always", fastmath=True)
+def _exp_neg(x):
+    """exp(-x) for x >= 0 in float32, relative error < 3e-7, 0 below exp(-87). Vectorisable."""
+    t = max(-x, np.float32(-87.0)) * np.float32(1.4426950408889634)  # log2(e)
+    n = np.floor(t + np.float32(0.5))
+    f = (t - n) * np.float32(0.6931471805599453)  # |f| <= ln2 / 2
+    p = np.float32(1.0 / 720.0)
+    p = p * f + np.float32(1.0 / 120.0)
+    p = p * f + np.float32(1.0 / 24.0)
+    p = p * f + np.float32(1.0 / 6.0)
+    p = p * f + np.float32(0.5)
+    p = p * f + np.float32(1.0)
+    p = p * f + np.float32(1.0)
+    return p * _bits_to_float32((np.int32(n) + np.int32(127)) << np.int32(23))
+
+
+# ------------------------------------------------------------------------------------ block moments
+
+
+def block_moments(terms: PairTerms, target: np.ndarray, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
+    """X^T W X and X^T W Y of every centre's window (Choi eq. 4), numba kernel.
+
+    terms: PairTerms of the frame. target: (C, H, W) float32 planes of y, C = G * M (group g owns
+    channels g*M ... g*M+M-1). Returns gram (Hc, Wc, G, K1, K1) and rhs (Hc, Wc, G, K1, M), float32, with
+    Hc, Wc = `centre_count` of H, W; feature order [1, shared..., grouped...].
+    """
+    hc, wc, g, k1, m = _moment_shape(terms, target, params)
+    layout = _Layout(terms, target.shape[0])
+    fa, fb, dest = layout.moment_entries()
+    acc = np.zeros((hc, len(fa), wc), np.float32)
+    _block_moments_kernel(
+        _phase_planes(layout.pack(terms, target), params), layout.counts(), np.asarray(terms.scaled, np.bool_),
+        spatial_weights(params), params.radius, params.sparsity, _constants(), fa, fb, acc,
+    )  # fmt: skip
+    gram = np.zeros((hc, wc, g, k1, k1), np.float32)
+    rhs = np.zeros((hc, wc, g, k1, m), np.float32)
+    for e, (kind, gi, p, q) in enumerate(dest):
+        plane = acc[:, e, :]
+        if kind == 0:  # gram entry of every group (shared block)
+            gram[:, :, :, p, q] = plane[:, :, None]
+            gram[:, :, :, q, p] = plane[:, :, None]
+        elif kind == 1:
+            gram[:, :, gi, p, q] = plane
+            gram[:, :, gi, q, p] = plane
+        else:
+            rhs[:, :, gi, p, q] = plane
+    return gram, rhs
+
+
+def block_moments_reference(terms: PairTerms, target: np.ndarray, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
+    """Plain-numpy twin of `block_moments` (same arguments and result), vectorised over centres."""
+    hc, wc, g, k1, m = _moment_shape(terms, target, params)
+    _, height, width = target.shape
+    s, r = params.sparsity, params.radius
+    spatial = spatial_weights(params)
+    gram = np.zeros((hc, wc, g, k1, k1), np.float32)
+    rhs = np.zeros((hc, wc, g, k1, m), np.float32)
+    for dy, dx in window_offsets(r):
+        rows, cols = _valid_centres(hc, height, s, dy), _valid_centres(wc, width, s, dx)
+        if rows is None or cols is None:
+            continue
+        centre = (slice(rows.start * s, (rows.stop - 1) * s + 1, s), slice(cols.start * s, (cols.stop - 1) * s + 1, s))
+        pixel = (slice(centre[0].start + dy, centre[0].stop + dy, s), slice(centre[1].start + dx, centre[1].stop + dx, s))
+        weight = _pair_weight(terms, centre, pixel) * spatial[dy + r, dx + r] + np.float32(WEIGHT_FLOOR)
+        feats = _pair_features(terms, centre, pixel)  # (G, K1, h, w)
+        y = target[(slice(None), *pixel)].reshape(g, m, *weight.shape)
+        wf = feats * weight
+        gram[rows, cols] += np.einsum("gkhw,glhw->hwgkl", wf, feats)
+        rhs[rows, cols] += np.einsum("gkhw,gmhw->hwgkm", wf, y)
+    return gram, rhs
+
+
+def _moment_shape(terms: PairTerms, target: np.ndarray, params: BlockParams) -> tuple[int, int, int, int, int]:
+    channels, height, width = target.shape
+    g = terms.groups
+    if channels % g:
+        raise ValueError(f"{channels} target channels do not split into {g} groups")
+    return (centre_count(height, params.sparsity), centre_count(width, params.sparsity), g, terms.features,
+            channels // g)  # fmt: skip
+
+
+def _valid_centres(count: int, size: int, sparsity: int, offset: int) -> slice | None:
+    """Range of centre indices a whose pixel a*sparsity + offset lies inside [0, size)."""
+    start = max(0, -(offset // sparsity))
+    stop = min(count, (size - 1 - offset) // sparsity + 1)
+    return slice(start, stop) if stop > start else None
+
+
+def _pair_weight(terms: PairTerms, centre: tuple[slice, slice], pixel: tuple[slice, slice]) -> np.ndarray:
+    """Choi eq. 7 weight (without spatial factor and floor) for centre/pixel slices: (h, w) float32."""
+    h = terms.weight_guide
+    d2 = np.sum((h[(slice(None), *pixel)] - h[(slice(None), *centre)]) ** 2, axis=0)
+    v = terms.weight_variance
+    return np.exp(-d2 / (v[pixel] + v[centre] + np.float32(EPS_VARIANCE))).astype(np.float32)
+
+
+def _pair_features(terms: PairTerms, centre: tuple[slice, slice], pixel: tuple[slice, slice]) -> np.ndarray:
+    """Pair features x_i - x_c with the constant first: (G, K1, h, w) float32."""
+    shared = terms.shared[(slice(None), *pixel)] - terms.shared[(slice(None), *centre)]
+    grouped = terms.grouped[(slice(None), slice(None), *pixel)] - terms.grouped[(slice(None), slice(None), *centre)]
+    if terms.scaled.any():
+        inv = np.float32(1.0) / (terms.sigma[pixel] + terms.sigma[centre] + np.float32(EPS_SIGMA))
+        grouped = np.where(terms.scaled[None, :, None, None], grouped * inv, grouped)
+    g = terms.groups
+    ones = np.ones((g, 1, *shared.shape[1:]), np.float32)
+    return np.concatenate([ones, np.broadcast_to(shared, (g, *shared.shape)), grouped], axis=1).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------- numba kernels' layout
+
+LANE_CHUNK = 128  # centres processed together by the kernels: their accumulators fit the L1 cache
+#
+# The kernels vectorise over the centres of one centre row ("lanes"). For a window offset (dy, dx) the
+# pixels of consecutive centres are `sparsity` apart, so every input plane is split into `sparsity` phase
+# planes (x = sparsity * q + phase), where they are consecutive. Packed planes, in this order:
+# [inside-frame mask, v, sigma, h (D), shared (Ks), grouped (G * Kg), target (C)].
+# Per pair the kernels build feature rows F = [1, shared (Ks), grouped (G * Kg), target (C)]; a moment is
+# sum over pairs of w * F[fa] * F[fb], a prediction sum over k of beta_k * F[k].
+
+
+class _Layout:
+    """Plane and feature-row indices of one PairTerms + target channel count."""
+
+    def __init__(self, terms: PairTerms, channels: int):
+        self.d = terms.weight_guide.shape[0]
+        self.ks = terms.shared.shape[0]
+        self.g, self.kg = terms.grouped.shape[:2]
+        self.c = channels
+        self.m = channels // self.g
+
+    def counts(self) -> np.ndarray:
+        return np.array([self.d, self.ks, self.g, self.kg, self.c], np.int64)
+
+    def pack(self, terms: PairTerms, target: np.ndarray | None) -> np.ndarray:
+        height, width = terms.sigma.shape
+        parts = [np.ones((1, height, width), np.float32), terms.weight_variance[None], terms.sigma[None],
+                 terms.weight_guide, terms.shared, terms.grouped.reshape(-1, height, width)]  # fmt: skip
+        if target is not None:
+            parts.append(target)
+        return np.concatenate(parts, axis=0).astype(np.float32, copy=False)
+
+    def row(self, g: int, f: int) -> int:
+        """Feature row of group g's feature f (0: constant, 1..Ks: shared, then grouped)."""
+        return f if f <= self.ks else 1 + self.ks + g * self.kg + (f - 1 - self.ks)
+
+    def moment_entries(self) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int, int, int]]]:
+        """(fa, fb, dest): dest[e] = (0, -, p, q) gram of all groups, (1, g, p, q) gram of group g,
+        (2, g, f, m) rhs of group g."""
+        fa, fb, dest = [], [], []
+        for p in range(1 + self.ks):
+            for q in range(p, 1 + self.ks):
+                fa.append(p), fb.append(q), dest.append((0, 0, p, q))
+        for g in range(self.g):
+            for k in range(self.kg):
+                col = 1 + self.ks + k
+                for p in range(col + 1):
+                    fa.append(self.row(g, p)), fb.append(self.row(g, col)), dest.append((1, g, p, col))
+            for mm in range(self.m):
+                trow = 1 + self.ks + self.g * self.kg + g * self.m + mm
+                for f in range(1 + self.ks + self.kg):
+                    fa.append(self.row(g, f)), fb.append(trow), dest.append((2, g, f, mm))
+        return np.array(fa, np.int64), np.array(fb, np.int64), dest
+
+    def prediction_entries(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(channel, feature row, beta column) of every term of every channel's prediction."""
+        ch, rows, cols = [], [], []
+        k1 = 1 + self.ks + self.kg
+        for g in range(self.g):
+            for mm in range(self.m):
+                for f in range(k1):
+                    ch.append(g * self.m + mm), rows.append(self.row(g, f)), cols.append((g * k1 + f) * self.m + mm)
+        return np.array(ch, np.int64), np.array(rows, np.int64), np.array(cols, np.int64)
+
+
+def _constants() -> np.ndarray:
+    return np.array([EPS_SIGMA, EPS_VARIANCE, WEIGHT_FLOOR], np.float32)
+
+
+def _pad_lanes(params: BlockParams) -> int:
+    return -(-params.radius // params.sparsity)
+
+
+def _phase_planes(planes: np.ndarray, params: BlockParams) -> np.ndarray:
+    """(P, H, W) -> (S, P, H, Wc + 2 pad + 1) float32, S = sparsity: pixel x = S q + phase lands at
+    [phase, :, :, q + pad], pad = ceil(radius / S); zeros outside the frame (the mask plane is 0 there)."""
+    s, pad = params.sparsity, _pad_lanes(params)
+    count, height, width = planes.shape
+    wc = centre_count(width, s)
+    out = np.zeros((s, count, height, wc + 2 * pad + 1), np.float32)
+    for phase in range(s):
+        cols = planes[:, :, phase::s]
+        out[phase, :, :, pad : pad + cols.shape[2]] = cols
+    return out
+
+
+@numba.njit(inline="always", fastmath=True)
+def _pair_rows(planes, counts, scaled, consts, sw, phase, y, cy, lo, pad, rows, w, s, lanes):
+    """Fill w (pair weights) and F rows 1.. (pair features, targets) for the lanes of one offset.
+
+    Inner loops index 1-D views with the loop counter only, so LLVM sees contiguous, non-negative
+    indices and vectorises them."""
+    d, ks, g, kg, c = counts[0], counts[1], counts[2], counts[3], counts[4]
+    eps_sigma, eps_var, floor = consts[0], consts[1], consts[2]
+    for j in range(lanes):
+        s[j] = 0.0
+    for k in range(d):
+        pix, cen = planes[phase, 3 + k, y, lo : lo + lanes], planes[0, 3 + k, cy, pad : pad + lanes]
+        for j in range(lanes):
+            t = pix[j] - cen[j]
+            s[j] += t * t
+    mask = planes[phase, 0, y, lo : lo + lanes]
+    var_i, var_c = planes[phase, 1, y, lo : lo + lanes], planes[0, 1, cy, pad : pad + lanes]
+    sig_i, sig_c = planes[phase, 2, y, lo : lo + lanes], planes[0, 2, cy, pad : pad + lanes]
+    for j in range(lanes):
+        w[j] = (_exp_neg(s[j] / (var_i[j] + var_c[j] + eps_var)) * sw + floor) * mask[j]
+        s[j] = 1.0 / (sig_i[j] + sig_c[j] + eps_sigma)
+    base = 3 + d
+    for k in range(ks):
+        pix, cen, out = planes[phase, base + k, y, lo : lo + lanes], planes[0, base + k, cy, pad : pad + lanes], rows[1 + k]
+        for j in range(lanes):
+            out[j] = pix[j] - cen[j]
+    base += ks
+    for gi in range(g):
+        for k in range(kg):
+            plane = base + gi * kg + k
+            pix, cen = planes[phase, plane, y, lo : lo + lanes], planes[0, plane, cy, pad : pad + lanes]
+            out = rows[1 + ks + gi * kg + k]
+            if scaled[k]:
+                for j in range(lanes):
+                    out[j] = (pix[j] - cen[j]) * s[j]
+            else:
+                for j in range(lanes):
+                    out[j] = pix[j] - cen[j]
+    base += g * kg
+    for k in range(c):
+        pix, out = planes[phase, base + k, y, lo : lo + lanes], rows[1 + ks + g * kg + k]
+        for j in range(lanes):
+            out[j] = pix[j]
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, fa, fb, acc):
+    height = planes.shape[2]
+    hc, entries, lanes = acc.shape
+    nrows = 1 + counts[1] + counts[2] * counts[3] + counts[4]
+    pad = -(-radius // sparsity)
+    for a in numba.prange(hc):
+        rows = np.empty((nrows, LANE_CHUNK), np.float32)
+        w = np.empty(LANE_CHUNK, np.float32)
+        s = np.empty(LANE_CHUNK, np.float32)
+        wf = np.empty(LANE_CHUNK, np.float32)
+        rows[0, :] = 1.0
+        cy = a * sparsity
+        for j0 in range(0, lanes, LANE_CHUNK):  # chunks whose accumulators stay in L1
+            n = min(LANE_CHUNK, lanes - j0)
+            for dy in range(-radius, radius + 1):
+                y = cy + dy
+                if y < 0 or y >= height:
+                    continue
+                for dx in range(-radius, radius + 1):
+                    phase = dx % sparsity
+                    lo = pad + dx // sparsity + j0
+                    _pair_rows(planes, counts, scaled, consts, spatial[dy + radius, dx + radius], phase, y, cy, lo,
+                               pad + j0, rows, w, s, n)  # fmt: skip
+                    last = -1
+                    for e in range(entries):
+                        if fa[e] != last:
+                            last = fa[e]
+                            src = rows[last]
+                            for j in range(n):
+                                wf[j] = w[j] * src[j]
+                        src, out = rows[fb[e]], acc[a, e, j0 : j0 + n]
+                        for j in range(n):
+                            out[j] += wf[j] * src[j]
+
+
+# ------------------------------------------------------------------------------ block reconstruction
+
+
+def block_reconstruct(terms: PairTerms, beta: np.ndarray, params: BlockParams) -> np.ndarray:
+    """Choi eq. 5: each pixel's weighted mean of the predictions alpha_c + beta_c^T (x_i - x_c) of the
+    centres c whose window holds it, numba kernel.
+
+    terms: PairTerms of the frame (the same as for the moments). beta: (Hc, Wc, G, K1, M) float32 from
+    `solve_ridge`. Returns (C, H, W) float32 planes, C = G * M.
+    """
+    hc, wc, g, _, m = beta.shape
+    height, width = terms.sigma.shape
+    s = params.sparsity
+    layout = _Layout(terms, g * m)
+    layout.c = 0  # the kernel reads no target planes
+    ch, rows, cols = layout.prediction_entries()
+    planes = _phase_planes(layout.pack(terms, None), params)
+    num = np.zeros((s, g * m, height, planes.shape[3]), np.float32)
+    den = np.zeros((s, height, planes.shape[3]), np.float32)
+    coefs = np.ascontiguousarray(beta.reshape(hc, wc, -1).transpose(0, 2, 1))  # (Hc, G*K1*M, Wc)
+    _block_reconstruct_kernel(planes, layout.counts(), np.asarray(terms.scaled, np.bool_), spatial_weights(params),
+                              params.radius, s, _constants(), coefs, ch, rows, cols, num, den)  # fmt: skip
+    pad = _pad_lanes(params)
+    num, den = num[..., pad : pad + wc], den[..., pad : pad + wc]  # (S, C, H, Wc), (S, H, Wc)
+    out = (num / np.where(den > 0, den, 1.0)[:, None]).transpose(1, 2, 3, 0).reshape(g * m, height, wc * s)[:, :, :width]
+    return np.ascontiguousarray(out)
+
+
+def block_reconstruct_reference(terms: PairTerms, beta: np.ndarray, params: BlockParams) -> np.ndarray:
+    """Plain-numpy twin of `block_reconstruct` (same arguments and result), vectorised over centres."""
+    height, width = terms.sigma.shape
+    hc, wc, g, _, m = beta.shape
+    num = np.zeros((g * m, height, width), np.float32)
+    den = np.zeros((height, width), np.float32)
+    s, r = params.sparsity, params.radius
+    spatial = spatial_weights(params)
+    for dy, dx in window_offsets(r):
+        rows, cols = _valid_centres(hc, height, s, dy), _valid_centres(wc, width, s, dx)
+        if rows is None or cols is None:
+            continue
+        centre = (slice(rows.start * s, (rows.stop - 1) * s + 1, s), slice(cols.start * s, (cols.stop - 1) * s + 1, s))
+        pixel = (slice(centre[0].start + dy, centre[0].stop + dy, s), slice(centre[1].start + dx, centre[1].stop + dx, s))
+        weight = _pair_weight(terms, centre, pixel) * spatial[dy + r, dx + r] + np.float32(WEIGHT_FLOOR)
+        feats = _pair_features(terms, centre, pixel)  # (G, K1, h, w)
+        pred = np.einsum("gkhw,hwgkm->gmhw", feats, beta[rows, cols]).reshape(g * m, *weight.shape)
+        num[(slice(None), *pixel)] += weight * pred
+        den[pixel] += weight
+    return num / den
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _block_reconstruct_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, coefs, ch, frow, col,
+                              num, den):  # fmt: skip
+    height = planes.shape[2]
+    hc, _, lanes = coefs.shape
+    channels = num.shape[1]
+    nrows = 1 + counts[1] + counts[2] * counts[3]
+    pad = -(-radius // sparsity)
+    # Centre rows `stride` apart never share a pixel, so the rows of one pass may run in parallel.
+    stride = (2 * radius) // sparsity + 1
+    for first in range(stride):
+        for i in numba.prange((hc - first + stride - 1) // stride):
+            a = first + i * stride
+            rows = np.empty((nrows, LANE_CHUNK), np.float32)
+            w = np.empty(LANE_CHUNK, np.float32)
+            s = np.empty(LANE_CHUNK, np.float32)
+            pred = np.empty((channels, LANE_CHUNK), np.float32)
+            rows[0, :] = 1.0
+            cy = a * sparsity
+            for j0 in range(0, lanes, LANE_CHUNK):
+                n = min(LANE_CHUNK, lanes - j0)
+                for dy in range(-radius, radius + 1):
+                    y = cy + dy
+                    if y < 0 or y >= height:
+                        continue
+                    for dx in range(-radius, radius + 1):
+                        phase = dx % sparsity
+                        lo = pad + dx // sparsity + j0
+                        _pair_rows(planes, counts, scaled, consts, spatial[dy + radius, dx + radius], phase, y, cy,
+                                   lo, pad + j0, rows, w, s, n)  # fmt: skip
+                        pred[:, :] = 0.0
+                        for e in range(ch.shape[0]):
+                            out, coef, src = pred[ch[e]], coefs[a, col[e], j0 : j0 + n], rows[frow[e]]
+                            for j in range(n):
+                                out[j] += coef[j] * src[j]
+                        out = den[phase, y, lo : lo + n]
+                        for j in range(n):
+                            out[j] += w[j]
+                        for c in range(channels):
+                            out, src = num[phase, c, y, lo : lo + n], pred[c]
+                            for j in range(n):
+                                out[j] += w[j] * src[j]
+
+
+# ---------------------------------------------------------------------------------------- the whole
+
+
+def block_regression(
+    terms: PairTerms, target: np.ndarray, params: BlockParams, *, reference: bool = False
+) -> np.ndarray:
+    """Block-wise weighted regression of `target` on the pair features of `terms` (Choi eqs. 3-5).
+
+    target: (C, H, W) float32 planes of y (any sign, any scale). Returns (C, H, W) float32: the
+    reconstruction of eq. 5. reference: use the plain-numpy kernels (slow; for tests).
+    """
+    moments = block_moments_reference if reference else block_moments
+    reconstruct = block_reconstruct_reference if reference else block_reconstruct
+    gram, rhs = moments(terms, target, params)
+    beta = solve_ridge(gram, rhs, params.ridge_relative, params.ridge_absolute)
+    return reconstruct(terms, beta, params)
+
+
+def to_planes(image: np.ndarray) -> np.ndarray:
+    """(H, W, C) -> contiguous (C, H, W) float32."""
+    return np.ascontiguousarray(np.moveaxis(np.asarray(image, np.float32), -1, 0))
+
+
+def from_planes(planes: np.ndarray) -> np.ndarray:
+    """(C, H, W) -> contiguous (H, W, C) float32."""
+    return np.ascontiguousarray(np.moveaxis(planes, 0, -1), dtype=np.float32)
+
+
+def standardise(planes: np.ndarray) -> np.ndarray:
+    """Each plane minus its mean, over its standard deviation (planes that do not vary become 0).
+
+    planes: (K, H, W) float32. A regression with a constant term is unchanged by this affine change of
+    features; it puts every feature on unit scale, which the absolute ridge floor and float32 moments need.
+    """
+    flat = planes.reshape(planes.shape[0], -1).astype(np.float64)
+    mean = flat.mean(axis=1)
+    std = flat.std(axis=1)
+    std = np.where(std > 1e-12 * (np.abs(mean) + 1.0), std, np.inf)
+    out = (planes - mean[:, None, None].astype(np.float32)) / std[:, None, None].astype(np.float32)
+    return np.ascontiguousarray(out, dtype=np.float32)

@@ -1,0 +1,268 @@
+"""Statistical denoising filter of Sakai et al. 2024 (Algorithm 2): the joint bilateral base filter
+rho_ij (eq. 16, `service.stages.bilateral`) gated by a pair-wise Welch t-test membership m_ij.
+
+Per pixel the renderer hands the statistics of its Box-Cox transformed samples (frame layers
+`sampleCount`, `bcMean`, `bcM2`, `bcM3`; `service.stages.sample_statistics` computes them from
+samples, Algorithm 1). From them, per channel:
+
+    Var(theta_i) = sigma_i^2 / n_i = M2_i / (n_i - 1)              (Algorithm 2, Bessel-corrected)
+    theta_i      = mu_i + M3_i / (6 sigma_i^2 n_i)                 (Curto 2023 eq. 20 mean correction)
+
+and for a pair (i, j) with d = theta_i - theta_j the membership passes when
+
+    symmetric (eq. 12):   t = |d| / sqrt(Var_i + Var_j) <= t_{1-alpha/2, nu}
+    asymmetric (eq. 14):  ((2 (1 - w*_asym))^-1 - 1)^(1/2) <= t_{1-alpha/2, nu},
+                          i.e. d^2 + Var_j <= (1 + 2 t_crit^2) Var_i   (i: the pixel being denoised)
+
+with nu = n_i + n_j - 2 (sec. 4.2), in all three channels (sec. 5). Both tests are written without
+division, so zero variance is well defined: a pixel whose statistics are exact (M2 = 0) admits only
+neighbours with the same estimate, which makes the filter consistent (eq. 9): as the variance goes
+to zero the output converges to its input. We use `<=` where the paper writes `<`; they differ only
+where t equals the critical value exactly, and `<=` admits identical estimates of zero variance.
+A pixel with fewer than two samples has no variance estimate: its variance is +inf, so the symmetric
+test cannot reject it (the filter is the base filter there).
+
+The weights w_ij = rho_ij m_ij / sum_j rho_ij m_ij (eq. 10) filter `color`: the membership decides in
+the Box-Cox domain, the average is of the radiance itself, so energy is preserved with symmetric
+weights. `statistical_filter` runs a compiled kernel; `statistical_filter_numpy` is the reference,
+built on `base_weights`, and a parity test holds the two together.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit, prange
+
+from service.stages.bilateral import BilateralParams, base_weights, pair_weight
+from service.stages.student_t import critical_value_table
+
+ALPHA = 0.005  # Sakai 2024 sec. 4.2: significance level of the Welch test
+# Sakai 2024 sec. 5 base filter: Sigma = diag(10, 10, 0.02 x3, 0.1 x3) over position, albedo, normal;
+# radius 20 pixels at 720p (sec. 6; 6 is their fast setting, Fig. 6d). No depth term: not in the paper.
+PAPER_BASE = BilateralParams(radius=20, sigma2_position=10.0, sigma2_albedo=0.02, sigma2_normal=0.1, sigma2_log_depth=None)
+FAST_RADIUS = 6  # Sakai 2024 Fig. 6d: ~2.5x faster, a little more noise
+UNTESTABLE_CRIT2 = np.float32(1e30)  # stands for t_crit^2 = inf (nu <= 0) without producing inf * 0
+MAX_COUNT = 1 << 24  # sample counts are clamped here (float32 holds integers exactly up to 2^24)
+
+
+@dataclass(frozen=True)
+class StatisticalParams:
+    base: BilateralParams = field(default_factory=lambda: PAPER_BASE)  # rho_ij: eq. 16 weights and window radius
+    alpha: float = ALPHA  # significance level; the critical value is t_{1 - alpha/2, n_i + n_j - 2}
+    symmetric: bool = True  # eq. 12 (energy preserving) if True, else eq. 14 (asymmetric)
+    skew_correction: bool = True  # Curto 2023 eq. 20 correction of the means by the third moment
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.alpha < 1.0:
+            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
+
+
+@dataclass(frozen=True)
+class PixelEstimates:
+    """Per-pixel inputs of the membership test, in the Box-Cox domain of the samples.
+
+    theta: (H, W, C) float32 estimate of the pixel's mean (skew-corrected when asked).
+    var: (H, W, C) float32 variance of that estimate, sigma^2 / n >= 0; +inf where n < 2.
+    count: (H, W) int32 sample count n >= 0.
+    """
+
+    theta: np.ndarray
+    var: np.ndarray
+    count: np.ndarray
+
+
+def pixel_estimates(
+    count: np.ndarray, mean: np.ndarray, m2: np.ndarray, m3: np.ndarray, *, skew_correction: bool = True
+) -> PixelEstimates:
+    """Estimate and estimator variance per pixel from the frame-format statistics (Algorithm 2, lines 3-4).
+
+    count: (H, W, 1) or (H, W) float32 `sampleCount` n (rounded; negative counts count as 0).
+    mean, m2, m3: (H, W, C) float32 `bcMean`, `bcM2` (= sum d^2 / n) and `bcM3` (= sum d^3 / n) of the
+    Box-Cox transformed samples. Inconsistent statistics (a negative M2, or M3 beyond what n samples
+    with that M2 can produce, as float16 rounding makes) are clamped to the nearest consistent value:
+    |M3| <= (n - 2) / sqrt(n - 1) * M2^(3/2), the bound on the sample skewness.
+    """
+    n = np.rint(np.clip(np.asarray(count, np.float64).reshape(mean.shape[:2]), 0, MAX_COUNT))
+    nc = n[..., None]
+    mu = np.asarray(mean, np.float64)
+    m2 = np.maximum(np.asarray(m2, np.float64), 0.0)
+    known = nc >= 2
+    nm1 = np.where(known, nc - 1.0, 1.0)
+    var = np.where(known, m2 / nm1, np.inf)  # sigma^2 / n with the Bessel-corrected sigma^2
+    theta = mu
+    if skew_correction:
+        skew_max = np.where(known, (nc - 2.0) / np.sqrt(nm1), 0.0)
+        bound = skew_max * m2 * np.sqrt(m2)
+        m3 = np.clip(np.asarray(m3, np.float64), -bound, bound)
+        safe = known & (m2 > 0)
+        # Curto 2023 eq. 20: mu + M3 / (6 sigma^2 n) with sigma^2 = M2 n / (n - 1)
+        theta = mu + np.where(safe, m3 * nm1 / (6.0 * np.where(safe, m2, 1.0) * nc * nc), 0.0)
+    return PixelEstimates(theta.astype(np.float32), var.astype(np.float32), n.astype(np.int32))
+
+
+def critical_values_squared(alpha: float, max_count: int) -> np.ndarray:
+    """t_{1-alpha/2, nu}^2 for nu = 0 .. 2 max_count - 2, float32, with the untestable nu = 0 as 1e30.
+
+    The table length is rounded up to a power of two so that frames with similar counts share a table.
+    """
+    nu_max = 1 << max(6, int(2 * max_count - 2).bit_length())
+    table = np.asarray(critical_value_table(float(alpha), nu_max), np.float64) ** 2
+    return np.minimum(table, UNTESTABLE_CRIT2).astype(np.float32)
+
+
+def membership(
+    theta_i: np.ndarray,
+    var_i: np.ndarray,
+    theta_j: np.ndarray,
+    var_j: np.ndarray,
+    crit2: np.ndarray,
+    symmetric: bool,
+) -> np.ndarray:
+    """m_ij of Algorithm 2: True where estimator j may be averaged into pixel i, all channels passing.
+
+    theta_*, var_*: (..., C) float32 from `PixelEstimates`; crit2: (...) float32 squared critical
+    values t_{1-alpha/2, n_i + n_j - 2}^2. Returns (...) bool. Symmetric: eq. 12; else eq. 14 with i
+    the pixel being denoised.
+    """
+    diff = theta_i - theta_j
+    d2 = diff * diff
+    crit2 = crit2[..., None]
+    with np.errstate(over="ignore", invalid="ignore"):
+        if symmetric:
+            passed = d2 <= crit2 * (var_i + var_j)
+        else:
+            passed = d2 + var_j <= (np.float32(1.0) + np.float32(2.0) * crit2) * var_i
+    return passed.all(axis=-1)
+
+
+def _pair_crit2(table: np.ndarray, n_i: np.ndarray, n_j: np.ndarray) -> np.ndarray:
+    return table[np.minimum(np.maximum(n_i + n_j - 2, 0), table.size - 1)]
+
+
+def statistical_filter_numpy(
+    color: np.ndarray, features: np.ndarray, estimates: PixelEstimates, params: StatisticalParams
+) -> np.ndarray:
+    """Reference implementation of `statistical_filter` in numpy, on `base_weights` (same arguments)."""
+    table = critical_values_squared(params.alpha, int(estimates.count.max(initial=0)))
+    theta, var, count = estimates.theta, estimates.var, estimates.count
+    num = color.astype(np.float32, copy=True)
+    den = np.ones(color.shape[:2], np.float32)
+    for centre, neighbour, rho in base_weights(features, params.base.radius, params.base.sigma2_position):
+        crit2 = _pair_crit2(table, count[centre], count[neighbour])
+        args = theta[centre], var[centre], theta[neighbour], var[neighbour], crit2
+        into_centre = rho * membership(*args, params.symmetric)
+        if params.symmetric:
+            into_neighbour = into_centre
+        else:
+            into_neighbour = rho * membership(args[2], args[3], args[0], args[1], crit2, False)
+        num[centre] += into_centre[..., None] * color[neighbour]
+        den[centre] += into_centre
+        num[neighbour] += into_neighbour[..., None] * color[centre]
+        den[neighbour] += into_neighbour
+    return num / den[..., None]
+
+
+STRIP_ROWS = 16  # rows per work item of the compiled kernel (at least the radius; see `_filter_kernel`)
+
+
+@njit(cache=True)
+def _admit(theta, var, y, x, yn, xn, c2, symmetric):
+    """m for neighbour (yn, xn) into pixel (y, x): `membership` for one pair, all channels."""
+    for c in range(theta.shape[2]):
+        diff = theta[y, x, c] - theta[yn, xn, c]
+        if symmetric:
+            passed = diff * diff <= c2 * (var[y, x, c] + var[yn, xn, c])
+        else:
+            passed = diff * diff + var[yn, xn, c] <= (np.float32(1.0) + np.float32(2.0) * c2) * var[y, x, c]
+        if not passed:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _filter_strip(y0, y1, color, features, theta, var, count, crit2, position_terms, radius, symmetric, num, den):
+    """Accumulate every pair whose first pixel lies in rows [y0, y1) and whose second pixel follows it
+    in raster order within the window (half of the symmetric pairs), into both pixels' sums."""
+    height, width, channels = color.shape
+    last = crit2.size - 1
+    for y in range(y0, y1):
+        for x in range(width):
+            for yn in range(y, min(height, y + radius + 1)):
+                for xn in range(x + 1 if yn == y else max(0, x - radius), min(width, x + radius + 1)):
+                    c2 = crit2[min(max(count[y, x] + count[yn, xn] - 2, 0), last)]
+                    into_centre = _admit(theta, var, y, x, yn, xn, c2, symmetric)
+                    if symmetric:
+                        into_neighbour = into_centre
+                    else:
+                        into_neighbour = _admit(theta, var, yn, xn, y, x, c2, False)
+                    if not (into_centre or into_neighbour):
+                        continue
+                    rho = pair_weight(features, y, x, yn, xn, position_terms[yn - y + radius, xn - x + radius])
+                    if into_centre:
+                        den[y, x] += rho
+                        for c in range(channels):
+                            num[y, x, c] += rho * color[yn, xn, c]
+                    if into_neighbour:
+                        den[yn, xn] += rho
+                        for c in range(channels):
+                            num[yn, xn, c] += rho * color[y, x, c]
+
+
+@njit(parallel=True, cache=True)
+def _filter_kernel(color, features, theta, var, count, crit2, position_terms, radius, symmetric, strip_rows):
+    """Symmetric-pair scatter in strips of `strip_rows` >= radius rows: a strip writes only to itself and
+    the next strip, so the even strips run in parallel, then the odd ones, without write conflicts."""
+    height = color.shape[0]
+    num = color.copy()
+    den = np.ones(color.shape[:2], np.float32)
+    strips = (height + strip_rows - 1) // strip_rows
+    for parity in range(2):
+        for half in prange((strips - parity + 1) // 2):
+            y0 = (2 * np.int64(half) + parity) * strip_rows
+            _filter_strip(
+                y0, min(y0 + strip_rows, height), color, features, theta, var, count, crit2, position_terms,
+                radius, symmetric, num, den,
+            )
+    for y in prange(height):
+        for x in range(color.shape[1]):
+            for c in range(color.shape[2]):
+                num[y, x, c] /= den[y, x]
+    return num
+
+
+def position_terms(radius: int, sigma2_position: float) -> np.ndarray:
+    """(dy^2 + dx^2) / sigma2_position over the window, (2r+1, 2r+1) float32, as `base_weights` rounds it."""
+    offsets = np.arange(-radius, radius + 1)
+    d2 = np.add.outer(offsets * offsets, offsets * offsets)
+    return np.array([[np.float32(v / sigma2_position) for v in row] for row in d2], np.float32).reshape(d2.shape)
+
+
+def statistical_filter(
+    color: np.ndarray, features: np.ndarray, estimates: PixelEstimates, params: StatisticalParams
+) -> np.ndarray:
+    """Sakai 2024 Algorithm 2: out_i = sum_j rho_ij m_ij color_j / sum_j rho_ij m_ij over the window.
+
+    color: (H, W, C) float32 linear radiance to filter (any sign, any magnitude).
+    features: (H, W, F) float32 from `guide_features(params.base, ...)`.
+    estimates: `pixel_estimates` of the frame's statistics, (H, W, 3) each.
+    Returns (H, W, C) float32. The centre weight is 1 (m_ii = 1, rho_ii = 1), so the result is a convex
+    combination of inputs within the window: a constant image is unchanged and nothing spreads further
+    than `params.base.radius` pixels. Compiled (numba, parallel over strips of rows, each pair's weight
+    evaluated once); parity with `statistical_filter_numpy` is tested.
+    """
+    table = critical_values_squared(params.alpha, int(estimates.count.max(initial=0)))
+    radius = params.base.radius
+    return _filter_kernel(
+        np.ascontiguousarray(color, np.float32),
+        np.ascontiguousarray(features, np.float32),
+        np.ascontiguousarray(estimates.theta),
+        np.ascontiguousarray(estimates.var),
+        np.ascontiguousarray(estimates.count, np.int64),
+        table,
+        position_terms(radius, params.base.sigma2_position),
+        radius,
+        params.symmetric,
+        max(radius, STRIP_ROWS),
+    )

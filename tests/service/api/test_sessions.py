@@ -1,0 +1,107 @@
+"""Sessions over REST: round trip equal to the CLI, survival of bad frames, limits, idle expiry."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from service.exr import encode_frame, read_frame
+from tests.service.api.conftest import HEIGHT, WIDTH, call, exr_post
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def open_session(url: str, **spec) -> dict:
+    body = {"pipeline": "bilateral", "width": WIDTH, "height": HEIGHT, **spec}
+    answer = call(url, "POST", "/v1/sessions", json.dumps(body).encode(), {"Content-Type": "application/json"})
+    assert answer.status == 201, answer.body
+    return answer.json()
+
+
+def test_session_round_trip_equals_the_cli(server, sequence_exr, cli_outputs):
+    info = open_session(server)
+    assert len(info["id"]) >= 43 and info["frames"] == 0 and info["mean_ms"] is None
+    assert info["options"]["radius"] == 6 and info["online"] is False and info["online_status"] is None
+    path = f"/v1/sessions/{info['id']}"
+    for t, (data, expected) in enumerate(zip(sequence_exr, cli_outputs, strict=True)):
+        answer = exr_post(server, f"{path}/frames", data)
+        assert answer.status == 200 and answer.headers["x-frame-index"] == str(t)
+        np.testing.assert_array_equal(read_frame(answer.body)["color"], expected)
+    status = call(server, "GET", path).json()
+    assert status["frames"] == 10 and status["errors"] == 0
+    assert 0 < status["mean_ms"] and status["mean_ms"] <= status["p95_ms"] * 10
+    final = call(server, "DELETE", path)
+    assert final.status == 200 and final.json()["frames"] == 10
+    assert call(server, "GET", path).status == 404
+    assert exr_post(server, f"{path}/frames", sequence_exr[0]).status == 404
+
+
+def test_session_survives_bad_frames_and_goes_on(server, sequence_exr, cli_outputs):
+    info = open_session(server)
+    path = f"/v1/sessions/{info['id']}"
+    assert exr_post(server, f"{path}/frames", sequence_exr[0]).status == 200
+    other_size = encode_frame({"color": np.ones((HEIGHT, WIDTH + 2, 3), np.float32)})
+    answer = exr_post(server, f"{path}/frames", other_size)
+    assert answer.status == 422
+    assert answer.json() == {"code": "invalid_frame", "message": f"frame is {WIDTH + 2}x{HEIGHT} but the sequence "
+                                                                 f"is {WIDTH}x{HEIGHT}"}
+    missing = exr_post(server, f"{path}/frames", encode_frame({"depth": np.ones((HEIGHT, WIDTH, 1), np.float32)}))
+    assert missing.status == 422 and missing.json()["layer"] == "color"
+    assert exr_post(server, f"{path}/frames", b"garbage" * 50).status == 400
+    assert call(server, "POST", f"{path}/frames", sequence_exr[1], {"Content-Type": "text/plain"}).status == 415
+    answer = exr_post(server, f"{path}/frames", sequence_exr[1])
+    assert answer.status == 200 and answer.headers["x-frame-index"] == "1"
+    np.testing.assert_array_equal(read_frame(answer.body)["color"], cli_outputs[1])
+    status = call(server, "GET", path).json()
+    assert (status["frames"], status["errors"]) == (2, 3)  # the 415 never reached the session
+    call(server, "DELETE", path)
+
+
+@pytest.mark.parametrize(("spec", "status", "code", "message"), [
+    ({"pipeline": "nope"}, 400, "unknown_pipeline", None),
+    ({"options": {"radios": 3}}, 400, "invalid_options", "pipeline 'bilateral' has no option 'radios'; options: "
+     "demodulate, radius, sigma2_albedo, sigma2_log_depth, sigma2_normal, sigma2_position"),
+    ({"online": True}, 400, "invalid_options", "pipeline 'bilateral' does not support online training"),
+    ({"options": {"online": True}}, 400, "invalid_options",
+     "ask for online training with the session's 'online' field, not an option"),
+    ({"width": 0}, 422, "invalid_request", "width: Input should be greater than 0"),
+    ({"color": "red"}, 422, "invalid_request", "color: Extra inputs are not permitted"),
+    ({"width": 65}, 413, "too_large", "sessions take frames of at most 64x64 (width x height), asked 65x32"),
+])
+def test_bad_session_requests(server, spec, status, code, message):
+    body = json.dumps({"pipeline": "bilateral", "width": WIDTH, "height": HEIGHT, **spec}).encode()
+    answer = call(server, "POST", "/v1/sessions", body, {"Content-Type": "application/json"})
+    assert (answer.status, answer.json()["code"]) == (status, code)
+    if message:
+        assert answer.json()["message"] == message
+
+
+def test_unknown_session_is_404_everywhere(server, sequence_exr):
+    message = {"code": "unknown_session", "message": "unknown session 'nope' (never created, ended, or expired)"}
+    for method, path, body in (("GET", "/v1/sessions/nope", None), ("DELETE", "/v1/sessions/nope", None)):
+        answer = call(server, method, path, body)
+        assert (answer.status, answer.json()) == (404, message)
+    answer = exr_post(server, "/v1/sessions/nope/frames", sequence_exr[0])
+    assert (answer.status, answer.json()) == (404, message)
+
+
+def test_idle_sessions_expire_and_the_limit_answers_429(make_server, sequence_exr):
+    url = make_server(session_idle_s=0.6, max_sessions=2)
+    first, second = open_session(url), open_session(url)
+    answer = call(url, "POST", "/v1/sessions", json.dumps({"width": WIDTH, "height": HEIGHT}).encode(),
+                  {"Content-Type": "application/json"})
+    assert answer.status == 429 and int(answer.headers["retry-after"]) >= 1
+    assert answer.json()["code"] == "too_many_sessions"
+    # `second` stays in use; `first` idles past the timeout and ends
+    deadline = time.monotonic() + 1.5
+    while time.monotonic() < deadline:
+        assert exr_post(url, f"/v1/sessions/{second['id']}/frames", sequence_exr[0]).status == 200
+        time.sleep(0.15)
+    assert call(url, "GET", f"/v1/sessions/{first['id']}").status == 404
+    assert call(url, "GET", f"/v1/sessions/{second['id']}").json()["frames"] >= 5
+    metrics = call(url, "GET", "/metrics").body.decode()
+    assert "mcdenoise_sessions_expired_total 1" in metrics and "mcdenoise_sessions_live 1" in metrics
+    open_session(url)  # room again

@@ -1,0 +1,105 @@
+"""service/runtime.py: metadata-driven padding, weight hot-swap, refusal of bad or non-finite weights."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("onnx")
+
+from export.crossreg_unet import export_bytes  # noqa: E402
+from models.nets.crossreg_unet import make_unet  # noqa: E402
+from service.layout import hwc_to_nchw, nchw_to_hwc, pad_hwc  # noqa: E402
+from service.runtime import (  # noqa: E402
+    NonFiniteWeightsError,
+    OnnxModel,
+    WeightError,
+    default_init,
+    session_options,
+)
+
+
+@pytest.fixture(scope="module")
+def model_bytes():
+    return export_bytes(make_unet(seed=0))
+
+
+def _torch_out(net, features):
+    with torch.no_grad():
+        out = net(torch.from_numpy(hwc_to_nchw(pad_hwc(features, 4))))
+    return nchw_to_hwc(out.numpy())[: features.shape[0], : features.shape[1]]
+
+
+def test_swap_changes_the_output_to_the_new_weights(model_bytes):
+    model = OnnxModel(model_bytes, threads=1)
+    features = np.random.default_rng(1).standard_normal((13, 17, 15)).astype(np.float32)
+    before = model.run_hwc(features)
+    other = make_unet(seed=99)
+    new = {k: v.detach().numpy() for k, v in other.named_parameters()}
+    assert model.swap_weights(new) == 1 and model.version == 1
+    after = model.run_hwc(features)
+    assert np.abs(after - before).max() > 1e-3
+    np.testing.assert_allclose(after, _torch_out(other, features), rtol=1e-4, atol=1e-4)
+
+
+def test_partial_swap_keeps_earlier_overrides(model_bytes):
+    model = OnnxModel(model_bytes, threads=1)
+    zero_head = {"head.weight": np.zeros((6, 8, 1, 1), np.float32), "head.bias": np.full(6, 2.0, np.float32)}
+    model.swap_weights(zero_head)
+    model.swap_weights({"enc1.0.0.bias": np.zeros(8, np.float32)})
+    out = model.run_hwc(np.ones((4, 4, 15), np.float32))
+    np.testing.assert_allclose(out[..., :5], 1 / (4 + 1e-4), rtol=1e-5)  # head still zero, bias 2
+    np.testing.assert_allclose(out[..., 5], 1 / (1 + np.exp(-2.0)), rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "bad, error, text",
+    [
+        ({"head.bias": np.array([np.nan, 0, 0, 0, 0, 0], np.float32)}, NonFiniteWeightsError, "non-finite"),
+        ({"head.bias": np.full(6, np.inf, np.float32)}, NonFiniteWeightsError, "6 non-finite"),
+        ({"head.bias": np.zeros(5, np.float32)}, WeightError, r"shape \(5,\); the graph needs \(6,\)"),
+        ({"nope.weight": np.zeros(3, np.float32)}, WeightError, "'nope.weight' is not a weight"),
+        ({"head.bias": np.zeros(6, np.int32)}, WeightError, "dtype int32"),
+        ({}, WeightError, "no weights"),
+    ],
+)
+def test_bad_weights_are_refused_and_the_session_keeps_running(model_bytes, bad, error, text):
+    model = OnnxModel(model_bytes, threads=1)
+    features = np.random.default_rng(2).standard_normal((5, 7, 15)).astype(np.float32)
+    before = model.run_hwc(features)
+    with pytest.raises(error, match=text):
+        model.swap_weights(bad)
+    assert model.version == 0
+    np.testing.assert_array_equal(model.run_hwc(features), before)
+
+
+def test_default_init_has_pytorch_bounds(model_bytes):
+    model = OnnxModel(model_bytes)
+    weights = default_init(model.info.weight_shapes, seed=0)
+    assert set(weights) == set(model.info.weight_shapes)
+    bound = 1 / np.sqrt(15 * 9)
+    assert np.abs(weights["enc1.0.0.weight"]).max() <= bound and np.abs(weights["enc1.0.0.bias"]).max() <= bound
+    model.swap_weights(weights)
+    assert np.isfinite(model.run_hwc(np.zeros((3, 3, 15), np.float32))).all()
+
+
+def test_thread_setting_from_argument_and_environment(monkeypatch):
+    assert session_options(3).intra_op_num_threads == 3
+    monkeypatch.setenv("MCDENOISE_ORT_THREADS", "2")
+    assert session_options().intra_op_num_threads == 2
+    monkeypatch.setenv("MCDENOISE_ORT_THREADS", "many")
+    with pytest.raises(ValueError, match="MCDENOISE_ORT_THREADS must be an integer"):
+        session_options()
+
+
+def test_model_without_metadata_is_refused():
+    import onnx
+    from onnx import helper
+
+    graph = helper.make_graph(
+        [helper.make_node("Identity", ["x"], ["y"])], "g",
+        [helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1])],
+        [helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1])],
+    )  # fmt: skip
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+    with pytest.raises(ValueError, match="no 'mcdenoise' metadata"):
+        OnnxModel(model.SerializeToString())

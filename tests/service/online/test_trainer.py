@@ -1,0 +1,127 @@
+"""The online worker seen from the serving side: it trains and publishes, a lagging worker drops frames
+instead of delaying them, a crashed worker is reported and never raises into inference."""
+
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("onnx")
+
+from export.crossreg_unet import export_bytes  # noqa: E402
+from models.nets.crossreg_unet import make_unet  # noqa: E402
+from service.layout import CROSSREG_SAMPLE, total_channels  # noqa: E402
+from service.online import trainer as trainer_module  # noqa: E402
+from service.online.trainer import OnlineConfig, OnlineTrainer, OnlineUnavailableError, random_crop  # noqa: E402
+
+WORKER_START_S = 90  # spawning a process that imports torch, on 2 busy cores
+N_SAMPLE = total_channels(CROSSREG_SAMPLE)
+
+
+@pytest.fixture(scope="module")
+def model_bytes():
+    return export_bytes(make_unet(seed=0))
+
+
+def _sample(seed, height=13, width=17):
+    sample = np.random.default_rng(seed).random((height, width, N_SAMPLE), np.float32)
+    sample[..., 15] = 1.0
+    return sample
+
+
+def _wait(predicate, trainer, timeout=WORKER_START_S):
+    deadline = time.monotonic() + timeout
+    published = []
+    while time.monotonic() < deadline:
+        got = trainer.poll()
+        if got is not None:
+            published.append(got)
+        if predicate(published):
+            return published
+        time.sleep(0.05)
+    raise AssertionError(f"timed out; status {trainer.status()}")
+
+
+def test_worker_trains_every_frame_it_gets_and_publishes_every_k(model_bytes):
+    trainer = OnlineTrainer(model_bytes, None, OnlineConfig(publish_every=2, crop=8, inbox_frames=4))
+    try:
+        _wait(lambda _: trainer.status()["state"] != "starting", trainer)
+        assert trainer.status()["state"] == "running"
+        for i in range(4):
+            assert trainer.submit(_sample(i), frame_index=i)
+            _wait(lambda _, i=i: trainer.frames_trained == i + 1, trainer)
+        published = _wait(lambda p: len(p) >= 1, trainer, timeout=10)
+        version, weights = published[-1]
+        assert version in (1, 2) and set(weights) == {k for k, _ in make_unet().named_parameters()}
+        assert all(np.isfinite(w).all() for w in weights.values())
+        assert [f for f, _ in trainer.losses] == [0, 1, 2, 3]
+        status = trainer.status()
+        assert status["frames_trained"] == 4 and status["frames_dropped"] == 0 and not status["crashed"]
+    finally:
+        trainer.close()
+    assert trainer.status()["state"] == "stopped"
+
+
+def test_a_lagging_worker_drops_frames_and_never_delays_them(model_bytes):
+    trainer = OnlineTrainer(model_bytes, None, OnlineConfig(inbox_frames=2, crop=0))
+    try:
+        start = time.perf_counter()
+        accepted = [trainer.submit(_sample(i, 64, 64), i) for i in range(20)]  # worker still importing torch
+        elapsed = time.perf_counter() - start
+        assert elapsed < 2.0  # 20 crops and non-blocking puts; no waiting on the worker
+        assert sum(accepted) == 2 and trainer.frames_dropped == 18
+        status = trainer.status()
+        assert status["frames_dropped"] == 18 and status["running"]
+        _wait(lambda _: trainer.frames_trained == 2, trainer)  # the two queued frames are trained later
+        assert trainer.status()["lagging"]  # the last submit was dropped
+        assert trainer.submit(_sample(99), 99) and trainer.status()["state"] == "running"
+    finally:
+        trainer.close()
+
+
+def test_a_killed_worker_is_reported_and_submit_keeps_working(model_bytes):
+    trainer = OnlineTrainer(model_bytes, None, OnlineConfig(crop=8))
+    try:
+        _wait(lambda _: trainer.status()["state"] != "starting", trainer)
+        os.kill(trainer.pid, signal.SIGKILL)
+        _wait(lambda _: trainer.status()["crashed"], trainer, timeout=10)
+        status = trainer.status()
+        assert status["state"] == "crashed" and "exited with code -9" in status["last_error"]
+        assert trainer.submit(_sample(0), 0) is False and trainer.poll() is None
+    finally:
+        trainer.close()
+
+
+def test_an_exception_in_the_worker_is_reported_with_its_traceback(model_bytes):
+    trainer = OnlineTrainer(model_bytes, None, OnlineConfig(crop=8))
+    try:
+        trainer.submit(np.zeros((8, 8, 5), np.float32), 0)  # 5 channels: the network wants 15
+        _wait(lambda _: trainer.status()["crashed"], trainer)
+        assert "Traceback" in trainer.status()["last_error"]
+    finally:
+        trainer.close()
+
+
+def test_missing_torch_gives_a_clear_error(monkeypatch, model_bytes):
+    real = trainer_module.importlib.util.find_spec
+    monkeypatch.setattr(
+        trainer_module.importlib.util, "find_spec", lambda name, *a: None if name == "torch" else real(name, *a)
+    )
+    with pytest.raises(OnlineUnavailableError, match="online training needs torch"):
+        OnlineTrainer(model_bytes)
+
+
+@pytest.mark.parametrize("size, crop, expected", [((13, 17), 8, (8, 8)), ((13, 17), 0, (12, 16)), ((3, 2), 8, (4, 4))])
+def test_random_crop_sizes_follow_the_alignment(size, crop, expected):
+    out = random_crop(np.ones((*size, 22), np.float32), crop, 4, np.random.default_rng(0))
+    assert out.shape == (*expected, 22)
+
+
+def test_bad_online_options_are_refused():
+    with pytest.raises(ValueError, match="publish_every must be >= 1"):
+        OnlineConfig(publish_every=0)
+    with pytest.raises(ValueError, match="crop must be >= 0"):
+        OnlineConfig(crop=-1)
