@@ -3,9 +3,9 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# The rendered sample sequence bundled with the repository; the demo falls back to the synthetic
-# sequence when it is absent.
-SAMPLE ?= models/data/samples/sample
+# The rendered sample sequence bundled with the repository (models/data/samples, README "Rendering data");
+# the demo falls back to the synthetic sequence when it is absent.
+SAMPLE ?= models/data/samples/shadows
 DEMO_PIPELINE ?= bilateral
 
 .PHONY: setup demo test lint clean bench bench-data
@@ -59,3 +59,24 @@ bench: $(STAMP) bench-data
 	$(PY) -m bench run --out $(BENCH_OUT) --sequences \
 		$$($(PY) -c "from models.data import SAMPLE_DIRS; print(' '.join(str(p) for p in SAMPLE_DIRS if p.is_dir()))") \
 		$(addprefix $(BENCH_DATA)/,$(BENCH_SCENES))
+
+# Training set (README, "Rendering data"): each models.data library scene with variation seeds 1..3, 8 frames
+# at 256x256, 4 spp noisy input, 1024 spp references, into $(DATA_OUT) (git-ignored). Finished sequences are
+# skipped, so an interrupted run resumes; a progress bar counts frames.
+DATA_OUT ?= data/train
+DATA_ARGS ?= --sequences-per-scene 3 --frames 8 --size 256x256 --spp 4 --ref-spp 1024
+
+.PHONY: data llvm
+
+data: $(STAMP) llvm
+	$(PY) -m models.data dataset --out $(DATA_OUT) $(DATA_ARGS)
+
+# Mitsuba's llvm variant needs LLVM 19 (Debian: libllvm19). Best effort: installed with apt when missing and
+# running as root; otherwise the renderer falls back to scalar_rgb (slower) by itself.
+llvm:
+	@if ls /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+		echo "llvm: installing libllvm19 for Mitsuba's llvm variant"; \
+		(apt-get update -qq && apt-get install -y -qq libllvm19) \
+			|| echo "llvm: apt-get install libllvm19 failed; rendering falls back to scalar_rgb"; \
+	else echo "llvm: LLVM 19 not found and not installable here (needs apt and root); rendering uses scalar_rgb"; fi

@@ -21,6 +21,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
 import numpy as np  # noqa: E402
 
+from bench.methods import ANCHORS  # noqa: E402
 from bench.run import SequenceRun  # noqa: E402
 from service.preview import encode_png, tonemap  # noqa: E402
 
@@ -199,15 +200,17 @@ def _crop_exposure(reference: np.ndarray) -> float:
 def _curves_png(seq: dict[str, Any]) -> bytes:
     """Per-frame relL2 and temporal error of every method that ran on the sequence."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4), dpi=100)
-    for name, record in seq["results"].items():
+    palette = plt.get_cmap("tab20").colors
+    for index, (name, record) in enumerate(seq["results"].items()):
         if record["status"] != "ok":
             continue
         frames = record["per_frame"]
-        style = "--" if name in ("noisy", "oidn-high", "oidn-fast") else "-"
-        axes[0].plot([f["rel_l2"] for f in frames], style, marker=".", label=name)
+        style = {"linestyle": "--" if name in ANCHORS else "-", "marker": ".", "label": name,
+                 "color": palette[(2 * index) % 20 + (2 * index) // 20 % 2]}
+        axes[0].plot([f["rel_l2"] for f in frames], **style)
         temporal = [(i, f["temporal"]) for i, f in enumerate(frames) if f["temporal"] is not None]
         if temporal:
-            axes[1].plot(*zip(*temporal, strict=True), style, marker=".", label=name)
+            axes[1].plot(*zip(*temporal, strict=True), **style)
     for ax, title in zip(axes, ("relL2 per frame", "temporal error per frame"), strict=True):
         ax.set_yscale("log")
         ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))

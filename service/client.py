@@ -99,7 +99,8 @@ class Client:
 
     def _send(self, method: str, path: str, body: bytes | None, headers: dict[str, str]
               ) -> tuple[int, dict[str, str], bytes]:
-        for attempt in range(2):  # a kept-alive connection the server closed is opened once more
+        while True:
+            reused = self._conn is not None
             if self._conn is None:
                 kind = http.client.HTTPSConnection if self._parts.scheme == "https" else http.client.HTTPConnection
                 self._conn = kind(self._parts.hostname, self._parts.port, timeout=self.timeout)
@@ -109,14 +110,13 @@ class Client:
                 data = response.read()
             except (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError):
                 self.close()
-                if attempt:
-                    raise
-                continue
+                if reused:  # a kept-alive connection the server had closed: once more on a new one
+                    continue
+                raise
             got = {k.lower(): v for k, v in response.getheaders()}
             if got.get("connection", "").lower() == "close":
                 self.close()
             return response.status, got, data
-        raise AssertionError("unreachable")
 
     def json(self, method: str, path: str, payload: Any = None) -> Any:
         body = None if payload is None else json.dumps(payload).encode()

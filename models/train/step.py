@@ -63,6 +63,6 @@ def weights_numpy(net: CrossRegUNet) -> dict[str, np.ndarray]:
 
 def load_weights_numpy(net: CrossRegUNet, weights: dict[str, np.ndarray]) -> None:
     """Copy `weights` (from `weights_numpy` or an ONNX file's initializers) into `net`."""
-    state = {name: torch.from_numpy(np.asarray(value, np.float32)) for name, value in weights.items()}
+    state = {name: torch.from_numpy(np.array(value, np.float32)) for name, value in weights.items()}
     net.load_state_dict(state, strict=True)
 

@@ -15,6 +15,10 @@ from service import pipelines
 from service.api.core.config import Settings
 
 WS_SLACK_BYTES = 1024 * 1024  # a WebSocket message may exceed the body limit by this before uvicorn drops it
+# Where one frame's thread count goes: ONNX Runtime sessions (service.runtime reads MCDENOISE_ORT_THREADS),
+# numba, OpenMP and BLAS. Set in the environment before the app (and its worker processes) load them.
+THREAD_VARIABLES = ("MCDENOISE_ORT_THREADS", "NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                    "MKL_NUM_THREADS")
 
 
 def add_serve_args(p: argparse.ArgumentParser) -> None:
@@ -37,6 +41,7 @@ def run_serve(args: argparse.Namespace) -> int:
     if not settings.api_keys and args.host not in ("127.0.0.1", "localhost", "::1"):
         print(f"warning: serving on {args.host} without MCDENOISE_API_KEY: anyone who reaches it can use it",
               file=sys.stderr)
+    limit_threads(settings.frame_threads)
     uvicorn.run(
         "service.api.main:create_app",
         factory=True,
@@ -50,6 +55,18 @@ def run_serve(args: argparse.Namespace) -> int:
         server_header=False,
     )
     return 0
+
+
+def limit_threads(n: int) -> None:
+    """Cap the threads one frame may use (MCDENOISE_FRAME_THREADS) unless the environment says otherwise."""
+    for name in THREAD_VARIABLES:
+        os.environ.setdefault(name, str(n))
+    numba = sys.modules.get("numba")
+    if numba is not None:  # already loaded by a pipeline module: too late for the environment
+        try:
+            numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+        except (ValueError, RuntimeError):
+            print(f"warning: could not limit numba to {n} threads", file=sys.stderr)
 
 
 def add_stream_args(p: argparse.ArgumentParser) -> None:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from service import pipelines
 from service.api import codec
-from service.api.core.errors import ApiError, to_api_error
+from service.api.core.errors import ApiError, UnknownSessionError, to_api_error
 from service.api.sessions import Session, SessionSpec, build_session, close_state
 from service.api.state import Services
 from service.api.telemetry import UNKNOWN_PIPELINE
@@ -97,6 +97,8 @@ async def session_frame(
     received = time.perf_counter()
 
     def job() -> Denoised:
+        if session.ended:  # ended while this frame waited for its turn
+            raise UnknownSessionError(session.id)
         result, session.state = _step(session.pipeline, session.state, body, output, services)
         session.record(result.step_ms)
         return result

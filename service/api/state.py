@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
-import sys
 from dataclasses import dataclass, field
 
 from service import pipelines
@@ -16,10 +14,6 @@ from service.api.workers import WorkerPool
 from service.pipelines import Pipeline
 
 log = logging.getLogger("mcdenoise.api")
-
-# Libraries that read a thread count from the environment when they load (ONNX Runtime sessions are
-# configured by service.runtime, which may read MCDENOISE_FRAME_THREADS).
-_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
 @dataclass
@@ -36,7 +30,6 @@ class Services:
     @classmethod
     def start(cls, settings: Settings) -> Services:
         """Build the services and start the idle-expiry loop (call inside the running event loop)."""
-        limit_threads(settings.frame_threads)
         services = cls(
             settings,
             WorkerPool(settings.worker_threads, settings.max_inflight, settings.retry_after_s),
@@ -73,14 +66,3 @@ class Services:
                 for session in expired:
                     await asyncio.get_running_loop().run_in_executor(None, close_state, session)
 
-
-def limit_threads(n: int) -> None:
-    """Cap the threads one frame may use in libraries not yet loaded (env) and in numba if loaded."""
-    for name in (*_THREAD_VARIABLES, "MCDENOISE_FRAME_THREADS"):
-        os.environ.setdefault(name, str(n))
-    numba = sys.modules.get("numba")
-    if numba is not None:
-        try:
-            numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
-        except Exception:  # a numba without threading layer: keep its default
-            log.warning("could not limit numba to %d threads", n)

@@ -183,10 +183,10 @@ class OnlineTrainer:
             state = "crashed"
             if self.last_error is None:
                 self.last_error = f"worker process exited with code {self._process.exitcode}"
+        elif self._last_dropped:
+            state = "lagging"  # the last frame offered was dropped: the worker is behind (or still starting)
         elif not self._ready:
             state = "starting"
-        elif self._last_dropped:
-            state = "lagging"
         else:
             state = "running"
         return {

@@ -103,15 +103,18 @@ def joint_bilateral(color: np.ndarray, features: np.ndarray, params: BilateralPa
 
 
 @njit(cache=True, inline="always")
-def pair_weight(features: np.ndarray, y: int, x: int, yn: int, xn: int, position_term: np.float32) -> np.float32:
+def pair_weight(
+    features: np.ndarray, y: int, x: int, yn: int, xn: int, position_term: np.float32, first: int = 0
+) -> np.float32:
     """rho_ij of eq. 16 for one pixel pair, for compiled filters that visit pairs one at a time.
 
-    features: (H, W, F) float32 from `guide_features`; (y, x) and (yn, xn): the two pixels;
-    position_term: float32 (dy^2 + dx^2) / sigma2_position. Returns float32 in (0, 1], the value
-    `base_weights` yields for the pair (same float32 arithmetic up to summation order).
+    features: (H, W, K) float32 whose channels `first` .. K-1 are the output of `guide_features` (a
+    compiled filter may keep other per-pixel values in front of them); (y, x) and (yn, xn): the two
+    pixels; position_term: float32 (dy^2 + dx^2) / sigma2_position. Returns float32 in (0, 1], the
+    value `base_weights` yields for the pair (same float32 arithmetic up to summation order).
     """
     distance2 = position_term
-    for k in range(features.shape[2]):
+    for k in range(first, features.shape[2]):
         diff = features[yn, xn, k] - features[y, x, k]
         distance2 += diff * diff
     return np.exp(np.float32(-0.5) * distance2)

@@ -46,7 +46,7 @@ class CrossRegressionParams:
 
     window: int = 17  # side of the square regression window, pixels (Choi 2024 sec. 3: 17 x 17), odd
     sparsity: int = 4  # centre pixels on every 4th row and column, 1/16 of the pixels (Choi 2024 sec. 3)
-    firefly_k: float | None = FIREFLY_K  # clamp outliers to neighbour mean +- k std before the log; None: off
+    firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
     ridge_relative: float = RIDGE_RELATIVE  # Tikhonov, relative to each feature's scale (local_regression)
     ridge_absolute: float = RIDGE_ABSOLUTE  # Tikhonov floor x sum of weights (local_regression)
 

@@ -9,8 +9,9 @@ Three pieces, each a pure function on arrays:
   are solved only at centre pixels on every `sparsity`-th row and column; each centre fits a linear
   function of pair features x_i - x_c over its (2r+1)^2 window, and every pixel averages the predictions
   of the centres whose window holds it (eq. 5). Pair weights have the form of Choi eq. 7.
-- `clamp_fireflies`: clips each value to its 3x3 neighbourhood mean +- k std before any regression, so a
-  single 1e6 sample cannot leak through a whole window of fits (our addition, not in the papers).
+- `clamp_fireflies`: clips each value to the range of its 8 neighbours widened by k times that range,
+  before any regression, so a single 1e6 sample cannot leak through a whole window of fits (our
+  addition, not in the papers).
 
 Layout: the solver works on channel-first planes, (K, H, W) float32, so the numba kernels stream along x.
 Every fast numba kernel has a plain-numpy `*_reference` twin with the same signature; tests hold them
@@ -34,7 +35,7 @@ RIDGE_ABSOLUTE = 1e-6  # Tikhonov floor, x sum of weights: keeps features that n
 WEIGHT_FLOOR = 1e-7  # added to every pair weight, as the Choi 2024 code does (ops/regression.cu)
 EPS_VARIANCE = 1e-4  # Choi 2024 eq. 7 epsilon (value of their code), colour^2 units
 EPS_SIGMA = 1e-2  # Choi 2024 eq. 6 epsilon (value of their code), colour units
-FIREFLY_K = 4.0  # clamp_fireflies: neighbourhood standard deviations a value may lie from the neighbour mean
+FIREFLY_K = 2.0  # clamp_fireflies: neighbour ranges (max - min) a value may lie beyond its neighbours
 
 
 @dataclass(frozen=True)
@@ -108,24 +109,32 @@ def plain_terms(shared: np.ndarray, groups: int = 1) -> PairTerms:
 
 
 def solve_ridge(
-    gram: np.ndarray, rhs: np.ndarray, ridge_relative: float = RIDGE_RELATIVE, ridge_absolute: float = RIDGE_ABSOLUTE
+    gram: np.ndarray,
+    rhs: np.ndarray,
+    ridge_relative: float = RIDGE_RELATIVE,
+    ridge_absolute: float = RIDGE_ABSOLUTE,
+    weight_sum: np.ndarray | None = None,
 ) -> np.ndarray:
     """Solve many small symmetric systems (gram + R) beta = rhs with a Tikhonov term R.
 
-    gram: (..., k, k) float32/64, symmetric positive semi-definite (X^T W X); entry [0, 0] is the sum of
-    weights when column 0 of X is the constant (then R scales with it). rhs: (..., k, m) (X^T W Y).
-    R = diag(ridge_relative * gram_jj + ridge_absolute * s) with s = gram[..., 0, 0] clipped to >= 1e-30:
-    relative to each feature's own scale, so it is the same ridge in any feature units, and never zero.
-    A feature that is constant in a window has gram_jj = 0 and rhs_j = 0, hence beta_j = 0.
+    gram: (..., k, k) float32/64, symmetric positive semi-definite (X^T W X). rhs: (..., k, m) (X^T W Y).
+    weight_sum: (...) sum of weights of each system. Default: column 0 of X is the constant, so
+    weight_sum = gram[..., 0, 0] > 0, and the constant is left unregularised (a constant signal is then
+    fitted exactly). R_jj = ridge_relative * gram_jj + ridge_absolute * weight_sum on the other columns
+    (on all when weight_sum is given): relative to each feature's own scale, so it is the same ridge in
+    any feature units, and never zero. A feature that does not vary in a window has gram_jj = 0 and
+    rhs_j = 0, hence beta_j = 0.
     Returns beta: (..., k, m) float32, finite. Cholesky in float64, vectorised over the leading axes.
     """
     a = np.moveaxis(np.asarray(gram, np.float64), (-2, -1), (0, 1)).copy()  # (k, k, ...)
     b = np.moveaxis(np.asarray(rhs, np.float64), (-2, -1), (0, 1)).copy()  # (k, m, ...)
     k = a.shape[0]
-    scale = np.maximum(a[0, 0], 1e-30)
-    diag = [a[j, j].copy() for j in range(k)]
-    for j in range(k):
-        a[j, j] += ridge_relative * np.maximum(diag[j], 0.0) + ridge_absolute * scale
+    constant = weight_sum is None
+    scale = np.maximum(a[0, 0] if constant else np.asarray(weight_sum, np.float64), 1e-30)
+    if constant:
+        a[0, 0] = scale
+    for j in range(1 if constant else 0, k):
+        a[j, j] += ridge_relative * np.maximum(a[j, j], 0.0) + ridge_absolute * scale
     # Cholesky a = L L^T, L stored in the lower triangle of `a`.
     for j in range(k):
         for p in range(j):
@@ -189,17 +198,52 @@ def neighbour_mean(planes: np.ndarray) -> np.ndarray:
 
 
 def clamp_fireflies(planes: np.ndarray, k: float = FIREFLY_K) -> np.ndarray:
-    """Clip every value to [m - k s, m + k s], m and s the mean and standard deviation of its neighbours.
+    """Clip every value to [lo - k (hi - lo), hi + k (hi - lo)], lo and hi the smallest and largest of its
+    up-to-8 neighbours in the 3x3 window (the pixel itself excluded; frame border: those that exist).
 
-    planes: (C, H, W) float32 radiance (any sign). The neighbourhood is the 3x3 window without the pixel
-    (frame border: the neighbours that exist). An isolated outlier (a firefly of 1e6, or -1e6) is brought
-    back to its neighbourhood; a constant image, and any pixel within k s of its neighbours, is unchanged.
+    planes: (C, H, W) float32 radiance (any sign), per channel. An isolated outlier (a firefly of 1e6, or
+    -1e6) is brought back to its neighbourhood; a constant image, a 1x1 frame and any value within the
+    spread of its neighbours are unchanged. numba kernel; `clamp_fireflies_reference` is its numpy twin.
     Returns (C, H, W) float32.
     """
-    mean = neighbour_mean(planes)
-    second = neighbour_mean(planes * planes)
-    spread = np.float32(k) * np.sqrt(np.maximum(second - mean * mean, 0.0))
-    return np.clip(planes, mean - spread, mean + spread).astype(np.float32, copy=False)
+    out = np.empty_like(planes, dtype=np.float32)
+    _clamp_kernel(np.ascontiguousarray(planes, dtype=np.float32), np.float32(k), out)
+    return out
+
+
+def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K) -> np.ndarray:
+    """Plain-numpy twin of `clamp_fireflies`."""
+    _, height, width = planes.shape
+    lo, hi = np.full_like(planes, np.inf), np.full_like(planes, -np.inf)
+    for dy, dx in window_offsets(1):
+        pair = None if dy == dx == 0 else overlap(height, width, dy, dx)
+        if pair is None:
+            continue
+        (cy, cx), (ny, nx) = pair
+        lo[:, cy, cx] = np.minimum(lo[:, cy, cx], planes[:, ny, nx])
+        hi[:, cy, cx] = np.maximum(hi[:, cy, cx], planes[:, ny, nx])
+    spread = np.float32(k) * (hi - lo)
+    out = np.clip(planes, lo - spread, hi + spread)
+    return np.where(np.isfinite(lo), out, planes).astype(np.float32)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=False)
+def _clamp_kernel(planes, k, out):
+    channels, height, width = planes.shape
+    for row in numba.prange(channels * height):
+        c, y = row // height, row % height
+        for x in range(width):
+            lo, hi, seen = np.float32(np.inf), np.float32(-np.inf), False
+            for yy in range(max(0, y - 1), min(height, y + 2)):
+                for xx in range(max(0, x - 1), min(width, x + 2)):
+                    if yy != y or xx != x:
+                        v = planes[c, yy, xx]
+                        lo, hi, seen = min(lo, v), max(hi, v), True
+            v = planes[c, y, x]
+            if seen:
+                spread = k * (hi - lo)
+                v = min(max(v, lo - spread), hi + spread)
+            out[c, y, x] = v
 
 
 # -------------------------------------------------------------------------------- fast exp for numba
@@ -277,8 +321,7 @@ def block_moments_reference(terms: PairTerms, target: np.ndarray, params: BlockP
         rows, cols = _valid_centres(hc, height, s, dy), _valid_centres(wc, width, s, dx)
         if rows is None or cols is None:
             continue
-        centre = (slice(rows.start * s, (rows.stop - 1) * s + 1, s), slice(cols.start * s, (cols.stop - 1) * s + 1, s))
-        pixel = (slice(centre[0].start + dy, centre[0].stop + dy, s), slice(centre[1].start + dx, centre[1].stop + dx, s))
+        centre, pixel = _offset_slices(rows, cols, s, dy, dx)
         weight = _pair_weight(terms, centre, pixel) * spatial[dy + r, dx + r] + np.float32(WEIGHT_FLOOR)
         feats = _pair_features(terms, centre, pixel)  # (G, K1, h, w)
         y = target[(slice(None), *pixel)].reshape(g, m, *weight.shape)
@@ -304,6 +347,13 @@ def _valid_centres(count: int, size: int, sparsity: int, offset: int) -> slice |
     return slice(start, stop) if stop > start else None
 
 
+def _offset_slices(rows: slice, cols: slice, s: int, dy: int, dx: int) -> tuple[tuple[slice, slice], ...]:
+    """Pixel slices of the centres rows x cols (centre indices) and of their neighbours at (dy, dx)."""
+    centre = (slice(rows.start * s, (rows.stop - 1) * s + 1, s), slice(cols.start * s, (cols.stop - 1) * s + 1, s))
+    pixel = (slice(centre[0].start + dy, centre[0].stop + dy, s), slice(centre[1].start + dx, centre[1].stop + dx, s))
+    return centre, pixel
+
+
 def _pair_weight(terms: PairTerms, centre: tuple[slice, slice], pixel: tuple[slice, slice]) -> np.ndarray:
     """Choi eq. 7 weight (without spatial factor and floor) for centre/pixel slices: (h, w) float32."""
     h = terms.weight_guide
@@ -326,7 +376,7 @@ def _pair_features(terms: PairTerms, centre: tuple[slice, slice], pixel: tuple[s
 
 # ---------------------------------------------------------------------------- numba kernels' layout
 
-LANE_CHUNK = 128  # centres processed together by the kernels: their accumulators fit the L1 cache
+LANE_CHUNK = 64  # centres processed together by the kernels: their accumulators fit the L1 cache
 #
 # The kernels vectorise over the centres of one centre row ("lanes"). For a window offset (dy, dx) the
 # pixels of consecutive centres are `sparsity` apart, so every input plane is split into `sparsity` phase
@@ -434,7 +484,8 @@ def _pair_rows(planes, counts, scaled, consts, sw, phase, y, cy, lo, pad, rows, 
         s[j] = 1.0 / (sig_i[j] + sig_c[j] + eps_sigma)
     base = 3 + d
     for k in range(ks):
-        pix, cen, out = planes[phase, base + k, y, lo : lo + lanes], planes[0, base + k, cy, pad : pad + lanes], rows[1 + k]
+        pix, cen = planes[phase, base + k, y, lo : lo + lanes], planes[0, base + k, cy, pad : pad + lanes]
+        out = rows[1 + k]
         for j in range(lanes):
             out[j] = pix[j] - cen[j]
     base += ks
@@ -467,10 +518,12 @@ def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, con
         w = np.empty(LANE_CHUNK, np.float32)
         s = np.empty(LANE_CHUNK, np.float32)
         wf = np.empty(LANE_CHUNK, np.float32)
+        part = np.empty((entries, LANE_CHUNK), np.float32)
         rows[0, :] = 1.0
         cy = a * sparsity
         for j0 in range(0, lanes, LANE_CHUNK):  # chunks whose accumulators stay in L1
             n = min(LANE_CHUNK, lanes - j0)
+            part[:, :] = 0.0
             for dy in range(-radius, radius + 1):
                 y = cy + dy
                 if y < 0 or y >= height:
@@ -484,12 +537,12 @@ def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, con
                     for e in range(entries):
                         if fa[e] != last:
                             last = fa[e]
-                            src = rows[last]
                             for j in range(n):
-                                wf[j] = w[j] * src[j]
-                        src, out = rows[fb[e]], acc[a, e, j0 : j0 + n]
+                                wf[j] = w[j] * rows[last, j]
+                        b = fb[e]
                         for j in range(n):
-                            out[j] += wf[j] * src[j]
+                            part[e, j] += wf[j] * rows[b, j]
+            acc[a, :, j0 : j0 + n] = part[:, :n]
 
 
 # ------------------------------------------------------------------------------ block reconstruction
@@ -516,8 +569,8 @@ def block_reconstruct(terms: PairTerms, beta: np.ndarray, params: BlockParams) -
                               params.radius, s, _constants(), coefs, ch, rows, cols, num, den)  # fmt: skip
     pad = _pad_lanes(params)
     num, den = num[..., pad : pad + wc], den[..., pad : pad + wc]  # (S, C, H, Wc), (S, H, Wc)
-    out = (num / np.where(den > 0, den, 1.0)[:, None]).transpose(1, 2, 3, 0).reshape(g * m, height, wc * s)[:, :, :width]
-    return np.ascontiguousarray(out)
+    out = (num / np.where(den > 0, den, 1.0)[:, None]).transpose(1, 2, 3, 0).reshape(g * m, height, wc * s)
+    return np.ascontiguousarray(out[:, :, :width])
 
 
 def block_reconstruct_reference(terms: PairTerms, beta: np.ndarray, params: BlockParams) -> np.ndarray:
@@ -532,8 +585,7 @@ def block_reconstruct_reference(terms: PairTerms, beta: np.ndarray, params: Bloc
         rows, cols = _valid_centres(hc, height, s, dy), _valid_centres(wc, width, s, dx)
         if rows is None or cols is None:
             continue
-        centre = (slice(rows.start * s, (rows.stop - 1) * s + 1, s), slice(cols.start * s, (cols.stop - 1) * s + 1, s))
-        pixel = (slice(centre[0].start + dy, centre[0].stop + dy, s), slice(centre[1].start + dx, centre[1].stop + dx, s))
+        centre, pixel = _offset_slices(rows, cols, s, dy, dx)
         weight = _pair_weight(terms, centre, pixel) * spatial[dy + r, dx + r] + np.float32(WEIGHT_FLOOR)
         feats = _pair_features(terms, centre, pixel)  # (G, K1, h, w)
         pred = np.einsum("gkhw,hwgkm->gmhw", feats, beta[rows, cols]).reshape(g * m, *weight.shape)
@@ -620,6 +672,8 @@ def standardise(planes: np.ndarray) -> np.ndarray:
     planes: (K, H, W) float32. A regression with a constant term is unchanged by this affine change of
     features; it puts every feature on unit scale, which the absolute ridge floor and float32 moments need.
     """
+    if planes.shape[0] == 0:
+        return np.ascontiguousarray(planes, dtype=np.float32)
     flat = planes.reshape(planes.shape[0], -1).astype(np.float64)
     mean = flat.mean(axis=1)
     std = flat.std(axis=1)

@@ -41,7 +41,9 @@ from service.stages.student_t import critical_value_table
 ALPHA = 0.005  # Sakai 2024 sec. 4.2: significance level of the Welch test
 # Sakai 2024 sec. 5 base filter: Sigma = diag(10, 10, 0.02 x3, 0.1 x3) over position, albedo, normal;
 # radius 20 pixels at 720p (sec. 6; 6 is their fast setting, Fig. 6d). No depth term: not in the paper.
-PAPER_BASE = BilateralParams(radius=20, sigma2_position=10.0, sigma2_albedo=0.02, sigma2_normal=0.1, sigma2_log_depth=None)
+PAPER_BASE = BilateralParams(
+    radius=20, sigma2_position=10.0, sigma2_albedo=0.02, sigma2_normal=0.1, sigma2_log_depth=None
+)
 FAST_RADIUS = 6  # Sakai 2024 Fig. 6d: ~2.5x faster, a little more noise
 UNTESTABLE_CRIT2 = np.float32(1e30)  # stands for t_crit^2 = inf (nu <= 0) without producing inf * 0
 MAX_COUNT = 1 << 24  # sample counts are clamped here (float32 holds integers exactly up to 2^24)
@@ -84,22 +86,22 @@ def pixel_estimates(
     with that M2 can produce, as float16 rounding makes) are clamped to the nearest consistent value:
     |M3| <= (n - 2) / sqrt(n - 1) * M2^(3/2), the bound on the sample skewness.
     """
-    n = np.rint(np.clip(np.asarray(count, np.float64).reshape(mean.shape[:2]), 0, MAX_COUNT))
-    nc = n[..., None]
-    mu = np.asarray(mean, np.float64)
-    m2 = np.maximum(np.asarray(m2, np.float64), 0.0)
-    known = nc >= 2
-    nm1 = np.where(known, nc - 1.0, 1.0)
-    var = np.where(known, m2 / nm1, np.inf)  # sigma^2 / n with the Bessel-corrected sigma^2
-    theta = mu
-    if skew_correction:
-        skew_max = np.where(known, (nc - 2.0) / np.sqrt(nm1), 0.0)
-        bound = skew_max * m2 * np.sqrt(m2)
-        m3 = np.clip(np.asarray(m3, np.float64), -bound, bound)
-        safe = known & (m2 > 0)
-        # Curto 2023 eq. 20: mu + M3 / (6 sigma^2 n) with sigma^2 = M2 n / (n - 1)
-        theta = mu + np.where(safe, m3 * nm1 / (6.0 * np.where(safe, m2, 1.0) * nc * nc), 0.0)
-    return PixelEstimates(theta.astype(np.float32), var.astype(np.float32), n.astype(np.int32))
+    shape = mean.shape
+    n = np.rint(np.clip(np.asarray(count, np.float32).reshape(*shape[:2], 1), 0, MAX_COUNT))
+    m2 = np.maximum(np.asarray(m2, np.float32), np.float32(0.0))
+    known = n >= 2
+    nm1 = np.maximum(n - np.float32(1.0), np.float32(1.0))
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore", under="ignore"):
+        var = np.where(known, m2 / nm1, np.float32(np.inf))  # sigma^2 / n with the Bessel-corrected sigma^2
+        theta = np.array(mean, np.float32)
+        if skew_correction:
+            skew_max = np.where(known, (n - np.float32(2.0)) / np.sqrt(nm1), np.float32(0.0))
+            bound = skew_max * m2 * np.sqrt(m2)
+            m3 = np.clip(np.asarray(m3, np.float32), -bound, bound)
+            # Curto 2023 eq. 20: mu + M3 / (6 sigma^2 n) with sigma^2 = M2 n / (n - 1)
+            correction = m3 * nm1 / (np.float32(6.0) * m2 * n * n)
+            theta += np.where(np.isfinite(correction), correction, np.float32(0.0))
+    return PixelEstimates(theta, var.astype(np.float32), n[..., 0].astype(np.int32))
 
 
 def critical_values_squared(alpha: float, max_count: int) -> np.ndarray:
@@ -165,71 +167,81 @@ def statistical_filter_numpy(
 
 
 STRIP_ROWS = 16  # rows per work item of the compiled kernel (at least the radius; see `_filter_kernel`)
+_TESTED = 3  # channels of theta and var at the front of the kernel's packed per-pixel record
 
 
-@njit(cache=True)
-def _admit(theta, var, y, x, yn, xn, c2, symmetric):
-    """m for neighbour (yn, xn) into pixel (y, x): `membership` for one pair, all channels."""
-    for c in range(theta.shape[2]):
-        diff = theta[y, x, c] - theta[yn, xn, c]
+@njit(cache=True, inline="always")
+def _admit(record, y, x, yn, xn, c2, symmetric):
+    """`membership` for one pair: may neighbour (yn, xn) be averaged into pixel (y, x)?
+
+    record: (H, W, K) float32, channels 0-2 theta, 3-5 var (then the guide features)."""
+    for c in range(_TESTED):
+        diff = record[y, x, c] - record[yn, xn, c]
+        var_i, var_j = record[y, x, _TESTED + c], record[yn, xn, _TESTED + c]
         if symmetric:
-            passed = diff * diff <= c2 * (var[y, x, c] + var[yn, xn, c])
+            passed = diff * diff <= c2 * (var_i + var_j)
         else:
-            passed = diff * diff + var[yn, xn, c] <= (np.float32(1.0) + np.float32(2.0) * c2) * var[y, x, c]
+            passed = diff * diff + var_j <= (np.float32(1.0) + np.float32(2.0) * c2) * var_i
         if not passed:
             return False
     return True
 
 
 @njit(cache=True)
-def _filter_strip(y0, y1, color, features, theta, var, count, crit2, position_terms, radius, symmetric, num, den):
+def _filter_strip(y0, y1, color, record, count, crit2, position_terms, radius, symmetric, acc):
     """Accumulate every pair whose first pixel lies in rows [y0, y1) and whose second pixel follows it
-    in raster order within the window (half of the symmetric pairs), into both pixels' sums."""
+    in raster order within the window (half of the symmetric pairs), into both pixels' sums.
+
+    acc: (H, W, C + 1) float32 running sums of rho * color (channels 0..C-1) and of rho (channel C)."""
     height, width, channels = color.shape
     last = crit2.size - 1
+    uniform = count.size == 1  # one sample count for the whole frame: one critical value
+    c2 = crit2[min(max(2 * count[0, 0] - 2, 0), last)]
+    first = 2 * _TESTED
     for y in range(y0, y1):
         for x in range(width):
             for yn in range(y, min(height, y + radius + 1)):
                 for xn in range(x + 1 if yn == y else max(0, x - radius), min(width, x + radius + 1)):
-                    c2 = crit2[min(max(count[y, x] + count[yn, xn] - 2, 0), last)]
-                    into_centre = _admit(theta, var, y, x, yn, xn, c2, symmetric)
-                    if symmetric:
-                        into_neighbour = into_centre
-                    else:
-                        into_neighbour = _admit(theta, var, yn, xn, y, x, c2, False)
+                    if not uniform:
+                        c2 = crit2[min(max(count[y, x] + count[yn, xn] - 2, 0), last)]
+                    into_centre = _admit(record, y, x, yn, xn, c2, symmetric)
+                    into_neighbour = into_centre if symmetric else _admit(record, yn, xn, y, x, c2, False)
                     if not (into_centre or into_neighbour):
                         continue
-                    rho = pair_weight(features, y, x, yn, xn, position_terms[yn - y + radius, xn - x + radius])
+                    term = position_terms[yn - y + radius, xn - x + radius]
+                    rho = pair_weight(record, y, x, yn, xn, term, first)
                     if into_centre:
-                        den[y, x] += rho
                         for c in range(channels):
-                            num[y, x, c] += rho * color[yn, xn, c]
+                            acc[y, x, c] += rho * color[yn, xn, c]
+                        acc[y, x, channels] += rho
                     if into_neighbour:
-                        den[yn, xn] += rho
                         for c in range(channels):
-                            num[yn, xn, c] += rho * color[y, x, c]
+                            acc[yn, xn, c] += rho * color[y, x, c]
+                        acc[yn, xn, channels] += rho
 
 
 @njit(parallel=True, cache=True)
-def _filter_kernel(color, features, theta, var, count, crit2, position_terms, radius, symmetric, strip_rows):
+def _filter_kernel(color, record, count, crit2, position_terms, radius, symmetric, strip_rows):
     """Symmetric-pair scatter in strips of `strip_rows` >= radius rows: a strip writes only to itself and
     the next strip, so the even strips run in parallel, then the odd ones, without write conflicts."""
-    height = color.shape[0]
-    num = color.copy()
-    den = np.ones(color.shape[:2], np.float32)
+    height, width, channels = color.shape
+    acc = np.empty((height, width, channels + 1), np.float32)
+    acc[:, :, :channels] = color
+    acc[:, :, channels] = 1.0
     strips = (height + strip_rows - 1) // strip_rows
     for parity in range(2):
         for half in prange((strips - parity + 1) // 2):
             y0 = (2 * np.int64(half) + parity) * strip_rows
             _filter_strip(
-                y0, min(y0 + strip_rows, height), color, features, theta, var, count, crit2, position_terms,
-                radius, symmetric, num, den,
+                y0, min(y0 + strip_rows, height), color, record, count, crit2, position_terms, radius, symmetric,
+                acc,
             )
+    out = np.empty_like(color)
     for y in prange(height):
-        for x in range(color.shape[1]):
-            for c in range(color.shape[2]):
-                num[y, x, c] /= den[y, x]
-    return num
+        for x in range(width):
+            for c in range(channels):
+                out[y, x, c] = acc[y, x, c] / acc[y, x, channels]
+    return out
 
 
 def position_terms(radius: int, sigma2_position: float) -> np.ndarray:
@@ -252,14 +264,16 @@ def statistical_filter(
     than `params.base.radius` pixels. Compiled (numba, parallel over strips of rows, each pair's weight
     evaluated once); parity with `statistical_filter_numpy` is tested.
     """
-    table = critical_values_squared(params.alpha, int(estimates.count.max(initial=0)))
+    count = estimates.count
+    table = critical_values_squared(params.alpha, int(count.max(initial=0)))
+    if count.size and count.min() == count.max():
+        count = count[:1, :1]  # the kernel's uniform-count path
+    record = np.concatenate([estimates.theta, estimates.var, features], axis=-1, dtype=np.float32)
     radius = params.base.radius
     return _filter_kernel(
         np.ascontiguousarray(color, np.float32),
-        np.ascontiguousarray(features, np.float32),
-        np.ascontiguousarray(estimates.theta),
-        np.ascontiguousarray(estimates.var),
-        np.ascontiguousarray(estimates.count, np.int64),
+        np.ascontiguousarray(record),
+        np.ascontiguousarray(count, np.int64),
         table,
         position_terms(radius, params.base.sigma2_position),
         radius,

@@ -1,6 +1,6 @@
 """Latency and throughput of the HTTP service against calling the pipeline directly, in one run.
 
-    python -m tests.service.api.measure_latency [--size 256] [--frames 40] [--pipeline bilateral]
+    python -m tests.service.api.measure_latency [--size 256] [--frames 40] [--pipeline bilateral] [--layers used]
 
 Starts `python -m service serve` on a free loopback port, then times, on the same frames:
 direct pipeline.step; direct decode + step + encode (what the server does per frame); REST
@@ -39,14 +39,19 @@ def main() -> int:
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--pipeline", default="bilateral")
+    parser.add_argument("--layers", choices=["all", "used"], default="all",
+                        help="send every layer of the frame format, or only those the pipeline uses")
     args = parser.parse_args()
     layers = synthetic_sequence(height=args.size, width=args.size, frames=8, spp=4, seed=5)
+    if args.layers == "used":
+        cls = pipelines.pipeline_class(args.pipeline)
+        layers = [{k: v for k, v in x.items() if k in (*cls.requires, *cls.optional)} for x in layers]
     sequence = [layers[i % len(layers)] for i in range(args.frames)]
     exr = [encode_frame(x) for x in sequence]
     frames = [Frame.from_buffers(x) for x in sequence]
     pipeline = pipelines.get(args.pipeline)
-    print(f"{args.pipeline}, {args.size}x{args.size}, {args.frames} frames, EXR in {len(exr[0]) / 1e6:.2f} MB, "
-          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
+    print(f"{args.pipeline}, {args.size}x{args.size}, {args.layers} layers, {args.frames} frames, "
+          f"EXR in {len(exr[0]) / 1e6:.2f} MB, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
     state = pipeline.start(args.size, args.size)
 
     def direct(i: int) -> None:

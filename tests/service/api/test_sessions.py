@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
 
+from service import pipelines
 from service.exr import encode_frame, read_frame
+from service.pipelines import Pipeline, SequenceState
 from tests.service.api.conftest import HEIGHT, WIDTH, call, exr_post
 
 pytestmark = pytest.mark.timeout(120)
@@ -105,3 +108,55 @@ def test_idle_sessions_expire_and_the_limit_answers_429(make_server, sequence_ex
     metrics = call(url, "GET", "/metrics").body.decode()
     assert "mcdenoise_sessions_expired_total 1" in metrics and "mcdenoise_sessions_live 1" in metrics
     open_session(url)  # room again
+
+
+@dataclass(frozen=True)
+class OnlineOptions:
+    online: bool = False  # fine-tune while streaming
+
+
+@dataclass
+class OnlineState(SequenceState):
+    online_status: dict | None = None
+    closed: list = field(default_factory=list)
+
+    def close(self) -> None:
+        self.closed.append(True)
+
+
+class OnlineEcho(Pipeline):
+    """Test-only pipeline with an `online` option, reporting a worker state like crossreg's."""
+
+    name = "test_online"
+    summary = "test only"
+    requires = ("color",)
+    Options = OnlineOptions
+    states: list[OnlineState] = []
+
+    def new_state(self, height: int, width: int) -> OnlineState:
+        state = OnlineState(height, width, online_status={"state": "training", "updates": 0}
+                            if self.options.online else None)
+        OnlineEcho.states.append(state)
+        return state
+
+    def denoise(self, frame, state):
+        if state.online_status is not None:
+            state.online_status["updates"] += 1
+        return {"color": frame["color"]}, state
+
+
+def test_online_flag_is_a_pipeline_option_and_its_state_is_reported(make_server, monkeypatch, sequence_exr):
+    monkeypatch.setitem(pipelines._REGISTRY, OnlineEcho.name, OnlineEcho)
+    OnlineEcho.states.clear()
+    url = make_server()
+    online = open_session(url, pipeline="test_online", online=True)
+    offline = open_session(url, pipeline="test_online")
+    assert online["online"] is True and online["options"] == {"online": True}
+    assert online["online_status"] == {"state": "training", "updates": 0}
+    assert offline["options"] == {"online": False} and offline["online_status"] is None
+    assert exr_post(url, f"/v1/sessions/{online['id']}/frames", sequence_exr[0]).status == 200
+    assert call(url, "GET", f"/v1/sessions/{online['id']}").json()["online_status"]["updates"] == 1
+    metrics = call(url, "GET", "/metrics").body.decode()
+    assert 'mcdenoise_online_sessions{state="training"} 1' in metrics
+    assert call(url, "DELETE", f"/v1/sessions/{online['id']}").status == 200
+    assert [bool(s.closed) for s in OnlineEcho.states] == [True, False]  # the ended session's state was closed

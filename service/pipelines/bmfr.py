@@ -1,0 +1,42 @@
+"""`bmfr`: block regression of radiance on G-buffers only (BMFR-style; the "existing regression" of
+Choi et al. 2024, Figs. 2 and 4).
+
+Stages: albedo demodulation -> G-buffer features (albedo, normal, log depth, position) -> block-wise
+linear regression with flat weights (service/stages/bmfr.py) -> remodulation. Keeps geometric edges,
+blurs what no G-buffer shows (shadows, caustics).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.frame import Frame
+from service.pipelines import register
+from service.pipelines.base import Pipeline, SequenceState
+from service.stages.bmfr import BmfrParams, bmfr
+from service.stages.local_regression import FIREFLY_K
+
+
+@dataclass(frozen=True)
+class BmfrOptions:
+    window: int = 13  # regression window side, pixels, odd (see BmfrParams)
+    sparsity: int = 4  # centre pixels on every 4th row and column
+    demodulate: bool = True  # regress radiance / albedo, multiply back after (Koskela 2019)
+    firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
+
+
+@register
+class BmfrPipeline(Pipeline):
+    name = "bmfr"
+    summary = "block regression on albedo/normal/depth/position (BMFR-style); fast, keeps geometric edges only"
+    requires = ("color", "albedo", "normal")
+    optional = ("depth", "emission")
+    Options = BmfrOptions
+
+    def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        opt = self.options
+        params = BmfrParams(opt.window, opt.sparsity, opt.demodulate, opt.firefly_k)
+        color = bmfr(frame["color"], frame["albedo"], frame["normal"], frame.get("depth"), params)
+        return {"color": color}, state

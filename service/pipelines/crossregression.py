@@ -1,0 +1,42 @@
+"""`crossregression`: cross-regression alone (Choi et al. 2024, the ablation of their Fig. 8).
+
+Stages: cross-regression of the two half buffers in log space (service/stages/cross_regression.py)
+-> the two pilot estimates back to linear radiance -> their mean. No network, no temporal filter: the
+input that the online denoiser (`crossreg`) refines, useful on its own as a fast, detail-preserving
+spatial filter for frames that carry colorA/colorB.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.frame import Frame
+from service.pipelines import register
+from service.pipelines.base import Pipeline, SequenceState
+from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
+from service.stages.local_regression import FIREFLY_K
+
+
+@dataclass(frozen=True)
+class CrossRegressionOptions:
+    window: int = 17  # regression window side, pixels, odd (Choi 2024 sec. 3)
+    sparsity: int = 4  # centre pixels on every 4th row and column (Choi 2024 sec. 3)
+    firefly_k: float | None = FIREFLY_K  # clamp each buffer's outliers (local_regression.clamp_fireflies); None: off
+
+
+@register
+class CrossRegressionPipeline(Pipeline):
+    name = "crossregression"
+    summary = "cross-regression of the half buffers alone (Choi 2024 Fig. 8 ablation); keeps non-geometric edges"
+    requires = ("colorA", "colorB", "albedo", "normal")
+    optional = ("emission",)
+    Options = CrossRegressionOptions
+
+    def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        opt = self.options
+        params = CrossRegressionParams(opt.window, opt.sparsity, opt.firefly_k)
+        pilot_a, pilot_b = cross_regression(frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], params)
+        color = np.float32(0.5) * (log_to_linear(pilot_a) + log_to_linear(pilot_b))
+        return {"color": color}, state

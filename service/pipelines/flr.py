@@ -1,0 +1,48 @@
+"""`flr`: fast local regression (Salmi et al.): per-pixel Gaussian-weighted least squares of radiance on
+G-buffer guides, from downsampled and blurred outer-product tensors.
+
+Stages: (optional) albedo demodulation -> guides: normal, log depth, ao, those present
+(service/stages/flr.py) -> local linear regression -> remodulation. A FLNR pipeline feeds learned
+guides to the same `local_linear_regression`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.frame import Frame
+from service.pipelines import register
+from service.pipelines.base import Pipeline, SequenceState
+from service.stages.albedo import demodulate, remodulate
+from service.stages.flr import FlrParams, gbuffer_guides, local_linear_regression
+from service.stages.local_regression import FIREFLY_K
+
+
+@dataclass(frozen=True)
+class FlrOptions:
+    scale: int = 2  # downsampling factor of the outer-product tensors, pixels
+    sigma: float = 1.0  # Gaussian std on the downsampled grid, cells
+    demodulate: bool = True  # regress radiance / albedo when albedo is present, multiply back after
+    firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
+
+
+@register
+class FlrPipeline(Pipeline):
+    name = "flr"
+    summary = "fast local regression on normal/depth/ao guides (Salmi et al.); very fast, smooth lighting"
+    requires = ("color", "normal")
+    optional = ("depth", "ao", "albedo", "emission")
+    Options = FlrOptions
+
+    def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        opt = self.options
+        params = FlrParams(scale=opt.scale, sigma=opt.sigma, firefly_k=opt.firefly_k)
+        albedo = frame.get("albedo") if opt.demodulate else None
+        color = frame["color"] if albedo is None else demodulate(frame["color"], albedo)
+        guides = gbuffer_guides(frame["normal"], frame.get("depth"), frame.get("ao"))
+        color = local_linear_regression(color, guides, params)
+        if albedo is not None:
+            color = remodulate(color, albedo)
+        return {"color": color}, state

@@ -1,0 +1,67 @@
+"""`statistical`: the statistical denoiser of Sakai et al. 2024 (Algorithm 2).
+
+Stages, top to bottom: sample statistics -> per-pixel estimates (Curto-corrected Box-Cox means and
+their variances) -> guide features (eq. 16) -> joint bilateral filter gated by the Welch t-test.
+Keeps edges that no G-buffer shows (shadows, caustics) when the statistics resolve them, and converges
+to its input as the variance goes to zero. No training, no history. Renderers that hand samples
+instead of the statistics layers compute them with `service.stages.sample_statistics`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.frame import Frame
+from service.pipelines import register
+from service.pipelines.base import Pipeline, SequenceState
+from service.stages.bilateral import BilateralParams, guide_features
+from service.stages.statistical import ALPHA, PAPER_BASE, StatisticalParams, pixel_estimates, statistical_filter
+
+
+@dataclass(frozen=True)
+class StatisticalOptions:
+    radius: int = PAPER_BASE.radius  # window half-size, pixels: 20 as in Sakai sec. 6; 6 is the fast setting
+    sigma2_position: float = PAPER_BASE.sigma2_position  # pixels^2 (Sakai eq. 16)
+    sigma2_albedo: float = PAPER_BASE.sigma2_albedo  # albedo^2 (Sakai eq. 16)
+    sigma2_normal: float = PAPER_BASE.sigma2_normal  # normal components^2 (Sakai eq. 16)
+    sigma2_log_depth: float | None = None  # (log depth)^2; None: depth unused, as in the paper
+    alpha: float = ALPHA  # significance level of the Welch test (Sakai sec. 4.2)
+    symmetric: bool = True  # eq. 12 weights (energy preserving); False: eq. 14 (asymmetric)
+    skew_correction: bool = True  # Curto 2023 correction of the means by the third moment
+
+
+@register
+class StatisticalPipeline(Pipeline):
+    name = "statistical"
+    summary = (
+        "Sakai 2024 statistical filter: joint bilateral gated by Welch t-tests on per-pixel sample statistics; "
+        "keeps shadows no G-buffer shows; option radius=6 is the fast setting"
+    )
+    requires = ("color", "sampleCount", "bcMean", "bcM2", "bcM3")
+    optional = ("albedo", "normal", "depth", "emission")
+    Options = StatisticalOptions
+
+    def __init__(self, **options):
+        super().__init__(**options)
+        opt = self.options
+        self.params = StatisticalParams(
+            base=BilateralParams(
+                opt.radius, opt.sigma2_position, opt.sigma2_albedo, opt.sigma2_normal, opt.sigma2_log_depth
+            ),
+            alpha=opt.alpha,
+            symmetric=opt.symmetric,
+            skew_correction=opt.skew_correction,
+        )
+
+    def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        params = self.params
+        estimates = pixel_estimates(
+            frame["sampleCount"], frame["bcMean"], frame["bcM2"], frame["bcM3"],
+            skew_correction=params.skew_correction,
+        )
+        features = guide_features(
+            params.base, frame.height, frame.width, frame.get("albedo"), frame.get("normal"), frame.get("depth")
+        )
+        return {"color": statistical_filter(frame["color"], features, estimates, params)}, state

@@ -1,0 +1,107 @@
+"""`svgf`: spatiotemporal variance-guided filtering (Schied et al. 2017).
+
+Stages, top to bottom: albedo demodulation -> reprojection of the history (colour, moments, history
+length) by motion with depth/normal validity -> history clamp to the current frame's local colour box (extension)
+-> temporal accumulation of colour and luminance moments
+-> variance estimate (spatial for short histories) -> 5 edge-aware a-trous passes -> remodulation.
+The colour after the first a-trous pass becomes the next frame's colour history (Schied sec. 4.3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.frame import Frame
+from service.pipelines import register
+from service.pipelines.base import Pipeline, SequenceState
+from service.stages.albedo import demodulate, remodulate
+from service.stages.atrous import AtrousParams, atrous, edge_guides
+from service.stages.reprojection import ReprojectionParams, reproject
+from service.stages.svgf import (
+    ALPHA_COLOR,
+    ALPHA_MOMENTS,
+    TemporalParams,
+    accumulate,
+    clamp_history,
+    estimate_variance,
+    luminance_moments,
+)
+
+
+@dataclass(frozen=True)
+class SvgfOptions:
+    alpha_color: float = ALPHA_COLOR  # Schied sec. 4.1: weight of the new frame in the colour history
+    alpha_moments: float = ALPHA_MOMENTS  # Schied sec. 4.2: weight of the new frame in the moments
+    iterations: int = 5  # a-trous passes (Schied sec. 4.3)
+    sigma_depth: float = 1.0  # sigma_z (Schied eq. 3)
+    sigma_normal: float = 128.0  # sigma_n (Schied eq. 4)
+    sigma_luminance: float = 4.0  # sigma_l (Schied eq. 5)
+    depth_tolerance: float = 0.1  # reprojection: max relative depth change of a history tap
+    normal_cos_min: float = 0.9  # reprojection: min cosine between current and history normal
+    demodulate: bool = True  # filter radiance / albedo when albedo is present (Schied sec. 4)
+    clamp_spread: float | None = 1.0  # history clamp to local mean +- this * std (extension); None: off
+
+
+@dataclass
+class SvgfState(SequenceState):
+    """History of the previous frame: (H, W, 6) float32 colour (3, after the first a-trous pass),
+    moments (2) and history length (1); its depth (H, W, 1) and normal (H, W, 3); None before frame 1."""
+
+    history: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    normal: np.ndarray | None = None
+
+
+@register
+class SvgfPipeline(Pipeline):
+    name = "svgf"
+    summary = "SVGF (Schied 2017): temporal accumulation with reprojection + variance-guided a-trous; fast, temporal"
+    requires = ("color", "normal", "depth", "motion")
+    optional = ("albedo", "emission")
+    temporal = True
+    Options = SvgfOptions
+
+    def __init__(self, **options):
+        super().__init__(**options)
+        opt = self.options
+        self.temporal_params = TemporalParams(
+            opt.alpha_color, opt.alpha_moments, sigma_normal=opt.sigma_normal, sigma_depth=opt.sigma_depth,
+            clamp_spread=opt.clamp_spread,
+        )
+        self.atrous_params = AtrousParams(opt.iterations, opt.sigma_depth, opt.sigma_normal, opt.sigma_luminance)
+        self.reprojection_params = ReprojectionParams(opt.depth_tolerance, opt.normal_cos_min)
+
+    def new_state(self, height: int, width: int) -> SvgfState:
+        return SvgfState(height, width)
+
+    def denoise(self, frame: Frame, state: SvgfState) -> tuple[dict[str, np.ndarray], SvgfState]:
+        albedo = frame.get("albedo") if self.options.demodulate else None
+        color = frame["color"] if albedo is None else demodulate(frame["color"], albedo)
+        depth, normal = frame["depth"], frame["normal"]
+        guides = edge_guides(depth, normal)
+        moments = luminance_moments(color)
+        if state.history is None:
+            prev = np.zeros((frame.height, frame.width, 6), np.float32)
+            valid = np.zeros((frame.height, frame.width), bool)
+        else:
+            prev, valid = reproject(
+                state.history, frame["motion"], depth=depth, prev_depth=state.depth, normal=normal,
+                prev_normal=state.normal, params=self.reprojection_params,
+            )
+        prev_color, prev_moments = prev[..., :3], prev[..., 3:5]
+        if self.temporal_params.clamp_spread is not None:
+            prev_color, prev_moments = clamp_history(
+                prev_color, prev_moments, color, self.temporal_params.clamp_radius, self.temporal_params.clamp_spread
+            )
+        current = color
+        color, moments_acc, history = accumulate(
+            color, moments, prev_color, prev_moments, prev[..., 5], valid, self.temporal_params
+        )
+        variance = estimate_variance(moments_acc, moments, history, current, guides, self.temporal_params)
+        filtered, _, first = atrous(color, variance, guides, self.atrous_params)
+        state.history = np.concatenate([first, moments_acc, history[..., None]], axis=-1)
+        state.depth, state.normal = depth, normal
+        out = filtered if albedo is None else remodulate(filtered, albedo)
+        return {"color": out}, state

@@ -1,0 +1,97 @@
+"""Block regression on G-buffers only, in the manner of BMFR (Koskela et al. 2019): the "existing
+regression" that Choi et al. 2024 compare cross-regression with (their Figs. 2 and 4).
+
+Radiance (demodulated by albedo, as BMFR does) is fitted per centre pixel as a linear function of
+G-buffer features over a window, with flat weights, by the block-wise solver of
+`service.stages.local_regression` (Choi eqs. 3-5 with w = 1). Features: albedo RGB, normal XYZ, log depth
+and the pixel position (x, y). Differences from the paper's BMFR: overlapping windows on a sparse
+centre grid blended by eq. 5 instead of disjoint 32x32 blocks, first-order features only, and no
+temporal accumulation (it is a spatial filter). Geometric edges survive; detail that no G-buffer shows
+(shadows, caustics) is blurred, which is the point of the comparison.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.stages.albedo import demodulate, remodulate
+from service.stages.bilateral import DEPTH_FLOOR
+from service.stages.local_regression import (
+    FIREFLY_K,
+    RIDGE_ABSOLUTE,
+    RIDGE_RELATIVE,
+    BlockParams,
+    block_regression,
+    clamp_fireflies,
+    from_planes,
+    plain_terms,
+    standardise,
+    to_planes,
+)
+
+
+@dataclass(frozen=True)
+class BmfrParams:
+    """Options of the G-buffer block regression."""
+
+    window: int = 13  # side of the square regression window, pixels, odd (17 spans whole objects in small frames)
+    sparsity: int = 4  # centre pixels on every 4th row and column (Choi 2024 sec. 3)
+    demodulate: bool = True  # regress radiance / albedo and multiply back (Koskela 2019 sec. 3)
+    firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
+    ridge_relative: float = RIDGE_RELATIVE  # Tikhonov, relative to each feature's scale (local_regression)
+    ridge_absolute: float = RIDGE_ABSOLUTE  # Tikhonov floor x sum of weights (local_regression)
+    sigma_position: float | None = None  # pixels; Gaussian falloff of the weights with distance, None: flat
+
+    def __post_init__(self) -> None:
+        if self.window < 1 or self.window % 2 == 0:
+            raise ValueError(f"window must be a positive odd number of pixels, got {self.window}")
+        if self.firefly_k is not None and not self.firefly_k > 0:
+            raise ValueError(f"firefly_k must be > 0 or None, got {self.firefly_k}")
+        self.block()
+
+    def block(self) -> BlockParams:
+        return BlockParams(
+            self.window // 2, self.sparsity, self.ridge_relative, self.ridge_absolute, self.sigma_position
+        )
+
+
+def gbuffer_features(albedo: np.ndarray, normal: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+    """BMFR explanatory variables as standardised planes.
+
+    albedo: (H, W, 3) float32 in [0, 1]; normal: (H, W, 3) float32 unit (or zero) normal; depth: (H, W, 1)
+    float32 camera distance, scene units, or None. Returns (K, H, W) float32, K = 8 or 9: albedo RGB,
+    normal XYZ, log depth (when given), pixel x and y; each plane standardised over the frame.
+    """
+    height, width = albedo.shape[:2]
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    parts = [to_planes(albedo), to_planes(normal)]
+    if depth is not None:
+        parts.append(np.log(np.maximum(to_planes(depth), DEPTH_FLOOR)))
+    parts += [x[None], y[None]]
+    return standardise(np.concatenate(parts, axis=0))
+
+
+def bmfr(
+    color: np.ndarray,
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    depth: np.ndarray | None = None,
+    params: BmfrParams | None = None,
+    *,
+    reference: bool = False,
+) -> np.ndarray:
+    """Denoise `color` by block regression on G-buffer features.
+
+    color: (H, W, 3) float32 linear HDR radiance (any sign); albedo, normal, depth: see
+    `gbuffer_features`. Returns (H, W, 3) float32 linear radiance. reference: plain-numpy kernels (tests).
+    """
+    params = params or BmfrParams()
+    signal = demodulate(color, albedo) if params.demodulate else color
+    planes = to_planes(signal)
+    if params.firefly_k is not None:
+        planes = clamp_fireflies(planes, params.firefly_k)
+    terms = plain_terms(gbuffer_features(albedo, normal, depth))
+    out = from_planes(block_regression(terms, planes, params.block(), reference=reference))
+    return remodulate(out, albedo) if params.demodulate else out

@@ -1,0 +1,147 @@
+"""Reprojection: warp a buffer of the previous frame onto the current frame by backward motion.
+
+Motion follows the frame format (shared FRAME_FORMAT.md): the surface seen at the centre of pixel
+(x, y) now was seen at (x + X, y + Y) in the previous frame, x to the right and y downwards, in
+pixels. In array indices, pixel (row y, column x) samples the previous frame at the continuous index
+position (y + Y, x + X), where integer positions are pixel centres. The sample is bilinear over the
+four surrounding pixels, and a tap counts only when it is consistent (inside the frame and, when the
+depth/normal pairs are given, with matching depth and normal); the taps' weights are renormalised
+over the consistent ones, as the SVGF reference implementation does (Schied et al. 2017, Falcor
+`SVGFReproject`). A pixel is valid when its sample point is on screen and the consistent taps carry
+at least `min_weight` of the bilinear weight. An integer motion therefore reproduces the previous
+pixel exactly. The same function serves every temporal pipeline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.stages.window import overlap
+
+DEPTH_FLOOR = 1e-6  # scene units; denominators of relative depth differences are at least this
+NORMAL_HIT = 0.25  # squared length above which a normal is a surface hit (zero normal: nothing hit)
+
+
+@dataclass(frozen=True)
+class ReprojectionParams:
+    depth_tolerance: float = 0.1  # max relative depth change |z - z_prev| / z of a consistent tap
+    normal_cos_min: float = 0.9  # min dot(n, n_prev) of a consistent tap (about 25 degrees)
+    min_weight: float = 0.01  # min summed bilinear weight of consistent taps (Falcor SVGF uses 0.01)
+    erode: bool = False  # also invalidate pixels with an invalid 3x3 neighbour (as the Choi et al. 2024 code)
+
+    def __post_init__(self) -> None:
+        if not self.depth_tolerance > 0:
+            raise ValueError(f"depth_tolerance must be > 0, got {self.depth_tolerance}")
+        if not -1.0 <= self.normal_cos_min <= 1.0:
+            raise ValueError(f"normal_cos_min must be in [-1, 1], got {self.normal_cos_min}")
+        if not 0.0 < self.min_weight <= 1.0:
+            raise ValueError(f"min_weight must be in (0, 1], got {self.min_weight}")
+
+
+def sample_positions(motion: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each pixel samples the previous frame, and whether that point is on screen.
+
+    motion: (H, W, 2) float32 backward motion (X, Y) in pixels. Returns (ys, xs, on_screen): (H, W)
+    float64 continuous row and column index positions (pixel centres at integers) and (H, W) bool,
+    True where the point lies inside the previous frame's pixel area [-1/2, H - 1/2) x [-1/2, W - 1/2).
+    """
+    height, width = motion.shape[:2]
+    rows, cols = np.indices((height, width), dtype=np.float64)
+    ys = rows + motion[..., 1]
+    xs = cols + motion[..., 0]
+    on_screen = (ys >= -0.5) & (ys < height - 0.5) & (xs >= -0.5) & (xs < width - 0.5)
+    # Keep far-off positions small enough to convert to integers; they are invalid anyway.
+    return np.clip(ys, -2.0, height + 1.0), np.clip(xs, -2.0, width + 1.0), on_screen
+
+
+def _consistent(
+    index: np.ndarray,
+    depth: np.ndarray | None,
+    prev_depth: np.ndarray | None,
+    normal: np.ndarray | None,
+    prev_normal: np.ndarray | None,
+    params: ReprojectionParams,
+) -> np.ndarray:
+    """(H, W) bool: the previous-frame pixel at flat `index` matches the current pixel's surface."""
+    ok = np.ones(index.shape, bool)
+    if depth is not None and prev_depth is not None:
+        z = depth[..., 0]
+        z_prev = prev_depth.reshape(-1)[index]
+        ok &= np.abs(z - z_prev) <= params.depth_tolerance * np.maximum(np.abs(z), DEPTH_FLOOR)
+    if normal is not None and prev_normal is not None:
+        n_prev = prev_normal.reshape(-1, 3)[index]
+        hit = np.einsum("hwc,hwc->hw", normal, normal) > NORMAL_HIT
+        hit_prev = np.einsum("hwc,hwc->hw", n_prev, n_prev) > NORMAL_HIT
+        cos = np.einsum("hwc,hwc->hw", normal, n_prev)
+        ok &= (hit == hit_prev) & (~hit | (cos >= params.normal_cos_min))
+    return ok
+
+
+def erode(valid: np.ndarray) -> np.ndarray:
+    """3x3 erosion of a (H, W) bool mask: a pixel stays True only if its in-frame 3x3 neighbours are True."""
+    out = valid.copy()
+    height, width = valid.shape
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            pair = overlap(height, width, dy, dx)
+            if pair is not None and (dy or dx):
+                centre, neighbour = pair
+                out[centre] &= valid[neighbour]
+    return out
+
+
+def reproject(
+    buffer: np.ndarray,
+    motion: np.ndarray,
+    *,
+    depth: np.ndarray | None = None,
+    prev_depth: np.ndarray | None = None,
+    normal: np.ndarray | None = None,
+    prev_normal: np.ndarray | None = None,
+    params: ReprojectionParams | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Warp `buffer` of the previous frame onto the current frame.
+
+    buffer: (H, W, C) float32, any per-pixel quantity of the PREVIOUS frame (radiance, moments,
+        history lengths, hidden features).
+    motion: (H, W, 2) float32 backward motion of the CURRENT frame in pixels (frame-format convention).
+    depth, prev_depth: (H, W, 1) float32 camera distance of the current and previous frame, scene
+        units; both or neither. A tap is inconsistent when |z - z_prev| > depth_tolerance * z.
+    normal, prev_normal: (H, W, 3) float32 unit world-space normals (zero: nothing hit) of the current
+        and previous frame; both or neither. A tap is inconsistent when dot(n, n_prev) < normal_cos_min
+        or exactly one of the two is a hit.
+    Returns (warped, valid): warped (H, W, C) float32, the bilinear sample renormalised over consistent
+    taps, zero where invalid; valid (H, W) bool, see the module docstring (eroded if `params.erode`).
+    """
+    params = params or ReprojectionParams()
+    if (depth is None) != (prev_depth is None) or (normal is None) != (prev_normal is None):
+        raise ValueError("reproject needs depth with prev_depth and normal with prev_normal (both or neither)")
+    height, width, channels = buffer.shape
+    ys, xs, on_screen = sample_positions(motion)
+    y0, x0 = np.floor(ys), np.floor(xs)
+    fy, fx = (ys - y0).astype(np.float32), (xs - x0).astype(np.float32)
+    y0, x0 = y0.astype(np.int64), x0.astype(np.int64)
+    flat = buffer.reshape(-1, channels)
+    warped = np.zeros((height, width, channels), np.float32)
+    total = np.zeros((height, width), np.float32)
+    one = np.float32(1.0)
+    for ty, tx, weight in (
+        (y0, x0, (one - fy) * (one - fx)),
+        (y0, x0 + 1, (one - fy) * fx),
+        (y0 + 1, x0, fy * (one - fx)),
+        (y0 + 1, x0 + 1, fy * fx),
+    ):
+        inside = (ty >= 0) & (ty < height) & (tx >= 0) & (tx < width)
+        index = np.clip(ty, 0, height - 1) * width + np.clip(tx, 0, width - 1)
+        use = inside & (weight > 0) & _consistent(index, depth, prev_depth, normal, prev_normal, params)
+        weight = np.where(use, weight, np.float32(0.0))
+        warped += weight[..., None] * np.where(use[..., None], flat[index], np.float32(0.0))
+        total += weight
+    valid = on_screen & (total >= np.float32(params.min_weight))
+    warped = np.where(valid[..., None], warped / np.where(valid, total, one)[..., None], np.float32(0.0))
+    if params.erode:
+        valid = erode(valid)
+        warped[~valid] = 0.0
+    return warped.astype(np.float32, copy=False), valid

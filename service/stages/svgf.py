@@ -1,0 +1,168 @@
+"""Temporal stages of SVGF (Schied et al. 2017, secs. 4.1-4.2): accumulation of colour and luminance
+moments over reprojected history, and the per-pixel luminance variance that steers the a-trous filter
+(`service.stages.atrous`).
+
+    history  n = n_prev + 1 where the reprojection is valid, else 1
+    colour   c = lerp(c_prev, c, max(alpha_c, 1/n))          (sec. 4.1, exponential moving average)
+    moments  (mu1, mu2) = lerp(prev, (l, l^2), max(alpha_m, 1/n))   (sec. 4.2)
+    variance = max(0, mu2 - mu1^2) where n >= 4, else a spatial estimate from a 7x7 edge-aware
+               window (sec. 4.2; Falcor `SVGFFilterMoments`), see `estimate_variance`.
+
+As an extension, the history is clamped to the current frame's local colour box before blending
+(`clamp_history`), which the paper leaves to A-SVGF (Schied 2018) but real-time engines routinely do.
+
+The 1/n floor makes the first frames of a history a plain average rather than a slow blend from
+an empty start.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.stages.atrous import EdgeGuides, edge_aware_filter, luminance
+
+ALPHA_COLOR = 0.2  # Schied 2017 sec. 4.1: blend weight of the new frame in the colour history
+ALPHA_MOMENTS = 0.2  # Schied 2017 sec. 4.2: blend weight of the new frame in the moment history
+MIN_HISTORY = 4  # frames; Schied 2017 sec. 4.2: below it the variance is estimated spatially
+MOMENTS_RADIUS = 3  # pixels; 7x7 spatial moment window (Falcor SVGFFilterMoments)
+MOMENTS_SIGMA_LUMINANCE = 10.0  # Falcor SVGFFilterMoments: constant phi_l of the spatial estimate
+MOMENTS_DEPTH_SCALE = 3.0  # Falcor SVGFFilterMoments: phi_z = 3 |grad z| |p - q|
+
+
+@dataclass(frozen=True)
+class TemporalParams:
+    alpha_color: float = ALPHA_COLOR  # minimum weight of the current frame in the colour average
+    alpha_moments: float = ALPHA_MOMENTS  # minimum weight of the current frame in the moment average
+    min_history: int = MIN_HISTORY  # frames of history needed for the temporal variance estimate
+    sigma_normal: float = 128.0  # sigma_n of the spatial estimate's edge-stopping (as the a-trous filter)
+    sigma_depth: float = 1.0  # sigma_z of the spatial estimate (times MOMENTS_DEPTH_SCALE)
+    clamp_radius: int = 1  # window half-size of the history clamp, pixels (extension; see clamp_history)
+    clamp_spread: float | None = 1.0  # history clamp box: local mean +- this * local std; None: no clamp
+
+    def __post_init__(self) -> None:
+        for name in ("alpha_color", "alpha_moments"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+
+
+def luminance_moments(color: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float32 linear RGB -> (H, W, 2) float32 first and second moment (l, l^2) of luminance."""
+    lum = luminance(color)
+    return np.stack([lum, lum * lum], axis=-1)
+
+
+def accumulate(
+    color: np.ndarray,
+    moments: np.ndarray,
+    prev_color: np.ndarray,
+    prev_moments: np.ndarray,
+    prev_history: np.ndarray,
+    valid: np.ndarray,
+    params: TemporalParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Blend the current frame into its reprojected history (Schied 2017 secs. 4.1-4.2).
+
+    color: (H, W, 3) float32 current (demodulated) radiance; moments: (H, W, 2) float32 from
+    `luminance_moments`; prev_color, prev_moments, prev_history: the same and (H, W) float32 history
+    lengths in frames, reprojected from the previous frame; valid: (H, W) bool reprojection validity.
+    Returns (color, moments, history) of shapes (H, W, 3), (H, W, 2), (H, W), float32. Where invalid
+    the history restarts: history 1, colour and moments of the current frame.
+    """
+    history = np.where(valid, prev_history + np.float32(1.0), np.float32(1.0)).astype(np.float32)
+    inverse = np.float32(1.0) / history
+    alpha_c = np.maximum(np.float32(params.alpha_color), inverse)[..., None]
+    alpha_m = np.maximum(np.float32(params.alpha_moments), inverse)[..., None]
+    keep = valid[..., None]
+    out_color = np.where(keep, prev_color + alpha_c * (color - prev_color), color)
+    out_moments = np.where(keep, prev_moments + alpha_m * (moments - prev_moments), moments)
+    return out_color.astype(np.float32), out_moments.astype(np.float32), history
+
+
+def box_mean(values: np.ndarray, radius: int) -> np.ndarray:
+    """Mean of (H, W, C) float32 `values` over the in-frame part of each pixel's (2r+1)^2 window."""
+    height, width = values.shape[:2]
+    padded = np.zeros((height + 1, width + 1, values.shape[2]), np.float64)
+    padded[1:, 1:] = np.cumsum(np.cumsum(values, axis=0, dtype=np.float64), axis=1)
+    y0 = np.clip(np.arange(height) - radius, 0, height)
+    y1 = np.clip(np.arange(height) + radius + 1, 0, height)
+    x0 = np.clip(np.arange(width) - radius, 0, width)
+    x1 = np.clip(np.arange(width) + radius + 1, 0, width)
+    total = (
+        padded[y1][:, x1] - padded[y0][:, x1] - padded[y1][:, x0] + padded[y0][:, x0]
+    )
+    area = ((y1 - y0)[:, None] * (x1 - x0)[None, :])[..., None]
+    return (total / area).astype(np.float32)
+
+
+def clamp_history(
+    prev_color: np.ndarray, prev_moments: np.ndarray, color: np.ndarray, radius: int, spread: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Clamp the reprojected colour history to the current frame's local colour box, mean +- spread * std
+    over a (2r+1)^2 window, per channel. An extension to SVGF (the colour clamping of temporal
+    anti-aliasing, Karis 2014) that cuts the lag of moving shadows and highlights, which the motion of
+    the surface does not carry. The moment history is shifted with it (first moment to the clamped
+    luminance, second moment keeping its variance), so the change does not read as noise.
+
+    prev_color: (H, W, 3), prev_moments: (H, W, 2) reprojected history; color: (H, W, 3) current frame;
+    all float32. Returns (color, moments) history of the same shapes, float32.
+    """
+    mean = box_mean(color, radius)
+    std = np.sqrt(np.maximum(box_mean(color * color, radius) - mean * mean, np.float32(0.0)))
+    half = np.float32(spread) * std
+    clamped = np.clip(prev_color, mean - half, mean + half)
+    lum_old, lum_new = luminance(prev_color), luminance(clamped)
+    second = prev_moments[..., 1] - lum_old * lum_old + lum_new * lum_new
+    return clamped, np.stack([lum_new, second], axis=-1).astype(np.float32)
+
+
+def _bounding_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    height, width = mask.shape
+    return (
+        slice(max(0, rows[0] - margin), min(height, rows[-1] + margin + 1)),
+        slice(max(0, cols[0] - margin), min(width, cols[-1] + margin + 1)),
+    )
+
+
+def estimate_variance(
+    moments: np.ndarray,
+    current_moments: np.ndarray,
+    history: np.ndarray,
+    color: np.ndarray,
+    guides: EdgeGuides,
+    params: TemporalParams,
+) -> np.ndarray:
+    """Luminance variance per pixel of the accumulated colour (Schied 2017 sec. 4.2).
+
+    moments: (H, W, 2) accumulated moments and history: (H, W) from `accumulate`; current_moments:
+    (H, W, 2) moments of the current frame alone; color: (H, W, 3) current frame (its luminance steers
+    the spatial weights); guides: EdgeGuides; all float32. Returns (H, W) float32 >= 0:
+    max(0, mu2 - mu1^2) of the accumulated moments where history >= min_history; elsewhere (sec. 4.2)
+    a spatial estimate: the current frame's moments averaged over a 7x7 edge-aware window, which
+    gives the variance of one frame, divided by the history length, since the accumulated colour
+    averages that many frames. (Falcor averages the accumulated moments and multiplies by 4 / history;
+    on a moving shadow that counts the change as noise and blurs it away.) Only the bounding box of the
+    short-history pixels is filtered.
+    """
+    variance = np.maximum(moments[..., 1] - moments[..., 0] ** 2, np.float32(0.0))
+    short = history < params.min_history
+    if not short.any():
+        return variance
+    box = _bounding_box(short, MOMENTS_RADIUS)
+    crop = EdgeGuides(*(np.ascontiguousarray(a[box]) for a in (guides.depth, guides.depth_gradient, guides.normal)))
+    lum = luminance(color[box])
+    filtered = edge_aware_filter(
+        np.ascontiguousarray(current_moments[box]),
+        lum,
+        np.full(lum.shape, MOMENTS_SIGMA_LUMINANCE, np.float32),
+        crop,
+        np.ones(2 * MOMENTS_RADIUS + 1, np.float32),
+        1,
+        params.sigma_depth * MOMENTS_DEPTH_SCALE,
+        params.sigma_normal,
+    )
+    spatial = np.maximum(filtered[..., 1] - filtered[..., 0] ** 2, np.float32(0.0)) / history[box]
+    variance[box][short[box]] = spatial[short[box]]
+    return variance

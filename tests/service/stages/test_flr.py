@@ -1,0 +1,62 @@
+import numpy as np
+import pytest
+
+from service.stages.flr import (
+    FlrParams,
+    apply_coefficients,
+    apply_coefficients_reference,
+    cell_sums,
+    cell_sums_reference,
+    gaussian_blur,
+    gbuffer_guides,
+    local_linear_regression,
+    solve_cells,
+)
+
+
+def _guides(height, width, rng):
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    normal = np.stack([np.sin(x / 7.0), np.cos(y / 5.0), 0.2 + 0.0 * x], axis=-1).astype(np.float32)
+    depth = (2.0 + y / height + 0.2 * rng.random((height, width)))[..., None].astype(np.float32)
+    ao = (0.5 + 0.5 * np.sin(x / 4.0 + y / 6.0))[..., None].astype(np.float32)
+    return normal, depth, ao
+
+
+def test_guides_take_what_is_present():
+    rng = np.random.default_rng(0)
+    normal, depth, ao = _guides(8, 9, rng)
+    assert gbuffer_guides(normal, depth, ao).shape == (8, 9, 5)
+    assert gbuffer_guides(normal).shape == (8, 9, 3)
+    with pytest.raises(ValueError, match="at least one guide"):
+        gbuffer_guides()
+
+
+@pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31)])
+@pytest.mark.parametrize("scale", [1, 2, 4])
+def test_numba_kernels_match_the_numpy_reference(size, scale):
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((4, *size)).astype(np.float32)
+    y = rng.standard_normal((3, *size)).astype(np.float32)
+    sums = cell_sums(x, y, scale)
+    np.testing.assert_allclose(sums, cell_sums_reference(x, y, scale), rtol=1e-5, atol=1e-4)
+    slopes, offsets = solve_cells(gaussian_blur(sums, 1.0, 3.0), 4, 3, FlrParams(scale=scale))
+    fast = apply_coefficients(x, slopes, offsets, scale)
+    np.testing.assert_allclose(fast, apply_coefficients_reference(x, slopes, offsets, scale), rtol=1e-5, atol=1e-5)
+    assert fast.shape == (3, *size) and np.isfinite(fast).all()
+
+
+def test_radiance_linear_in_the_guides_is_reproduced():
+    rng = np.random.default_rng(2)
+    normal, depth, ao = _guides(37, 45, rng)
+    guides = gbuffer_guides(normal, depth, ao)
+    radiance = 0.5 + guides @ np.float32([[0.3, 0.1, 0.0], [-0.2, 0.4, 0.1], [0.0, 0.0, 0.2], [1.0, 0.5, -0.3],
+                                          [0.7, 0.2, 0.9]])  # fmt: skip
+    out = local_linear_regression(radiance, guides, FlrParams(firefly_k=None))
+    np.testing.assert_allclose(out, radiance, atol=1e-2 * np.abs(radiance).max())
+
+
+def test_without_guides_it_is_a_gaussian_mean():
+    rng = np.random.default_rng(3)
+    radiance = rng.random((20, 24, 3)).astype(np.float32)
+    out = local_linear_regression(radiance, np.zeros((20, 24, 0), np.float32), FlrParams(firefly_k=None))
+    assert out.std() < radiance.std() / 3 and out.mean() == pytest.approx(radiance.mean(), rel=0.05)

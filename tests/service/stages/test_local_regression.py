@@ -1,0 +1,120 @@
+import numpy as np
+import pytest
+
+from service.stages.local_regression import (
+    BlockParams,
+    PairTerms,
+    block_moments,
+    block_moments_reference,
+    block_reconstruct,
+    block_reconstruct_reference,
+    block_regression,
+    clamp_fireflies,
+    clamp_fireflies_reference,
+    neighbour_mean,
+    plain_terms,
+    solve_ridge,
+    standardise,
+)
+
+PARITY_RTOL = 2e-4  # numba (fast exp, other summation order) vs numpy, float32
+
+
+def _random_terms(rng: np.random.Generator, height: int, width: int) -> tuple[PairTerms, np.ndarray]:
+    """Cross-regression-shaped terms: 3 groups, 2 grouped features (one scaled), 3 weight guides."""
+    colour = rng.random((3, height, width), dtype=np.float32)
+    terms = PairTerms(
+        shared=rng.standard_normal((3, height, width), dtype=np.float32),
+        grouped=np.ascontiguousarray(np.stack([colour, rng.random((3, height, width), dtype=np.float32)], axis=1)),
+        scaled=np.array([True, False]),
+        sigma=rng.random((height, width), dtype=np.float32),
+        weight_guide=colour,
+        weight_variance=rng.random((height, width), dtype=np.float32) * 0.2,
+    )
+    return terms, rng.standard_normal((3, height, width), dtype=np.float32)
+
+
+def test_solve_ridge_matches_an_exact_solve_on_a_well_posed_system():
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((50, 40, 4))
+    x[..., 0] = 1.0
+    y = rng.standard_normal((50, 40, 2))
+    gram, rhs = np.einsum("nik,nil->nkl", x, x), np.einsum("nik,nim->nkm", x, y)
+    beta = solve_ridge(gram, rhs, ridge_relative=0.0, ridge_absolute=1e-12)
+    np.testing.assert_allclose(beta, np.linalg.solve(gram, rhs), rtol=1e-4, atol=1e-5)
+    assert beta.dtype == np.float32
+
+
+def test_solve_ridge_never_gives_nan_on_singular_systems():
+    zeros = solve_ridge(np.zeros((7, 3, 3)), np.zeros((7, 3, 2)))
+    assert np.isfinite(zeros).all() and not zeros.any()
+    # A constant feature column (column 2 == 0 after centring) and a duplicated column.
+    gram = np.array([[10.0, 2.0, 0.0, 2.0], [2.0, 4.0, 0.0, 4.0], [0.0, 0.0, 0.0, 0.0], [2.0, 4.0, 0.0, 4.0]])
+    beta = solve_ridge(gram[None], np.array([[[5.0], [3.0], [0.0], [3.0]]]))
+    assert np.isfinite(beta).all() and beta[0, 2, 0] == 0.0
+    huge = solve_ridge(gram[None] * 1e30, np.array([[[5.0], [3.0], [0.0], [3.0]]]) * 1e30)
+    assert np.isfinite(huge).all()
+
+
+def test_neighbour_mean_excludes_the_pixel_and_handles_borders_and_1x1():
+    planes = np.arange(9, dtype=np.float32).reshape(1, 3, 3)
+    mean = neighbour_mean(planes)
+    assert mean[0, 1, 1] == pytest.approx((36 - 4) / 8)
+    assert mean[0, 0, 0] == pytest.approx((1 + 3 + 4) / 3)
+    np.testing.assert_array_equal(neighbour_mean(np.full((2, 1, 1), 5.0, np.float32)), 5.0)
+
+
+def test_clamp_fireflies_removes_an_isolated_outlier_and_keeps_constants():
+    planes = np.ones((3, 9, 11), np.float32)
+    np.testing.assert_array_equal(clamp_fireflies(planes), planes)
+    rng = np.random.default_rng(1)
+    noisy = (1.0 + 0.2 * rng.standard_normal((3, 9, 11))).astype(np.float32)
+    noisy[:, 4, 5] = 1e6
+    noisy[1, 2, 2] = -1e6
+    out = clamp_fireflies(noisy)
+    assert out[:, 4, 5].max() < 5.0 and out[1, 2, 2] > -3.0
+    np.testing.assert_array_equal(np.delete(out[0].ravel(), 4 * 11 + 5), np.delete(noisy[0].ravel(), 4 * 11 + 5))
+    np.testing.assert_array_equal(out, clamp_fireflies_reference(noisy))
+    single = np.array([[[7.0]]], np.float32)
+    np.testing.assert_array_equal(clamp_fireflies(single), single)
+
+
+def test_standardise_puts_planes_on_unit_scale_and_zeroes_constant_ones():
+    planes = np.stack([np.full((4, 5), 3.0), np.arange(20.0).reshape(4, 5) * 1e4]).astype(np.float32)
+    out = standardise(planes)
+    assert not out[0].any()
+    assert out[1].mean() == pytest.approx(0.0, abs=1e-6) and out[1].std() == pytest.approx(1.0, rel=1e-5)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22)])
+def test_block_kernels_match_the_numpy_reference(size):
+    rng = np.random.default_rng(2)
+    terms, target = _random_terms(rng, *size)
+    params = BlockParams(radius=5, sparsity=3, sigma_position=4.0)
+    gram, rhs = block_moments(terms, target, params)
+    gram_ref, rhs_ref = block_moments_reference(terms, target, params)
+    np.testing.assert_allclose(gram, gram_ref, rtol=PARITY_RTOL, atol=PARITY_RTOL * np.abs(gram_ref).max())
+    np.testing.assert_allclose(rhs, rhs_ref, rtol=PARITY_RTOL, atol=PARITY_RTOL * np.abs(rhs_ref).max())
+    beta = solve_ridge(gram_ref, rhs_ref)
+    out, out_ref = block_reconstruct(terms, beta, params), block_reconstruct_reference(terms, beta, params)
+    assert out.shape == (3, *size) and out.dtype == np.float32
+    np.testing.assert_allclose(out, out_ref, rtol=1e-3, atol=1e-3 * np.abs(out_ref).max())
+
+
+def test_block_regression_reproduces_an_exact_linear_function_of_the_features():
+    rng = np.random.default_rng(3)
+    height, width = 40, 44
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    shared = np.stack([np.sin(x / 5.0), np.cos(y / 7.0), (x * y) / 500.0 + rng.random((height, width)) * 0.3])
+    shared = shared.astype(np.float32)
+    coef = np.array([[0.5, -2.0, 1.0], [1.5, 0.3, -0.7], [-1.0, 0.0, 2.0]], np.float32)
+    target = (np.einsum("ck,khw->chw", coef, shared) + np.array([1.0, -3.0, 0.2], np.float32)[:, None, None])
+    out = block_regression(plain_terms(standardise(shared)), target.astype(np.float32), BlockParams())
+    np.testing.assert_allclose(out, target, atol=2e-3 * np.abs(target).max())
+
+
+def test_block_regression_of_a_constant_is_the_constant():
+    rng = np.random.default_rng(4)
+    terms, _ = _random_terms(rng, 23, 19)
+    target = np.full((3, 23, 19), 0.37, np.float32)
+    np.testing.assert_allclose(block_regression(terms, target, BlockParams()), target, rtol=1e-5)

@@ -1,0 +1,98 @@
+import numpy as np
+import pytest
+
+from service.stages.reprojection import ReprojectionParams, erode, reproject
+
+
+def _motion(h, w, x, y):
+    return np.broadcast_to(np.float32([x, y]), (h, w, 2)).copy()
+
+
+def test_integer_shift_is_undone_exactly():
+    rng = np.random.default_rng(0)
+    prev = rng.normal(size=(9, 13, 4)).astype(np.float32) * 1e3
+    # the scene moved 2 right, 1 down: what is at (x, y) now was at (x - 2, y - 1)
+    warped, valid = reproject(prev, _motion(9, 13, -2, -1))
+    assert valid[1:, 2:].all() and not valid[0].any() and not valid[:, :2].any()
+    np.testing.assert_array_equal(warped[1:, 2:], prev[:-1, :-2])
+    assert np.all(warped[~valid] == 0)
+
+
+def test_bilinear_half_pixel_and_off_screen():
+    prev = np.arange(12, dtype=np.float32).reshape(3, 4, 1)
+    warped, valid = reproject(prev, _motion(3, 4, 0.5, 0))
+    np.testing.assert_allclose(warped[:, :3, 0], 0.5 * (prev[:, :3, 0] + prev[:, 1:, 0]))
+    # the last column samples x = 3.5, outside the frame's pixel area [-0.5, 3.5)
+    assert valid[:, :3].all() and not valid[:, 3].any()
+    warped, valid = reproject(prev, _motion(3, 4, 1e30, 0))
+    assert not valid.any() and np.isfinite(warped).all()
+
+
+def test_inconsistent_taps_are_dropped_and_the_rest_renormalised():
+    prev = np.float32([[[1.0], [5.0]]])  # 1x2
+    depth = np.float32([[[2.0], [2.0]]])
+    prev_depth = np.float32([[[2.0], [9.0]]])  # right pixel was another surface
+    warped, valid = reproject(prev, _motion(1, 2, 0.5, 0), depth=depth, prev_depth=prev_depth)
+    assert valid[0, 0] and warped[0, 0, 0] == 1.0  # only the consistent left tap counts
+    normal = np.float32([[[0, 0, 1], [0, 0, 1]]])
+    prev_normal = np.float32([[[0, 0, 1], [1, 0, 0]]])
+    warped, valid = reproject(prev, _motion(1, 2, 0, 0), normal=normal, prev_normal=prev_normal)
+    assert valid[0, 0] and not valid[0, 1]
+
+
+def test_depth_and_normal_mismatch_invalidate():
+    h, w = 6, 7
+    prev = np.ones((h, w, 3), np.float32)
+    depth = np.full((h, w, 1), 4.0, np.float32)
+    prev_depth = depth.copy()
+    prev_depth[2, 3] = 4.5  # 12.5% relative change > 10%
+    _, valid = reproject(prev, _motion(h, w, 0, 0), depth=depth, prev_depth=prev_depth)
+    assert not valid[2, 3] and valid.sum() == h * w - 1
+    normal = np.tile(np.float32([0, 1, 0]), (h, w, 1))
+    prev_normal = normal.copy()
+    prev_normal[4, 4] = 0  # nothing was hit there
+    _, valid = reproject(prev, _motion(h, w, 0, 0), normal=normal, prev_normal=prev_normal)
+    assert not valid[4, 4] and valid.sum() == h * w - 1
+    _, valid = reproject(prev, _motion(h, w, 0, 0), normal=np.zeros_like(normal), prev_normal=np.zeros_like(normal))
+    assert valid.all()  # background stays background
+
+
+def test_erosion():
+    valid = np.ones((5, 6), bool)
+    valid[2, 3] = False
+    eroded = erode(valid)
+    assert eroded.sum() == 30 - 9 and not eroded[1:4, 2:5].any()
+    prev = np.ones((5, 6, 1), np.float32)
+    motion = _motion(5, 6, 0, 0)
+    motion[2, 3] = 100.0
+    warped, valid = reproject(prev, motion, params=ReprojectionParams(erode=True))
+    assert valid.sum() == 21 and np.all(warped[~valid] == 0)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 5), (17, 31)])
+def test_odd_sizes_float16_and_negative_values(shape):
+    rng = np.random.default_rng(1)
+    h, w = shape
+    prev = rng.normal(size=(h, w, 3)).astype(np.float16).astype(np.float32)
+    motion = rng.normal(0, 2, (h, w, 2)).astype(np.float16).astype(np.float32)
+    depth = (1 + rng.random((h, w, 1))).astype(np.float32)
+    warped, valid = reproject(prev, motion, depth=depth, prev_depth=depth)
+    assert warped.shape == prev.shape and warped.dtype == np.float32 and valid.shape == (h, w)
+    assert np.isfinite(warped).all()
+    inside = warped[valid]  # a convex combination of previous values; zero where invalid
+    assert np.all(inside >= prev.min() - 1e-6) and np.all(inside <= prev.max() + 1e-6)
+    assert np.all(warped[~valid] == 0)
+
+
+def test_constant_buffer_is_unchanged_where_valid():
+    prev = np.full((8, 9, 2), -3.25, np.float32)
+    warped, valid = reproject(prev, np.random.default_rng(2).normal(0, 1.5, (8, 9, 2)).astype(np.float32))
+    assert valid.any()
+    np.testing.assert_allclose(warped[valid], -3.25, atol=1e-6)
+
+
+def test_depth_without_prev_depth_is_refused():
+    with pytest.raises(ValueError, match="both or neither"):
+        reproject(np.ones((2, 2, 1), np.float32), _motion(2, 2, 0, 0), depth=np.ones((2, 2, 1), np.float32))
+    with pytest.raises(ValueError, match="depth_tolerance"):
+        ReprojectionParams(depth_tolerance=0)

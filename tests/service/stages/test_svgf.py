@@ -1,0 +1,57 @@
+import numpy as np
+
+from service.stages.atrous import edge_guides
+from service.stages.svgf import (
+    TemporalParams,
+    accumulate,
+    box_mean,
+    clamp_history,
+    estimate_variance,
+    luminance_moments,
+)
+
+
+def test_accumulate_blends_with_history_floor_and_restarts_where_invalid():
+    h, w = 2, 3
+    color = np.full((h, w, 3), 1.0, np.float32)
+    prev = np.zeros((h, w, 3), np.float32)
+    valid = np.array([[True, True, False], [True, True, True]])
+    history = np.array([[1.0, 10.0, 7.0], [2.0, 3.0, 4.0]], np.float32)
+    out, moments, hist = accumulate(color, luminance_moments(color), prev, np.zeros((h, w, 2), np.float32),
+                                    history, valid, TemporalParams())
+    np.testing.assert_array_equal(hist, [[2, 11, 1], [3, 4, 5]])
+    expected = np.maximum(0.2, 1 / hist)  # alpha = max(0.2, 1/n), Schied 2017 sec. 4.1
+    expected[~valid] = 1.0
+    np.testing.assert_allclose(out[..., 0], expected, rtol=1e-6)
+    np.testing.assert_allclose(moments[..., 0], expected, rtol=1e-5)
+
+
+def test_variance_is_temporal_with_long_history_and_spatial_otherwise():
+    h, w = 9, 10
+    rng = np.random.default_rng(0)
+    color = rng.random((h, w, 3), dtype=np.float32)
+    current = luminance_moments(color)
+    moments = np.stack([np.full((h, w), 0.5), np.full((h, w), 0.5**2 + 0.01)], -1).astype(np.float32)
+    guides = edge_guides(np.ones((h, w, 1), np.float32), np.tile(np.float32([0, 0, 1]), (h, w, 1)))
+    history = np.full((h, w), 10.0, np.float32)
+    np.testing.assert_allclose(estimate_variance(moments, current, history, color, guides, TemporalParams()), 0.01,
+                               rtol=1e-4)
+    history[:3] = 2.0
+    var = estimate_variance(moments, current, history, color, guides, TemporalParams())
+    np.testing.assert_allclose(var[3:], 0.01, rtol=1e-4)
+    lum = current[..., 0]
+    assert np.all(var[:3] > 0) and np.all(var[:3] < lum.var() * 2)  # about one frame's spatial variance / 2
+
+
+def test_box_mean_and_clamp():
+    values = np.arange(20, dtype=np.float32).reshape(4, 5, 1)
+    np.testing.assert_allclose(box_mean(values, 1)[1, 1, 0], values[0:3, 0:3].mean())
+    np.testing.assert_allclose(box_mean(values, 1)[0, 0, 0], values[0:2, 0:2].mean())
+    color = np.full((5, 5, 3), 0.3, np.float32)
+    prev = np.full((5, 5, 3), 2.0, np.float32)
+    moments = luminance_moments(prev)
+    moments[..., 1] += 0.04
+    clamped, shifted = clamp_history(prev, moments, color, 1, 1.0)
+    np.testing.assert_allclose(clamped, 0.3, rtol=1e-6)  # zero local spread: history clamped to the frame
+    np.testing.assert_allclose(shifted[..., 0], 0.3, rtol=1e-5)
+    np.testing.assert_allclose(shifted[..., 1] - shifted[..., 0] ** 2, 0.04, rtol=1e-3)
