@@ -176,20 +176,27 @@ def _pow_normal(cos, sigma_normal, squarings):
 
 
 @njit(parallel=True, cache=True)
-def _edge_aware_kernel(
-    values, lum, phi_luminance, depth, grad, normal, kernel, step, sigma_depth, sigma_normal, squarings, squared
-):
+def _edge_aware_kernel(values, lum, phi_luminance, depth, grad, normal, hit, kernel, step, sigma_depth, sigma_normal,
+                       squarings, squared):
     height, width, channels = values.shape
     radius = kernel.size // 2
     out = np.empty_like(values)
+    inv_distance = np.zeros((2 * radius + 1, 2 * radius + 1), np.float32)
+    for i in range(-radius, radius + 1):
+        for j in range(-radius, radius + 1):
+            if i or j:
+                inv_distance[i + radius, j + radius] = np.float32(1.0) / np.float32(np.sqrt(np.float32(i * i + j * j)))
     for yy in prange(height):
         y = np.int64(yy)
         acc = np.zeros(channels, np.float32)
         for x in range(width):
             acc[:] = 0.0
             den = np.float32(0.0)
-            hit_p = normal[y, x, 0] ** 2 + normal[y, x, 1] ** 2 + normal[y, x, 2] ** 2 > NORMAL_HIT
-            phi_z = sigma_depth * grad[y, x] * np.float32(step)
+            hit_p = hit[y, x]
+            inv_phi_z = np.float32(1.0) / (sigma_depth * grad[y, x] * np.float32(step))
+            inv_phi_l = np.float32(1.0) / phi_luminance[y, x]
+            z_p, l_p = depth[y, x], lum[y, x]
+            n0, n1, n2 = normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]
             for i in range(-radius, radius + 1):
                 yn = y + i * step
                 if yn < 0 or yn >= height:
@@ -202,18 +209,16 @@ def _edge_aware_kernel(
                     if i == 0 and j == 0:
                         weight = h
                     else:
-                        distance = np.float32(np.sqrt(np.float32(i * i + j * j)))
-                        exponent = abs(depth[y, x] - depth[yn, xn]) / (phi_z * distance)
-                        exponent += abs(lum[y, x] - lum[yn, xn]) / phi_luminance[y, x]
-                        hit_q = normal[yn, xn, 0] ** 2 + normal[yn, xn, 1] ** 2 + normal[yn, xn, 2] ** 2 > NORMAL_HIT
+                        hit_q = hit[yn, xn]
                         if hit_p and hit_q:
-                            cos = normal[y, x, 0] * normal[yn, xn, 0] + normal[y, x, 1] * normal[yn, xn, 1]
-                            cos += normal[y, x, 2] * normal[yn, xn, 2]
+                            cos = n0 * normal[yn, xn, 0] + n1 * normal[yn, xn, 1] + n2 * normal[yn, xn, 2]
                             w_n = _pow_normal(cos, sigma_normal, squarings)
                         elif hit_p or hit_q:
-                            w_n = np.float32(0.0)
+                            continue  # weight 0: a surface never mixes with the background
                         else:
                             w_n = np.float32(1.0)
+                        exponent = abs(z_p - depth[yn, xn]) * inv_phi_z * inv_distance[i + radius, j + radius]
+                        exponent += abs(l_p - lum[yn, xn]) * inv_phi_l
                         weight = h * np.exp(-exponent) * w_n
                     for c in range(channels):
                         tap = weight * values[yn, xn, c]
@@ -254,6 +259,7 @@ def edge_aware_filter(
         guides.depth,
         guides.depth_gradient,
         guides.normal,
+        np.einsum("hwc,hwc->hw", guides.normal, guides.normal) > NORMAL_HIT,
         np.asarray(kernel, np.float32),
         int(step),
         np.float32(sigma_depth),

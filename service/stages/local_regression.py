@@ -376,7 +376,7 @@ def _pair_features(terms: PairTerms, centre: tuple[slice, slice], pixel: tuple[s
 
 # ---------------------------------------------------------------------------- numba kernels' layout
 
-LANE_CHUNK = 64  # centres processed together by the kernels: their accumulators fit the L1 cache
+LANE_CHUNK = 256  # centres processed together by the kernels: their accumulators fit the L1 cache
 #
 # The kernels vectorise over the centres of one centre row ("lanes"). For a window offset (dy, dx) the
 # pixels of consecutive centres are `sparsity` apart, so every input plane is split into `sparsity` phase
