@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
 import sys
 from importlib import metadata
 from typing import Any
@@ -69,6 +70,19 @@ def versions() -> dict[str, str | None]:
     return found
 
 
+def git_revision() -> str | None:
+    """Commit of the checkout this code runs from, with '+dirty' when files differ; None outside git."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                              timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, timeout=30, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
 def describe() -> dict[str, Any]:
     """Machine, thread settings and versions, as stored in results.json."""
     threads: dict[str, Any] = {name: os.environ.get(name) for name in THREAD_VARIABLES}
@@ -88,4 +102,5 @@ def describe() -> dict[str, Any]:
         },
         "threads": threads,
         "versions": versions(),
+        "git": git_revision(),
     }

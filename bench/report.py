@@ -162,9 +162,13 @@ def pareto_plot(overall: dict[str, dict[str, Any]], path: Path, *, subtitle: str
     }
     fig, ax = plt.subplots(figsize=(7.5, 5.0), dpi=110)
     front = pareto_front(points)
-    if len(front) > 1:
-        xs, ys = zip(*(points[n] for n in front), strict=True)
-        ax.step(xs, ys, where="post", color="0.6", linestyle="--", linewidth=1.2, label="Pareto front", zorder=1)
+    own_front = pareto_front({n: p for n, p in points.items() if overall[n]["kind"] == "pipeline"})
+    for names, label, colour in ((front, "Pareto front", "0.6"), (own_front, "Pareto front of the pipelines",
+                                                                   "tab:blue")):
+        if len(names) > 1 and (names is front or names != front):
+            xs, ys = zip(*(points[n] for n in names), strict=True)
+            ax.step(xs, ys, where="post", color=colour, alpha=0.6, linestyle="--", linewidth=1.2, label=label,
+                    zorder=1)
     for name, (x, y) in points.items():
         anchor = overall[name]["kind"] == "anchor"
         ax.scatter([x], [y], s=46, zorder=3, marker="s" if anchor else "o",

@@ -213,12 +213,12 @@ def benchmark(
 ) -> tuple[dict[str, Any], list[SequenceRun]]:
     """Run every method on every sequence. Returns (results.json content, the runs with their crops)."""
     sequences = [open_sequence(p, n) for p, n in zip(sequence_dirs, unique_names(sequence_dirs), strict=True)]
+    env = environment.describe()
     started = time.perf_counter()
     runs = []
     with tqdm(total=len(sequences) * len(methods), desc="benchmark", unit="run", disable=not progress) as outer:
         for seq in sequences:
             runs.append(run_sequence(seq, methods, flip=flip, progress=progress, outer=outer))
-    env = environment.describe()
     env["machine"]["load_average_1m_end"] = os.getloadavg()[0]  # other work on the machine skews timings
     results = {
         "created": datetime.now(UTC).isoformat(timespec="seconds"),

@@ -266,6 +266,11 @@ def check_output(out: Frame, height: int, width: int, lo: float, hi: float) -> s
     return ""
 
 
+def copy_frames(frames: list[Frame] | tuple[Frame, ...]) -> list[Frame]:
+    """Deep copies, so a pipeline that writes into its input cannot change what the next one gets."""
+    return [Frame({k: v.copy() for k, v in f.buffers.items()}, dict(f.nonfinite)) for f in frames]
+
+
 def run_case(pipeline: Pipeline, frames: list[Frame], *, temporal: bool) -> CaseResult:
     """Run `frames` through a fresh sequence state of `pipeline` and check every output."""
     height, width = frames[0].height, frames[0].width
@@ -304,7 +309,7 @@ def run_suite(
                 if missing:
                     row[c.name] = CaseResult(True, f"needs {', '.join(missing)}", skipped=True)
                 else:
-                    row[c.name] = run_case(pipeline, built[c.name], temporal=method.temporal)
+                    row[c.name] = run_case(pipeline, copy_frames(built[c.name]), temporal=method.temporal)
                 bar.update(1)
     return results
 

@@ -42,7 +42,7 @@ def export_bytes(net: CrossRegUNet, *, extra: dict[str, Any] | None = None) -> b
         warnings.simplefilter("ignore", DeprecationWarning)  # the TorchScript exporter; no onnxscript here
         torch.onnx.export(
             net, (dummy,), buffer, input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
-            dynamic_axes={INPUT_NAME: {0: "n", 2: "height", 3: "width"}, OUTPUT_NAME: {0: "n", 2: "height", 3: "width"}},
+            dynamic_axes={name: {0: "n", 2: "height", 3: "width"} for name in (INPUT_NAME, OUTPUT_NAME)},
             opset_version=OPSET, do_constant_folding=True, dynamo=False,
         )  # fmt: skip
     model = onnx.load_from_string(buffer.getvalue())

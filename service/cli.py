@@ -36,7 +36,10 @@ def _parse_options(items: Sequence[str]) -> dict[str, Any]:
 
 
 def cmd_denoise(args: argparse.Namespace) -> int:
-    pipeline = pipelines.get(args.pipeline, **_parse_options(args.option))
+    options = _parse_options(args.option)
+    if args.online:
+        options["online"] = True  # a pipeline without this option refuses it: "has no option 'online'"
+    pipeline = pipelines.get(args.pipeline, **options)
     print(f"{'frame':<24} {'ms':>9} {'relL2 in':>10} {'relL2 out':>10} {'NaN/Inf':>8}")
     results = []
     for r in denoise_folder(pipeline, args.in_dir, args.out_dir, png=args.png):
@@ -97,6 +100,8 @@ def _args_denoise(p: argparse.ArgumentParser) -> None:
     p.add_argument("--option", "-o", action="append", default=[], metavar="KEY=VALUE",
                    help="pipeline option, repeatable (see `pipelines --json`)")
     p.add_argument("--png", action="store_true", help="also write tone-mapped PNG previews")
+    p.add_argument("--online", action="store_true",
+                   help="fine-tune the pipeline's network while the sequence runs (sets option online=true)")
 
 
 def _args_pipelines(p: argparse.ArgumentParser) -> None:

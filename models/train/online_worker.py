@@ -7,8 +7,8 @@ Started by service/online/trainer.py with multiprocessing `spawn`; protocol on t
             ("weights", {version, frames, loss, weights: name -> float32 array}) every `publish_every`
             frames, ("error", traceback text) before exiting on an exception.
 The worker starts from the weights the serving session runs (the ONNX file's initializers, or the random
-initialisation the session swapped in), so the two sides agree on the starting point. It does not judge its own weights: the serving side refuses
-non-finite ones.
+initialisation the session swapped in), so the two sides agree on the starting point. It does not judge
+its own weights: the serving side refuses non-finite ones.
 """
 
 from __future__ import annotations
@@ -29,7 +29,13 @@ def run(
 
         from export.crossreg_unet import initializers
         from models.nets.crossreg_unet import make_unet
-        from models.train.step import load_weights_numpy, make_optimizer, samples_to_tensor, train_step, weights_numpy
+        from models.train.step import (
+            load_weights_numpy,
+            make_optimizer,
+            samples_to_tensor,
+            train_step,
+            weights_numpy,
+        )
 
         torch.set_num_threads(int(config["worker_threads"]))
         net = make_unet()

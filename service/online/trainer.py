@@ -33,8 +33,9 @@ import numpy as np
 WORKER_MODULE = "models.train.online_worker"  # imported in the child process only
 
 
-class OnlineUnavailableError(RuntimeError):
-    """Online training was asked for but torch (the `train` extra) is not installed."""
+class OnlineUnavailableError(ValueError):
+    """Online training was asked for but torch (the `train` extra) is not installed: an option value this
+    installation cannot honour (a ValueError, so the CLI and the API report it as a bad option)."""
 
 
 @dataclass(frozen=True)

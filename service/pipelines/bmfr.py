@@ -22,7 +22,7 @@ from service.stages.local_regression import FIREFLY_K
 @dataclass(frozen=True)
 class BmfrOptions:
     window: int = 13  # regression window side, pixels, odd (see BmfrParams)
-    sparsity: int = 4  # centre pixels on every 4th row and column
+    sparsity: int = 6  # centre pixels on every 6th row and column (see BmfrParams)
     demodulate: bool = True  # regress radiance / albedo, multiply back after (Koskela 2019)
     firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
 

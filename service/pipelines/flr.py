@@ -22,8 +22,8 @@ from service.stages.local_regression import FIREFLY_K
 
 @dataclass(frozen=True)
 class FlrOptions:
-    scale: int = 2  # downsampling factor of the outer-product tensors, pixels
-    sigma: float = 1.0  # Gaussian std on the downsampled grid, cells
+    scale: int = 4  # downsampling factor of the outer-product tensors, pixels
+    sigma: float = 0.5  # Gaussian std on the downsampled grid, cells
     demodulate: bool = True  # regress radiance / albedo when albedo is present, multiply back after
     firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
 

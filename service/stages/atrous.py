@@ -31,6 +31,7 @@ DEPTH_GRADIENT_FLOOR = 1e-8  # scene units per pixel; Falcor SVGF's floor of fwi
 VARIANCE_EPS = 1e-10  # luminance^2; Falcor SVGF's epsilon under the square root of phi_l
 NORMAL_HIT = 0.25  # squared normal length above which a pixel is a surface hit
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # Rec. 709 / sRGB luminance of linear RGB
+MAX_EXPONENT = 40.0  # taps with w_z * w_l < e^-40 (~4e-18) are skipped by the compiled pass
 
 
 @dataclass(frozen=True)
@@ -219,6 +220,8 @@ def _edge_aware_kernel(values, lum, phi_luminance, depth, grad, normal, hit, ker
                             w_n = np.float32(1.0)
                         exponent = abs(z_p - depth[yn, xn]) * inv_phi_z * inv_distance[i + radius, j + radius]
                         exponent += abs(l_p - lum[yn, xn]) * inv_phi_l
+                        if exponent > MAX_EXPONENT or w_n == 0.0:
+                            continue  # weight below e^-MAX_EXPONENT: as good as zero
                         weight = h * np.exp(-exponent) * w_n
                     for c in range(channels):
                         tap = weight * values[yn, xn, c]

@@ -37,7 +37,7 @@ class BmfrParams:
     """Options of the G-buffer block regression."""
 
     window: int = 13  # side of the square regression window, pixels, odd (17 spans whole objects in small frames)
-    sparsity: int = 4  # centre pixels on every 4th row and column (Choi 2024 sec. 3)
+    sparsity: int = 6  # centre pixels on every 6th row and column (cheaper than 4, as accurate here)
     demodulate: bool = True  # regress radiance / albedo and multiply back (Koskela 2019 sec. 3)
     firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
     ridge_relative: float = RIDGE_RELATIVE  # Tikhonov, relative to each feature's scale (local_regression)

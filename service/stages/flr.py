@@ -43,8 +43,8 @@ RIDGE_ABSOLUTE_FLR = 1e-4  # slope ridge floor, in units of a standardised guide
 class FlrParams:
     """Options of the fast local regression."""
 
-    scale: int = 2  # box-downsampling factor of the outer-product tensors, pixels (Salmi: "downsampling")
-    sigma: float = 1.0  # std of the Gaussian blur on the low-resolution grid, in cells (x scale = pixels)
+    scale: int = 4  # box-downsampling factor of the outer-product tensors, pixels (Salmi: "downsampling")
+    sigma: float = 0.5  # std of the Gaussian blur on the low-resolution grid, in cells (x scale = pixels)
     truncate: float = 3.0  # Gaussian support radius in sigmas
     firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
     ridge_relative: float = RIDGE_RELATIVE  # Tikhonov on the slopes, relative to each guide's local variance
@@ -101,7 +101,7 @@ def local_linear_regression(
         y = clamp_fireflies(y, params.firefly_k)
     x = standardise(to_planes(guides))
     sums = (cell_sums_reference if reference else cell_sums)(x, y, params.scale)
-    sums = gaussian_blur(sums, params.sigma, params.truncate)
+    sums = (gaussian_blur_reference if reference else gaussian_blur)(sums, params.sigma, params.truncate)
     slopes, offsets = solve_cells(sums, x.shape[0], y.shape[0], params)
     apply = apply_coefficients_reference if reference else apply_coefficients
     return from_planes(apply(x, slopes, offsets, params.scale))
@@ -119,13 +119,13 @@ def cell_sums(x: np.ndarray, y: np.ndarray, scale: int) -> np.ndarray:
     """Per low-resolution cell, the sums over its pixels of [1, x, y, x x^T (upper triangle), x y^T].
 
     x: (Q, H, W) float32 guides; y: (C, H, W) float32 signal. Cells are `scale` x `scale` pixels, the last
-    row and column of cells partial. Returns (E, Hs, Ws) float32, E = `moment_count(Q, C)`, in the order
+    row and column of cells partial. Returns (Hs, Ws, E) float32, E = `moment_count(Q, C)`, in the order
     of `_moment_index`. numba kernel; `cell_sums_reference` is the plain-numpy twin.
     """
     q, height, width = x.shape
     c = y.shape[0]
     hs, ws = -(-height // scale), -(-width // scale)
-    out = np.zeros((moment_count(q, c), hs, ws), np.float32)
+    out = np.zeros((hs, ws, moment_count(q, c)), np.float32)
     _cell_sums_kernel(x, y, scale, out)
     return out
 
@@ -142,59 +142,94 @@ def cell_sums_reference(x: np.ndarray, y: np.ndarray, scale: int) -> np.ndarray:
     full = np.concatenate(planes, axis=0)
     padded = np.zeros((full.shape[0], hs * scale, ws * scale), np.float32)
     padded[:, :height, :width] = full
-    return padded.reshape(full.shape[0], hs, scale, ws, scale).sum(axis=(2, 4), dtype=np.float32)
+    sums = padded.reshape(full.shape[0], hs, scale, ws, scale).sum(axis=(2, 4), dtype=np.float32)
+    return np.ascontiguousarray(sums.transpose(1, 2, 0))
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True)
 def _cell_sums_kernel(x, y, scale, out):
     q, height, width = x.shape
     c = y.shape[0]
-    hs, ws = out.shape[1], out.shape[2]
-    for a in numba.prange(hs):
+    for a in numba.prange(out.shape[0]):
         for yy in range(a * scale, min(height, a * scale + scale)):
-            for b in range(ws):
-                for xx in range(b * scale, min(width, b * scale + scale)):
-                    out[0, a, b] += 1.0
-                    e = 1
-                    for i in range(q):
-                        out[e + i, a, b] += x[i, yy, xx]
-                    e += q
+            for xx in range(width):
+                cell = out[a, xx // scale]
+                cell[0] += 1.0
+                for i in range(q):
+                    cell[1 + i] += x[i, yy, xx]
+                for k in range(c):
+                    cell[1 + q + k] += y[k, yy, xx]
+                e = 1 + q + c
+                for i in range(q):
+                    xi = x[i, yy, xx]
+                    for j in range(i, q):
+                        cell[e] += xi * x[j, yy, xx]
+                        e += 1
+                for i in range(q):
+                    xi = x[i, yy, xx]
                     for k in range(c):
-                        out[e + k, a, b] += y[k, yy, xx]
-                    e += c
-                    for i in range(q):
-                        xi = x[i, yy, xx]
-                        for j in range(i, q):
-                            out[e, a, b] += xi * x[j, yy, xx]
-                            e += 1
-                    for i in range(q):
-                        xi = x[i, yy, xx]
-                        for k in range(c):
-                            out[e, a, b] += xi * y[k, yy, xx]
-                            e += 1
+                        cell[e] += xi * y[k, yy, xx]
+                        e += 1
 
 
-def gaussian_blur(planes: np.ndarray, sigma: float, truncate: float) -> np.ndarray:
-    """Separable Gaussian blur of sums, truncated at the border (no padding, no renormalisation).
+def gaussian_blur(sums: np.ndarray, sigma: float, truncate: float) -> np.ndarray:
+    """Separable Gaussian blur of cell sums, truncated at the border (no padding, no renormalisation).
 
-    planes: (E, h, w) float32 sums. Returns (E, h, w) float32; the taps are exp(-d^2 / 2 sigma^2), d in
-    cells, |d| <= ceil(truncate sigma), centre tap 1: the result is a weighted sum, not an average, so
-    the ratios the solver forms are exact weighted least squares near the border too.
+    sums: (h, w, E) float32. Returns (h, w, E) float32; the taps are exp(-d^2 / 2 sigma^2), d in cells,
+    |d| <= ceil(truncate sigma), centre tap 1: the result is a weighted sum, not an average, so the
+    ratios the solver forms are exact weighted least squares near the border too. numba kernel;
+    `gaussian_blur_reference` is the plain-numpy twin.
     """
-    radius = int(np.ceil(truncate * sigma))
-    _, height, width = planes.shape
-    out = planes
-    for axis in (1, 2):
-        src, out = out, out.copy()
-        for d in range(1, radius + 1):
-            tap = np.float32(np.exp(-0.5 * (d / sigma) ** 2))
-            for sign in (-1, 1):
-                pair = overlap(height, width, sign * d if axis == 1 else 0, sign * d if axis == 2 else 0)
-                if pair is None:
-                    continue
-                (cy, cx), (ny, nx) = pair
-                out[:, cy, cx] += tap * src[:, ny, nx]
+    taps = _gaussian_taps(sigma, truncate)
+    rows = np.empty_like(sums, dtype=np.float32)
+    _blur_rows_kernel(np.ascontiguousarray(sums, dtype=np.float32), taps, rows)
+    out = np.empty_like(rows)
+    _blur_rows_kernel(rows.transpose(1, 0, 2).copy(), taps, out.transpose(1, 0, 2))
     return out
+
+
+def gaussian_blur_reference(sums: np.ndarray, sigma: float, truncate: float) -> np.ndarray:
+    """Plain-numpy twin of `gaussian_blur`."""
+    taps = _gaussian_taps(sigma, truncate)
+    height, width = sums.shape[:2]
+    out = sums
+    for axis in (0, 1):
+        src, out = out, out.copy()
+        for d in range(1, len(taps)):
+            for sign in (-1, 1):
+                pair = overlap(height, width, sign * d if axis == 0 else 0, sign * d if axis == 1 else 0)
+                if pair is not None:
+                    (cy, cx), (ny, nx) = pair
+                    out[cy, cx] += taps[d] * src[ny, nx]
+    return out
+
+
+def _gaussian_taps(sigma: float, truncate: float) -> np.ndarray:
+    """Taps 0..R of the Gaussian, R = ceil(truncate sigma), tap 0 = 1. (R+1,) float32."""
+    d = np.arange(int(np.ceil(truncate * sigma)) + 1, dtype=np.float64)
+    return np.exp(-0.5 * (d / sigma) ** 2).astype(np.float32)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _blur_rows_kernel(src, taps, out):
+    """Blur along axis 0 of (h, w, E): out[y] = sum over |d| <= R of taps[|d|] src[y + d], inside only."""
+    height = src.shape[0]
+    radius = taps.shape[0] - 1
+    for y in numba.prange(height):
+        row = out[y]
+        row[:, :] = src[y]
+        for d in range(1, radius + 1):
+            t = taps[d]
+            if y - d >= 0:
+                other = src[y - d]
+                for i in range(row.shape[0]):
+                    for e in range(row.shape[1]):
+                        row[i, e] += t * other[i, e]
+            if y + d < height:
+                other = src[y + d]
+                for i in range(row.shape[0]):
+                    for e in range(row.shape[1]):
+                        row[i, e] += t * other[i, e]
 
 
 def _moment_index(q: int, c: int) -> tuple[int, int, int, dict[tuple[int, int], int], int]:
@@ -210,24 +245,43 @@ def _moment_index(q: int, c: int) -> tuple[int, int, int, dict[tuple[int, int], 
 def solve_cells(sums: np.ndarray, q: int, c: int, params: FlrParams) -> tuple[np.ndarray, np.ndarray]:
     """Slopes and offsets of every cell's weighted least-squares fit, from its blurred sums.
 
-    sums: (E, h, w) float32 from `gaussian_blur(cell_sums(...))`. Returns slopes (h, w, Q, C) and
+    sums: (h, w, E) float32 from `gaussian_blur(cell_sums(...))`. Returns slopes (h, w, Q, C) and
     offsets (h, w, C), float32: fit(x) = offsets + x . slopes.
     """
-    ix, iy, _, ixx, ixy = _moment_index(q, c)
-    s0 = np.maximum(sums[0].astype(np.float64), 1e-30)
-    mx = sums[ix : ix + q] / s0  # (Q, h, w)
-    my = sums[iy : iy + c] / s0  # (C, h, w)
+    h, w = sums.shape[:2]
+    _, _, _, ixx, _ = _moment_index(q, c)
+    pick = np.array([[ixx[(i, j)] for j in range(q)] for i in range(q)], np.int64).reshape(q, q)
+    cov_xx = np.empty((h, w, q, q))
+    cov_xy = np.empty((h, w, q, c))
+    mean_x = np.empty((h, w, q))
+    mean_y = np.empty((h, w, c))
+    _covariance_kernel(np.ascontiguousarray(sums, dtype=np.float32), pick, cov_xx, cov_xy, mean_x, mean_y)
     if q == 0:
-        h, w = s0.shape
-        return np.zeros((h, w, 0, c), np.float32), np.ascontiguousarray(np.moveaxis(my, 0, -1), dtype=np.float32)
-    cov_xx = np.empty((*s0.shape, q, q))
-    for i in range(q):
-        for j in range(q):
-            cov_xx[..., i, j] = sums[ixx[(i, j)]] / s0 - mx[i] * mx[j]
-    cov_xy = (sums[ixy : ixy + q * c].reshape(q, c, *s0.shape) / s0 - mx[:, None] * my[None]).transpose(2, 3, 0, 1)
-    slopes = solve_ridge(cov_xx, cov_xy, params.ridge_relative, params.ridge_absolute, weight_sum=np.ones(s0.shape))
-    offsets = np.moveaxis(my, 0, -1) - np.einsum("qhw,hwqc->hwc", mx, slopes)
+        return np.zeros((h, w, 0, c), np.float32), mean_y.astype(np.float32)
+    slopes = solve_ridge(cov_xx, cov_xy, params.ridge_relative, params.ridge_absolute, weight_sum=np.ones((h, w)))
+    offsets = mean_y - np.einsum("hwq,hwqc->hwc", mean_x, slopes)
     return slopes, np.ascontiguousarray(offsets, dtype=np.float32)
+
+
+@numba.njit(parallel=True, cache=True)
+def _covariance_kernel(sums, pick, cov_xx, cov_xy, mean_x, mean_y):
+    """Weighted means and covariances (float64) of every cell from its sums (order of `_moment_index`)."""
+    h, w = sums.shape[0], sums.shape[1]
+    q, c = mean_x.shape[2], mean_y.shape[2]
+    ixy = 1 + q + c + q * (q + 1) // 2
+    for a in numba.prange(h):
+        for b in range(w):
+            cell = sums[a, b]
+            s0 = max(np.float64(cell[0]), 1e-30)
+            for i in range(q):
+                mean_x[a, b, i] = cell[1 + i] / s0
+            for k in range(c):
+                mean_y[a, b, k] = cell[1 + q + k] / s0
+            for i in range(q):
+                for j in range(q):
+                    cov_xx[a, b, i, j] = cell[pick[i, j]] / s0 - mean_x[a, b, i] * mean_x[a, b, j]
+                for k in range(c):
+                    cov_xy[a, b, i, k] = cell[ixy + i * c + k] / s0 - mean_x[a, b, i] * mean_y[a, b, k]
 
 
 # ------------------------------------------------------------------------------------------- apply

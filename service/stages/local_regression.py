@@ -123,9 +123,66 @@ def solve_ridge(
     fitted exactly). R_jj = ridge_relative * gram_jj + ridge_absolute * weight_sum on the other columns
     (on all when weight_sum is given): relative to each feature's own scale, so it is the same ridge in
     any feature units, and never zero. A feature that does not vary in a window has gram_jj = 0 and
-    rhs_j = 0, hence beta_j = 0.
-    Returns beta: (..., k, m) float32, finite. Cholesky in float64, vectorised over the leading axes.
+    rhs_j = 0, hence beta_j = 0. A pivot that rounding drives below the ridge floor is clamped to it.
+    Returns beta: (..., k, m) float32, finite. Cholesky in float64 per system (numba, parallel);
+    `solve_ridge_reference` is the plain-numpy twin.
     """
+    lead, k, m = gram.shape[:-2], gram.shape[-1], rhs.shape[-1]
+    count = int(np.prod(lead))
+    flat_gram = np.ascontiguousarray(gram.reshape(count, k, k), dtype=np.float64)
+    flat_rhs = np.ascontiguousarray(rhs.reshape(count, k, m), dtype=np.float64)
+    constant = weight_sum is None
+    sums = np.zeros(count) if constant else np.ascontiguousarray(np.broadcast_to(weight_sum, lead), np.float64).ravel()
+    out = np.empty((count, k, m), np.float32)
+    _solve_kernel(flat_gram, flat_rhs, float(ridge_relative), float(ridge_absolute), constant, sums, out)
+    return out.reshape(*lead, k, m)
+
+
+@numba.njit(parallel=True, cache=True)
+def _solve_kernel(gram, rhs, ridge_relative, ridge_absolute, constant, sums, out):
+    count, k, m = rhs.shape
+    chunk = 256  # systems per task: scratch is allocated once per chunk, not per system
+    for first in numba.prange((count + chunk - 1) // chunk):
+        a = np.empty((k, k))
+        b = np.empty((k, m))
+        for n in range(first * chunk, min(count, first * chunk + chunk)):
+            a[:, :] = gram[n]
+            b[:, :] = rhs[n]
+            scale = max(a[0, 0] if constant else sums[n], 1e-30)
+            if constant:
+                a[0, 0] = scale
+            for j in range(1 if constant else 0, k):
+                a[j, j] += ridge_relative * max(a[j, j], 0.0) + ridge_absolute * scale
+            floor = ridge_absolute * scale
+            for j in range(k):
+                for p in range(j):
+                    a[j, j] -= a[j, p] * a[j, p]
+                a[j, j] = np.sqrt(max(a[j, j], floor))
+                for i in range(j + 1, k):
+                    for p in range(j):
+                        a[i, j] -= a[i, p] * a[j, p]
+                    a[i, j] /= a[j, j]
+            for c in range(m):
+                for i in range(k):
+                    for p in range(i):
+                        b[i, c] -= a[i, p] * b[p, c]
+                    b[i, c] /= a[i, i]
+                for i in range(k - 1, -1, -1):
+                    for p in range(i + 1, k):
+                        b[i, c] -= a[p, i] * b[p, c]
+                    b[i, c] /= a[i, i]
+                for i in range(k):
+                    out[n, i, c] = b[i, c]
+
+
+def solve_ridge_reference(
+    gram: np.ndarray,
+    rhs: np.ndarray,
+    ridge_relative: float = RIDGE_RELATIVE,
+    ridge_absolute: float = RIDGE_ABSOLUTE,
+    weight_sum: np.ndarray | None = None,
+) -> np.ndarray:
+    """Plain-numpy twin of `solve_ridge` (same arguments and result): Cholesky vectorised over systems."""
     a = np.moveaxis(np.asarray(gram, np.float64), (-2, -1), (0, 1)).copy()  # (k, k, ...)
     b = np.moveaxis(np.asarray(rhs, np.float64), (-2, -1), (0, 1)).copy()  # (k, m, ...)
     k = a.shape[0]
@@ -376,7 +433,7 @@ def _pair_features(terms: PairTerms, centre: tuple[slice, slice], pixel: tuple[s
 
 # ---------------------------------------------------------------------------- numba kernels' layout
 
-LANE_CHUNK = 256  # centres processed together by the kernels: their accumulators fit the L1 cache
+LANE_CHUNK = 128  # centres processed together by the kernels: their accumulators fit the L1 cache
 #
 # The kernels vectorise over the centres of one centre row ("lanes"). For a window offset (dy, dx) the
 # pixels of consecutive centres are `sparsity` apart, so every input plane is split into `sparsity` phase
@@ -626,16 +683,16 @@ def _block_reconstruct_kernel(planes, counts, scaled, spatial, radius, sparsity,
                                    lo, pad + j0, rows, w, s, n)  # fmt: skip
                         pred[:, :] = 0.0
                         for e in range(ch.shape[0]):
-                            out, coef, src = pred[ch[e]], coefs[a, col[e], j0 : j0 + n], rows[frow[e]]
+                            c, r, coef = ch[e], frow[e], coefs[a, col[e], j0 : j0 + n]
                             for j in range(n):
-                                out[j] += coef[j] * src[j]
+                                pred[c, j] += coef[j] * rows[r, j]
                         out = den[phase, y, lo : lo + n]
                         for j in range(n):
                             out[j] += w[j]
                         for c in range(channels):
-                            out, src = num[phase, c, y, lo : lo + n], pred[c]
+                            out = num[phase, c, y, lo : lo + n]
                             for j in range(n):
-                                out[j] += w[j] * src[j]
+                                out[j] += w[j] * pred[c, j]
 
 
 # ---------------------------------------------------------------------------------------- the whole

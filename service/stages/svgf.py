@@ -81,19 +81,22 @@ def accumulate(
 
 
 def box_mean(values: np.ndarray, radius: int) -> np.ndarray:
-    """Mean of (H, W, C) float32 `values` over the in-frame part of each pixel's (2r+1)^2 window."""
+    """Mean of (H, W, C) float32 `values` over the in-frame part of each pixel's (2r+1)^2 window.
+
+    Separable sums of shifted slices (no padding): cheap for the small radii it serves."""
     height, width = values.shape[:2]
-    padded = np.zeros((height + 1, width + 1, values.shape[2]), np.float64)
-    padded[1:, 1:] = np.cumsum(np.cumsum(values, axis=0, dtype=np.float64), axis=1)
-    y0 = np.clip(np.arange(height) - radius, 0, height)
-    y1 = np.clip(np.arange(height) + radius + 1, 0, height)
-    x0 = np.clip(np.arange(width) - radius, 0, width)
-    x1 = np.clip(np.arange(width) + radius + 1, 0, width)
-    total = (
-        padded[y1][:, x1] - padded[y0][:, x1] - padded[y1][:, x0] + padded[y0][:, x0]
-    )
-    area = ((y1 - y0)[:, None] * (x1 - x0)[None, :])[..., None]
-    return (total / area).astype(np.float32)
+    out = values.astype(np.float32, copy=True)
+    count = np.ones((height, width, 1), np.float32)
+    for axis, size in ((0, height), (1, width)):
+        src, src_count = out.copy(), count.copy()
+        for shift in range(1, min(radius, size - 1) + 1):
+            for lo, hi in ((shift, 0), (0, shift)):  # neighbour above/left, then below/right
+                dst = [slice(None)] * 2
+                nb = [slice(None)] * 2
+                dst[axis], nb[axis] = slice(lo, size - hi), slice(hi, size - lo)
+                out[tuple(dst)] += src[tuple(nb)]
+                count[tuple(dst)] += src_count[tuple(nb)]
+    return out / count
 
 
 def clamp_history(

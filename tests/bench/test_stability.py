@@ -12,7 +12,16 @@ import numpy as np
 import pytest
 
 from bench.methods import Method, anchor_method, pipeline_method
-from bench.stability import CASE_NAMES, CASES, case, check_output, radiance_bounds, run_case, run_suite
+from bench.stability import (
+    CASE_NAMES,
+    CASES,
+    case,
+    check_output,
+    copy_frames,
+    radiance_bounds,
+    run_case,
+    run_suite,
+)
 from service import pipelines
 from service.frame import Frame
 from service.pipelines.base import Pipeline, SequenceState
@@ -31,16 +40,11 @@ def _pipeline(name: str) -> tuple[Pipeline, Method]:
     return pipelines.get(name), pipeline_method(name)
 
 
-def _fresh_frames(name: str) -> list[Frame]:
-    """Copies of the case's frames, so a pipeline that writes into its input cannot affect the next test."""
-    return [Frame({k: v.copy() for k, v in f.buffers.items()}, dict(f.nonfinite)) for f in _frames(name)]
-
-
 @pytest.mark.parametrize("case_name", CASE_NAMES)
 @pytest.mark.parametrize("pipeline_name", pipelines.names())
 def test_pipeline_survives_hard_case(pipeline_name: str, case_name: str) -> None:
     pipeline, method = _pipeline(pipeline_name)
-    frames = _fresh_frames(case_name)
+    frames = copy_frames(_frames(case_name))
     missing = method.missing(set(frames[0].buffers))
     if missing:
         pytest.skip(f"{pipeline_name} needs {missing}")

@@ -8,6 +8,7 @@ from service.stages.flr import (
     cell_sums,
     cell_sums_reference,
     gaussian_blur,
+    gaussian_blur_reference,
     gbuffer_guides,
     local_linear_regression,
     solve_cells,
@@ -39,7 +40,9 @@ def test_numba_kernels_match_the_numpy_reference(size, scale):
     y = rng.standard_normal((3, *size)).astype(np.float32)
     sums = cell_sums(x, y, scale)
     np.testing.assert_allclose(sums, cell_sums_reference(x, y, scale), rtol=1e-5, atol=1e-4)
-    slopes, offsets = solve_cells(gaussian_blur(sums, 1.0, 3.0), 4, 3, FlrParams(scale=scale))
+    blurred = gaussian_blur(sums, 1.0, 3.0)
+    np.testing.assert_allclose(blurred, gaussian_blur_reference(sums, 1.0, 3.0), rtol=1e-5, atol=1e-4)
+    slopes, offsets = solve_cells(blurred, 4, 3, FlrParams(scale=scale))
     fast = apply_coefficients(x, slopes, offsets, scale)
     np.testing.assert_allclose(fast, apply_coefficients_reference(x, slopes, offsets, scale), rtol=1e-5, atol=1e-5)
     assert fast.shape == (3, *size) and np.isfinite(fast).all()

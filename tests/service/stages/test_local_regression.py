@@ -14,6 +14,7 @@ from service.stages.local_regression import (
     neighbour_mean,
     plain_terms,
     solve_ridge,
+    solve_ridge_reference,
     standardise,
 )
 
@@ -54,6 +55,20 @@ def test_solve_ridge_never_gives_nan_on_singular_systems():
     assert np.isfinite(beta).all() and beta[0, 2, 0] == 0.0
     huge = solve_ridge(gram[None] * 1e30, np.array([[[5.0], [3.0], [0.0], [3.0]]]) * 1e30)
     assert np.isfinite(huge).all()
+
+
+def test_solve_ridge_matches_the_numpy_reference():
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal((6, 7, 30, 5)).astype(np.float32)
+    x[..., 0] = 1.0
+    x[0, 0, :, 3] = x[0, 0, :, 2]  # one singular system
+    y = rng.standard_normal((6, 7, 30, 3)).astype(np.float32)
+    gram, rhs = np.einsum("...ik,...il->...kl", x, x), np.einsum("...ik,...im->...km", x, y)
+    np.testing.assert_allclose(solve_ridge(gram, rhs), solve_ridge_reference(gram, rhs), rtol=1e-5, atol=1e-6)
+    sums = np.full((6, 7), 30.0)
+    np.testing.assert_allclose(solve_ridge(gram[..., 1:, 1:], rhs[..., 1:, :], 1e-2, 1e-3, weight_sum=sums),
+                               solve_ridge_reference(gram[..., 1:, 1:], rhs[..., 1:, :], 1e-2, 1e-3, weight_sum=sums),
+                               rtol=1e-5, atol=1e-6)  # fmt: skip
 
 
 def test_neighbour_mean_excludes_the_pixel_and_handles_borders_and_1x1():

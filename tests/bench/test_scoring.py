@@ -1,0 +1,48 @@
+"""Which pixels and frames each benchmark score sees (bench/scoring.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench import scoring
+from bench.scoring import SequenceScore, disoccluded_mask, score_frame
+from service.frame import Frame
+from service.metrics import rel_l2_map
+
+
+def test_disoccluded_error_is_untrimmed_mean_over_the_mask() -> None:
+    rng = np.random.default_rng(0)
+    reference = rng.uniform(0.5, 1.0, (6, 7, 3)).astype(np.float32)
+    image = reference + rng.normal(0, 0.1, reference.shape).astype(np.float32)
+    mask = np.zeros((6, 7), bool)
+    mask[2:4, 1:5] = True
+    score = score_frame(image, reference, (reference, reference), mask, flip=False)
+    expected = rel_l2_map(image, reference)[mask].mean()
+    assert score.as_dict()["disoccluded_rel_l2"] == pytest.approx(expected)
+    assert score.disoccluded_pixels == 8 and score.temporal is not None and score.flip is None
+    first = score_frame(image, reference, None, None, flip=False)
+    assert first.temporal is None and first.as_dict()["disoccluded_rel_l2"] is None
+
+
+def test_sequence_summary_pools_disoccluded_pixels_and_takes_median_time() -> None:
+    frames = [scoring.FrameScore(0.1, 0.2, None, None, None, 0), scoring.FrameScore(0.3, 0.4, None, 0.5, 2.0, 4),
+              scoring.FrameScore(0.2, 0.3, None, 0.7, 0.0, 0)]
+    summary = SequenceScore(frames, [5.0, 1.0, 3.0]).summary(megapixels=0.5)
+    assert summary["ms_per_frame"] == 3.0 and summary["ms_per_megapixel"] == 6.0
+    assert summary["rel_l2"] == pytest.approx(0.2) and summary["temporal"] == pytest.approx(0.6)
+    assert summary["disoccluded_rel_l2"] == pytest.approx(0.5)  # 2.0 over 4 pixels, pooled
+    assert summary["flip"] is None
+
+
+def test_static_camera_has_no_disocclusion(tiny_layers) -> None:
+    prev, frame = Frame.from_buffers(tiny_layers[0]), Frame.from_buffers(tiny_layers[1])
+    static = frame.replace(motion=np.zeros_like(frame["motion"]), depth=prev["depth"], normal=prev["normal"])
+    mask = disoccluded_mask(static, prev)
+    assert mask is not None and mask.shape == (frame.height, frame.width) and not mask.any()
+    assert disoccluded_mask(Frame.from_buffers({"color": frame["color"]}), prev) is None  # no motion layer
+
+
+def test_missing_metric_is_reported_not_fatal() -> None:
+    assert scoring._lookup("service.metrics", "no_such_metric") is None
+    assert "service.metrics.no_such_metric" in scoring.unavailable()

@@ -1,0 +1,164 @@
+"""The crossreg pipeline: explicit state, odd sizes, the network contract, weight refusal, the online
+worker end to end (training, swap, crash), and the CLI's --online."""
+
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from bench.synthetic import synthetic_sequence
+from service import pipelines
+from service.cli import main as cli_main
+from service.frame import Frame
+from service.layout import CROSSREG_INPUTS, channel_slices
+from service.metrics import rel_l2
+from service.online import trainer as trainer_module
+from service.pipelines.crossreg import CrossregState, prepare_frame
+
+WORKER_START_S = 90  # spawning a process that imports torch, on 2 busy cores
+
+
+@pytest.fixture(scope="module")
+def odd_frames():
+    return [Frame.from_buffers(x) for x in synthetic_sequence(13, 17, 3, spp=8, seed=5)]
+
+
+def _run(pipeline, frames, state=None):
+    state = state or pipeline.start(frames[0].height, frames[0].width)
+    outs = []
+    for frame in frames:
+        out, state = pipeline.step(frame, state)
+        outs.append(out["color"])
+    return outs, state
+
+
+def test_contract_and_options():
+    info = pipelines.get("crossreg").describe()
+    assert info["temporal"] is True
+    assert {"colorA", "colorB", "albedo", "normal", "motion"} == set(info["requires"])
+    assert {"online", "publish_every", "crop", "random_init"} <= set(info["options"])
+    assert info["options"]["online"] is False
+
+
+def test_odd_size_sequence_keeps_explicit_history(odd_frames):
+    pipeline = pipelines.get("crossreg")
+    outs, state = _run(pipeline, odd_frames)
+    assert isinstance(state, CrossregState) and state.frame_index == 3
+    assert all(o.shape == (13, 17, 3) and np.isfinite(o).all() and (o >= 0).all() for o in outs)
+    assert state.history.output.shape == (13, 17, 3) and state.history.pilots.shape == (13, 17, 6)
+    status = state.online_status
+    assert status["state"] == "off" and status["weights_version"] == 0 and status["init"] == "warm start"
+
+
+def test_network_input_follows_the_layout_and_history_is_used(odd_frames):
+    prepared = prepare_frame(odd_frames[0], None)
+    s = channel_slices(CROSSREG_INPUTS)
+    np.testing.assert_array_equal(prepared.features[..., s["pilotA"]], prepared.pilot_a)
+    np.testing.assert_array_equal(prepared.features[..., s["normal"]], odd_frames[0]["normal"])
+    assert not prepared.valid.any()  # no history on the first frame: the filter ignores `previous`
+    pipeline = pipelines.get("crossreg")
+    _, state = _run(pipeline, odd_frames[:1])
+    second = prepare_frame(odd_frames[1], state.history)
+    assert second.valid.any()  # static floor reprojects
+    assert second.sample().shape == (13, 17, 22)
+
+
+def test_warm_start_denoises_better_than_the_pilots_alone():
+    layers = synthetic_sequence(32, 48, 4, spp=8, seed=11)
+    frames = [Frame.from_buffers(x) for x in layers]
+    outs, _ = _run(pipelines.get("crossreg"), frames)
+    for frame, out, x in zip(frames[1:], outs[1:], layers[1:], strict=True):
+        prepared = prepare_frame(frame, None)
+        from service.stages.cross_regression import log_to_linear
+
+        pilots = log_to_linear(0.5 * (prepared.pilot_a + prepared.pilot_b)) + x["emission"]
+        assert rel_l2(out, x["reference"]) < rel_l2(pilots, x["reference"])
+
+
+class _FakeTrainer:
+    """Stand-in for OnlineTrainer (test only): publishes whatever weights the test gives it."""
+
+    def __init__(self, weights):
+        self.weights, self.submitted = weights, 0
+
+    def poll(self):
+        weights, self.weights = self.weights, None
+        return None if weights is None else (1, weights)
+
+    def submit(self, sample, frame_index):
+        self.submitted += 1
+        return True
+
+    def status(self):
+        return {"state": "running", "running": True, "crashed": False, "lagging": False, "last_error": None}
+
+    def close(self):
+        pass
+
+
+def test_non_finite_worker_weights_are_refused_and_reported(odd_frames):
+    pipeline = pipelines.get("crossreg")
+    state = pipeline.start(13, 17)
+    state.model = state.model.copy()
+    reference, _ = _run(pipeline, odd_frames[:2])
+    shapes = state.model.info.weight_shapes
+    bad = {name: np.full(shape, np.nan, np.float32) for name, shape in shapes.items()}
+    state.trainer = _FakeTrainer(bad)
+    outs, state = _run(pipeline, odd_frames[:2], state)
+    status = state.online_status
+    assert status["weights_version"] == 0 and status["weights_refused"] == 1
+    assert "non-finite" in status["last_error"] and state.trainer.submitted == 2
+    np.testing.assert_allclose(outs[1], reference[1], rtol=1e-5, atol=1e-6)  # still the last good weights
+
+
+def test_random_init_starts_from_fresh_weights(odd_frames):
+    outs, state = _run(pipelines.get("crossreg", random_init=True, seed=3), odd_frames[:2])
+    assert state.online_status["init"] == "random" and state.model.version == 1
+    assert all(np.isfinite(o).all() for o in outs)
+
+
+def test_online_without_torch_is_a_clear_error(monkeypatch):
+    real = trainer_module.importlib.util.find_spec
+    monkeypatch.setattr(
+        trainer_module.importlib.util, "find_spec", lambda name, *a: None if name == "torch" else real(name, *a)
+    )
+    with pytest.raises(ValueError, match="online training needs torch, which is not installed"):
+        pipelines.get("crossreg", online=True)
+
+
+def test_online_session_trains_swaps_weights_and_survives_a_worker_crash(odd_frames):
+    pytest.importorskip("torch")
+    pipeline = pipelines.get("crossreg", online=True, publish_every=1, crop=8)
+    state = pipeline.start(13, 17)
+    try:
+        deadline = time.monotonic() + WORKER_START_S
+        frames = odd_frames * 20
+        i = 0
+        while state.online_status["weights_version"] < 1:  # inference never waits; we wait for the test
+            assert time.monotonic() < deadline, state.online_status
+            _, state = pipeline.step(frames[i % len(frames)], state)
+            i += 1
+            time.sleep(0.1)
+        status = state.online_status
+        assert status["frames_trained"] >= 1 and status["running"] and not status["crashed"]
+        os.kill(state.trainer.pid, signal.SIGKILL)
+        state.trainer._process.join(10)
+        outs, state = _run(pipeline, odd_frames, state)
+        assert all(np.isfinite(o).all() for o in outs)
+        status = state.online_status
+        assert status["crashed"] and status["state"] == "crashed" and "exited" in status["last_error"]
+        assert status["weights_version"] >= 1  # running on the last good weights
+    finally:
+        state.close()
+
+
+def test_cli_online_flag(tiny_sequence_dir, tmp_path, capsys):
+    assert cli_main(["denoise", "--pipeline", "bilateral", "--online", str(tiny_sequence_dir), str(tmp_path)]) == 2
+    assert "pipeline 'bilateral' has no option 'online'" in capsys.readouterr().err
+    pytest.importorskip("torch")
+    code = cli_main(["denoise", "--pipeline", "crossreg", "--online", "-o", "crop=8", str(tiny_sequence_dir),
+                     str(tmp_path / "out")])  # fmt: skip
+    assert code == 0 and len(list((tmp_path / "out").glob("*.exr"))) == 3
+    assert "crossreg: 3 frames" in capsys.readouterr().out
