@@ -146,11 +146,11 @@ def cell_sums_reference(x: np.ndarray, y: np.ndarray, scale: int) -> np.ndarray:
     return np.ascontiguousarray(sums.transpose(1, 2, 0))
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(cache=True, fastmath=True)
 def _cell_sums_kernel(x, y, scale, out):
     q, height, width = x.shape
     c = y.shape[0]
-    for a in numba.prange(out.shape[0]):
+    for a in range(out.shape[0]):
         for yy in range(a * scale, min(height, a * scale + scale)):
             for xx in range(width):
                 cell = out[a, xx // scale]
@@ -183,9 +183,10 @@ def gaussian_blur(sums: np.ndarray, sigma: float, truncate: float) -> np.ndarray
     taps = _gaussian_taps(sigma, truncate)
     rows = np.empty_like(sums, dtype=np.float32)
     _blur_rows_kernel(np.ascontiguousarray(sums, dtype=np.float32), taps, rows)
-    out = np.empty_like(rows)
-    _blur_rows_kernel(rows.transpose(1, 0, 2).copy(), taps, out.transpose(1, 0, 2))
-    return out
+    cols = np.ascontiguousarray(rows.transpose(1, 0, 2))
+    out = np.empty_like(cols)
+    _blur_rows_kernel(cols, taps, out)
+    return np.ascontiguousarray(out.transpose(1, 0, 2))
 
 
 def gaussian_blur_reference(sums: np.ndarray, sigma: float, truncate: float) -> np.ndarray:
@@ -210,12 +211,12 @@ def _gaussian_taps(sigma: float, truncate: float) -> np.ndarray:
     return np.exp(-0.5 * (d / sigma) ** 2).astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(cache=True, fastmath=True)
 def _blur_rows_kernel(src, taps, out):
     """Blur along axis 0 of (h, w, E): out[y] = sum over |d| <= R of taps[|d|] src[y + d], inside only."""
     height = src.shape[0]
     radius = taps.shape[0] - 1
-    for y in numba.prange(height):
+    for y in range(height):
         row = out[y]
         row[:, :] = src[y]
         for d in range(1, radius + 1):
@@ -263,13 +264,13 @@ def solve_cells(sums: np.ndarray, q: int, c: int, params: FlrParams) -> tuple[np
     return slopes, np.ascontiguousarray(offsets, dtype=np.float32)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(cache=True)
 def _covariance_kernel(sums, pick, cov_xx, cov_xy, mean_x, mean_y):
     """Weighted means and covariances (float64) of every cell from its sums (order of `_moment_index`)."""
     h, w = sums.shape[0], sums.shape[1]
     q, c = mean_x.shape[2], mean_y.shape[2]
     ixy = 1 + q + c + q * (q + 1) // 2
-    for a in numba.prange(h):
+    for a in range(h):
         for b in range(w):
             cell = sums[a, b]
             s0 = max(np.float64(cell[0]), 1e-30)

@@ -284,10 +284,10 @@ def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K) -> np.nd
     return np.where(np.isfinite(lo), out, planes).astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False)
+@numba.njit(cache=True)
 def _clamp_kernel(planes, k, out):
     channels, height, width = planes.shape
-    for row in numba.prange(channels * height):
+    for row in range(channels * height):
         c, y = row // height, row % height
         for x in range(width):
             lo, hi, seen = np.float32(np.inf), np.float32(-np.inf), False

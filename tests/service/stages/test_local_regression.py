@@ -101,7 +101,7 @@ def test_standardise_puts_planes_on_unit_scale_and_zeroes_constant_ones():
     assert out[1].mean() == pytest.approx(0.0, abs=1e-6) and out[1].std() == pytest.approx(1.0, rel=1e-5)
 
 
-@pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22)])
+@pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22), (7, 400)])  # 400: more centres than LANE_CHUNK
 def test_block_kernels_match_the_numpy_reference(size):
     rng = np.random.default_rng(2)
     terms, target = _random_terms(rng, *size)
