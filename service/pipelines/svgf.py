@@ -44,14 +44,21 @@ class SvgfOptions:
     clamp_spread: float | None = 1.0  # history clamp to local mean +- this * std (extension); None: off
 
 
+# Radiance above this is scaled down before filtering so that squared luminance moments stay finite in
+# float32 (max 3.4e38): (1e15)^2 = 1e30 leaves room for sums over windows and histories.
+SAFE_RADIANCE = 1e15
+
+
 @dataclass
 class SvgfState(SequenceState):
     """History of the previous frame: (H, W, 6) float32 colour (3, after the first a-trous pass),
-    moments (2) and history length (1); its depth (H, W, 1) and normal (H, W, 3); None before frame 1."""
+    moments (2) and history length (1); its depth (H, W, 1) and normal (H, W, 3); None before frame 1.
+    The history is stored divided by `scale` (>= 1, see SAFE_RADIANCE)."""
 
     history: np.ndarray | None = None
     depth: np.ndarray | None = None
     normal: np.ndarray | None = None
+    scale: float = 1.0
 
 
 @register
@@ -79,6 +86,8 @@ class SvgfPipeline(Pipeline):
     def denoise(self, frame: Frame, state: SvgfState) -> tuple[dict[str, np.ndarray], SvgfState]:
         albedo = frame.get("albedo") if self.options.demodulate else None
         color = frame["color"] if albedo is None else demodulate(frame["color"], albedo)
+        scale = max(1.0, float(np.abs(color).max()) / SAFE_RADIANCE)
+        color = color / np.float32(scale)
         depth, normal = frame["depth"], frame["normal"]
         guides = edge_guides(depth, normal)
         moments = luminance_moments(color)
@@ -90,6 +99,9 @@ class SvgfPipeline(Pipeline):
                 state.history, frame["motion"], depth=depth, prev_depth=state.depth, normal=normal,
                 prev_normal=state.normal, params=self.reprojection_params,
             )
+            ratio = np.float32(state.scale / scale)  # history units -> this frame's units
+            prev[..., :4] *= ratio
+            prev[..., 4] *= ratio * ratio
         prev_color, prev_moments = prev[..., :3], prev[..., 3:5]
         if self.temporal_params.clamp_spread is not None:
             prev_color, prev_moments = clamp_history(
@@ -102,6 +114,7 @@ class SvgfPipeline(Pipeline):
         variance = estimate_variance(moments_acc, moments, history, current, guides, self.temporal_params)
         filtered, _, first = atrous(color, variance, guides, self.atrous_params)
         state.history = np.concatenate([first, moments_acc, history[..., None]], axis=-1)
-        state.depth, state.normal = depth, normal
+        state.depth, state.normal, state.scale = depth, normal, scale
+        filtered = filtered * np.float32(scale)
         out = filtered if albedo is None else remodulate(filtered, albedo)
         return {"color": out}, state

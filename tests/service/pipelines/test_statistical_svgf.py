@@ -49,3 +49,17 @@ def test_cli_denoises_a_sequence(name, tiny_sequence_dir, tmp_path, capsys):
                  str(tiny_sequence_dir), str(tmp_path / "out")]) == 0
     assert len(list((tmp_path / "out").glob("*.exr"))) == 3
     assert f"{name}: 3 frames" in capsys.readouterr().out
+
+
+def test_svgf_history_survives_radiance_scale_jumps(tiny_layers):
+    """Frames at 1, 1e20 and 1 times the radiance: the history is rescaled, nothing overflows."""
+    from service import pipelines
+    from service.frame import Frame
+
+    pipeline = pipelines.get("svgf")
+    state = pipeline.start(24, 40)
+    for layers, gain in zip(tiny_layers, (1.0, 1e20, 1.0), strict=True):
+        scaled = {k: (v * gain if k in ("color", "colorA", "colorB", "emission") else v) for k, v in layers.items()}
+        out, state = pipeline.step(Frame.from_buffers(scaled), state)
+        assert np.isfinite(out["color"]).all()
+        assert out["color"].max() <= scaled["color"].max() * 1.01  # the 1e20 history does not leak back
