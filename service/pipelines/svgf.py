@@ -99,9 +99,10 @@ class SvgfPipeline(Pipeline):
                 state.history, frame["motion"], depth=depth, prev_depth=state.depth, normal=normal,
                 prev_normal=state.normal, params=self.reprojection_params,
             )
-            ratio = np.float32(state.scale / scale)  # history units -> this frame's units
-            prev[..., :4] *= ratio
-            prev[..., 4] *= ratio * ratio
+            ratio = state.scale / scale  # history units -> this frame's units, clipped to the safe range
+            with np.errstate(over="ignore"):
+                prev[..., :4] = np.clip(prev[..., :4] * np.float32(ratio), -SAFE_RADIANCE, SAFE_RADIANCE)
+                prev[..., 4] = np.minimum(prev[..., 4] * np.float32(ratio * ratio), SAFE_RADIANCE**2)
         prev_color, prev_moments = prev[..., :3], prev[..., 3:5]
         if self.temporal_params.clamp_spread is not None:
             prev_color, prev_moments = clamp_history(
