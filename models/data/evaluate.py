@@ -1,7 +1,7 @@
 """Measure a rendered sequence folder: noise of the input and how well its motion vectors warp.
 
 Warp error of frame t: relL2 (service.metrics) of frame t-1's reference warped by frame t's motion
-(bilinear, models.data.motion.warp) against frame t's reference, over the pixels whose lookup falls
+(bilinear, service.stages.reprojection.reproject) against frame t's reference, over the pixels whose lookup falls
 inside the image, and separately over the disoccluded pixels (where motionDual differs from motion).
 The unwarped previous reference gives the baseline. Warp errors drop the highest 0.1% of per-pixel
 errors (TRIM_FRACTION, as the trimmed relL2): bilinear warping smears sub-pixel emitters (a 1e3-bright
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from models.data.motion import warp
 from service.exr import list_sequence, read_frame, read_metadata
 from service.metrics import TRIM_FRACTION, rel_l2, rel_l2_map
+from service.stages.reprojection import reproject
 
 DUAL_DIFFERS_PX = 1e-3  # motionDual and motion differ at a pixel when they are this far apart, pixels
 
@@ -39,8 +39,8 @@ def warp_errors(prev_reference: np.ndarray, reference: np.ndarray, motion: np.nd
     (`*_disoccluded`), each without the highest `trim` fraction of pixel errors, and the disoccluded
     fraction of the frame.
     """
-    warped_m, inside_m = warp(prev_reference, motion)
-    warped_d, inside_d = warp(prev_reference, dual)
+    warped_m, inside_m = reproject(prev_reference, motion)
+    warped_d, inside_d = reproject(prev_reference, dual)
     inside = inside_m & inside_d
     disoccluded = inside & (np.linalg.norm(dual - motion, axis=-1) > DUAL_DIFFERS_PX)
     out = {"disoccluded_fraction": float(disoccluded.mean())}

@@ -101,30 +101,6 @@ def compute_motion(current: GBuffer, view: View, previous: GBuffer, previous_vie
     return Motion(motion.astype(np.float32), dual.astype(np.float32), occluded, valid)
 
 
-def warp(image: np.ndarray, motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Backward-warp a previous frame: out(x) = image(x + motion(x)), bilinear, pixel centres at +0.5.
-
-    image: (H, W, C) float32 (frame t-1); motion: (H, W, 2) float32 pixels. Returns (warped (H, W, C)
-    float32, inside (H, W) bool: the lookup fell inside the image; outside it the edge is clamped).
-    """
-    height, width = image.shape[:2]
-    pos = pixel_centres(height, width) + motion - 0.5  # continuous index space of pixel centres
-    inside = (pos[..., 0] >= -0.5) & (pos[..., 0] <= width - 0.5) & (pos[..., 1] >= -0.5) & (
-        pos[..., 1] <= height - 0.5)
-    px = np.clip(pos[..., 0], 0, width - 1)
-    py = np.clip(pos[..., 1], 0, height - 1)
-    x0 = np.minimum(np.floor(px).astype(np.int64), width - 2) if width > 1 else np.zeros_like(px, np.int64)
-    y0 = np.minimum(np.floor(py).astype(np.int64), height - 2) if height > 1 else np.zeros_like(py, np.int64)
-    x1 = np.minimum(x0 + 1, width - 1)
-    y1 = np.minimum(y0 + 1, height - 1)
-    fx = (px - x0)[..., None]
-    fy = (py - y0)[..., None]
-    img = image.astype(np.float64)
-    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
-    bottom = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
-    return (top * (1 - fy) + bottom * fy).astype(np.float32), inside
-
-
 def silhouette(shape: np.ndarray) -> np.ndarray:
     """(H, W) bool: pixels whose 3x3 neighbourhood sees more than one shape (or shape and background).
 

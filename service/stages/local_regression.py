@@ -284,23 +284,31 @@ def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K) -> np.nd
     return np.where(np.isfinite(lo), out, planes).astype(np.float32)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=False)
 def _clamp_kernel(planes, k, out):
     channels, height, width = planes.shape
-    for row in range(channels * height):
-        c, y = row // height, row % height
-        for x in range(width):
-            lo, hi, seen = np.float32(np.inf), np.float32(-np.inf), False
+    lo = np.empty(width, np.float32)
+    hi = np.empty(width, np.float32)
+    for c in range(channels):
+        for y in range(height):
+            lo[:] = np.inf
+            hi[:] = -np.inf
             for yy in range(max(0, y - 1), min(height, y + 2)):
-                for xx in range(max(0, x - 1), min(width, x + 2)):
-                    if yy != y or xx != x:
-                        v = planes[c, yy, xx]
-                        lo, hi, seen = min(lo, v), max(hi, v), True
-            v = planes[c, y, x]
-            if seen:
-                spread = k * (hi - lo)
-                v = min(max(v, lo - spread), hi + spread)
-            out[c, y, x] = v
+                src = planes[c, yy]
+                for dx in range(-1, 2):
+                    if yy == y and dx == 0:
+                        continue
+                    for x in range(max(0, -dx), min(width, width - dx)):  # contiguous, vectorises
+                        v = src[x + dx]
+                        lo[x] = min(lo[x], v)
+                        hi[x] = max(hi[x], v)
+            row, dst = planes[c, y], out[c, y]
+            for x in range(width):
+                v = row[x]
+                if lo[x] <= hi[x]:  # has a neighbour (not a 1x1 frame)
+                    spread = k * (hi[x] - lo[x])
+                    v = min(max(v, lo[x] - spread), hi[x] + spread)
+                dst[x] = v
 
 
 # -------------------------------------------------------------------------------- fast exp for numba
@@ -731,9 +739,9 @@ def standardise(planes: np.ndarray) -> np.ndarray:
     """
     if planes.shape[0] == 0:
         return np.ascontiguousarray(planes, dtype=np.float32)
-    flat = planes.reshape(planes.shape[0], -1).astype(np.float64)
-    mean = flat.mean(axis=1)
-    std = flat.std(axis=1)
+    flat = planes.reshape(planes.shape[0], -1)
+    mean = flat.mean(axis=1, dtype=np.float64)
+    std = np.sqrt(np.maximum((flat * flat).mean(axis=1, dtype=np.float64) - mean * mean, 0.0))
     std = np.where(std > 1e-12 * (np.abs(mean) + 1.0), std, np.inf)
     out = (planes - mean[:, None, None].astype(np.float32)) / std[:, None, None].astype(np.float32)
     return np.ascontiguousarray(out, dtype=np.float32)

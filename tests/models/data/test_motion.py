@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from models.data import transforms as T
-from models.data.camera import Camera, pixel_centres, pixel_directions
-from models.data.motion import DEPTH_MISS, GBuffer, View, compute_motion, silhouette, warp
+from models.data.camera import Camera, pixel_directions
+from models.data.motion import DEPTH_MISS, GBuffer, View, compute_motion, silhouette
 
 H, W = 24, 40
 FOV = 50.0
@@ -79,22 +79,6 @@ def test_environment_pixels_follow_the_camera_rotation_only():
     # The centre direction is turned by `turn` degrees: a shift of about f * tan(turn) pixels (to the right).
     assert abs(centre - _focal_px() * np.tan(np.radians(turn))) < 0.05
     assert not m.occluded.any()
-
-
-def test_warp_shifts_by_whole_pixels_and_interpolates_linearly():
-    rng = np.random.default_rng(0)
-    img = rng.random((6, 9, 2)).astype(np.float32)
-    motion = np.zeros((6, 9, 2), np.float32)
-    motion[..., 0] = 2.0
-    out, inside = warp(img, motion)
-    np.testing.assert_allclose(out[:, :7], img[:, 2:], rtol=1e-6)
-    assert inside[:, :7].all() and not inside[:, 8].any()
-    motion[..., 0], motion[..., 1] = 0.5, 0.0
-    out, _ = warp(img, motion)
-    np.testing.assert_allclose(out[:, :8], 0.5 * (img[:, :8] + img[:, 1:]), rtol=1e-6)
-    zero, _ = warp(img, np.zeros_like(motion))
-    np.testing.assert_array_equal(zero, img)
-    assert np.allclose(pixel_centres(1, 1), 0.5)
 
 
 def test_silhouette_marks_both_sides_of_a_shape_edge():

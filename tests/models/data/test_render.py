@@ -17,12 +17,13 @@ from models.data import scenes  # noqa: E402
 from models.data.__main__ import main  # noqa: E402
 from models.data.camera import pixel_centres, project_points  # noqa: E402
 from models.data.evaluate import sequence_report  # noqa: E402
-from models.data.motion import DEPTH_MISS, silhouette, warp  # noqa: E402
+from models.data.motion import DEPTH_MISS, silhouette  # noqa: E402
 from models.data.render import RenderOptions, previous_of, render_frame  # noqa: E402
 from models.data.variant import load_mitsuba  # noqa: E402
 from service.exr import list_sequence, read_frame  # noqa: E402
 from service.frame import LAYERS  # noqa: E402
 from service.metrics import rel_l2_map  # noqa: E402
+from service.stages.reprojection import reproject  # noqa: E402
 from tests.models.data.probe_scenes import MOVING_CAMERA, MOVING_OBJECT  # noqa: E402
 
 # Warping the previous reference by the motion vectors must remove most of the frame-to-frame error
@@ -113,7 +114,7 @@ def test_pixel_centre_positions_project_onto_their_pixels(camera_pair):
 def _warp_check(pair):
     before, now = pair
     ref, prev_ref = now.layers["reference"], before.layers["reference"]
-    warped, inside = warp(prev_ref, now.layers["motion"])
+    warped, inside = reproject(prev_ref, now.layers["motion"])
     disoccluded = np.linalg.norm(now.layers["motionDual"] - now.layers["motion"], axis=-1) > 1e-3
     away = inside & ~disoccluded & ~silhouette(now.gbuffer.shape) & ~silhouette(before.gbuffer.shape)
     assert away.mean() > 0.6
@@ -154,8 +155,8 @@ def test_dual_motion_differs_only_where_the_object_uncovered_background(object_p
     assert (disoccluded & uncovered).sum() >= 0.9 * uncovered.sum()
     # There, the dual vectors fetch background: closer to the current reference than the motion vectors.
     ref, prev_ref = now.layers["reference"], before.layers["reference"]
-    dual_error = rel_l2_map(warp(prev_ref, now.layers["motionDual"])[0], ref)[disoccluded].mean()
-    motion_error = rel_l2_map(warp(prev_ref, now.layers["motion"])[0], ref)[disoccluded].mean()
+    dual_error = rel_l2_map(reproject(prev_ref, now.layers["motionDual"])[0], ref)[disoccluded].mean()
+    motion_error = rel_l2_map(reproject(prev_ref, now.layers["motion"])[0], ref)[disoccluded].mean()
     assert dual_error < 0.8 * motion_error
 
 
