@@ -146,30 +146,32 @@ def cell_sums_reference(x: np.ndarray, y: np.ndarray, scale: int) -> np.ndarray:
     return np.ascontiguousarray(sums.transpose(1, 2, 0))
 
 
-@numba.njit(cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True)
 def _cell_sums_kernel(x, y, scale, out):
     q, height, width = x.shape
     c = y.shape[0]
-    for a in range(out.shape[0]):
+    ne = out.shape[2]
+    for a in numba.prange(out.shape[0]):
+        px = np.empty(ne, np.float32)  # one pixel's products
+        px[0] = 1.0
         for yy in range(a * scale, min(height, a * scale + scale)):
             for xx in range(width):
-                cell = out[a, xx // scale]
-                cell[0] += 1.0
                 for i in range(q):
-                    cell[1 + i] += x[i, yy, xx]
+                    px[1 + i] = x[i, yy, xx]
                 for k in range(c):
-                    cell[1 + q + k] += y[k, yy, xx]
+                    px[1 + q + k] = y[k, yy, xx]
                 e = 1 + q + c
                 for i in range(q):
-                    xi = x[i, yy, xx]
                     for j in range(i, q):
-                        cell[e] += xi * x[j, yy, xx]
+                        px[e] = px[1 + i] * px[1 + j]
                         e += 1
                 for i in range(q):
-                    xi = x[i, yy, xx]
                     for k in range(c):
-                        cell[e] += xi * y[k, yy, xx]
+                        px[e] = px[1 + i] * px[1 + q + k]
                         e += 1
+                b = xx // scale
+                for e in range(ne):
+                    out[a, b, e] += px[e]
 
 
 def gaussian_blur(sums: np.ndarray, sigma: float, truncate: float) -> np.ndarray:
@@ -328,18 +330,19 @@ def apply_coefficients_reference(x: np.ndarray, slopes: np.ndarray, offsets: np.
 @numba.njit(parallel=True, cache=True, fastmath=True)
 def _apply_kernel(x, coefs, y0, y1, fy, x0, x1, fx, out):
     q, height, width = x.shape
-    c = out.shape[0]
+    ws, nf, c = coefs.shape[1], coefs.shape[2], coefs.shape[3]
     for yy in numba.prange(height):
+        # Coefficients of this row, interpolated vertically once per cell column.
         a0, a1, ty = y0[yy], y1[yy], fy[yy]
+        row = np.empty((ws, nf, c), np.float32)
+        for b in range(ws):
+            for f in range(nf):
+                for k in range(c):
+                    row[b, f, k] = (1 - ty) * coefs[a0, b, f, k] + ty * coefs[a1, b, f, k]
         for xx in range(width):
             b0, b1, tx = x0[xx], x1[xx], fx[xx]
-            w00, w01 = (1 - ty) * (1 - tx), (1 - ty) * tx
-            w10, w11 = ty * (1 - tx), ty * tx
             for k in range(c):
-                acc = w00 * coefs[a0, b0, 0, k] + w01 * coefs[a0, b1, 0, k]
-                acc += w10 * coefs[a1, b0, 0, k] + w11 * coefs[a1, b1, 0, k]
+                acc = (1 - tx) * row[b0, 0, k] + tx * row[b1, 0, k]
                 for i in range(q):
-                    coef = w00 * coefs[a0, b0, 1 + i, k] + w01 * coefs[a0, b1, 1 + i, k]
-                    coef += w10 * coefs[a1, b0, 1 + i, k] + w11 * coefs[a1, b1, 1 + i, k]
-                    acc += coef * x[i, yy, xx]
+                    acc += ((1 - tx) * row[b0, 1 + i, k] + tx * row[b1, 1 + i, k]) * x[i, yy, xx]
                 out[k, yy, xx] = acc

@@ -344,19 +344,23 @@ def _exp_neg(x):
 # ------------------------------------------------------------------------------------ block moments
 
 
-def block_moments(terms: PairTerms, target: np.ndarray, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
+def block_moments(
+    terms: PairTerms, target: np.ndarray, params: BlockParams, *, packed: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """X^T W X and X^T W Y of every centre's window (Choi eq. 4), numba kernel.
 
     terms: PairTerms of the frame. target: (C, H, W) float32 planes of y, C = G * M (group g owns
     channels g*M ... g*M+M-1). Returns gram (Hc, Wc, G, K1, K1) and rhs (Hc, Wc, G, K1, M), float32, with
     Hc, Wc = `centre_count` of H, W; feature order [1, shared..., grouped...].
+    packed: `pack_planes(terms, target, params)` when the caller already has it.
     """
     hc, wc, g, k1, m = _moment_shape(terms, target, params)
     layout = _Layout(terms, target.shape[0])
     fa, fb, dest = layout.moment_entries()
     acc = np.zeros((hc, len(fa), wc), np.float32)
     _block_moments_kernel(
-        _phase_planes(layout.pack(terms, target), params), layout.counts(), np.asarray(terms.scaled, np.bool_),
+        pack_planes(terms, target, params) if packed is None else packed, layout.counts(),
+        np.asarray(terms.scaled, np.bool_),
         spatial_weights(params), params.radius, params.sparsity, _constants(), fa, fb, acc,
     )  # fmt: skip
     gram = np.zeros((hc, wc, g, k1, k1), np.float32)
@@ -513,6 +517,11 @@ def _pad_lanes(params: BlockParams) -> int:
     return -(-params.radius // params.sparsity)
 
 
+def pack_planes(terms: PairTerms, target: np.ndarray | None, params: BlockParams) -> np.ndarray:
+    """The kernels' input: every plane of `terms` (and `target`) packed and split into phase planes."""
+    return _phase_planes(_Layout(terms, 0 if target is None else target.shape[0]).pack(terms, target), params)
+
+
 def _phase_planes(planes: np.ndarray, params: BlockParams) -> np.ndarray:
     """(P, H, W) -> (S, P, H, Wc + 2 pad + 1) float32, S = sparsity: pixel x = S q + phase lands at
     [phase, :, :, q + pad], pad = ceil(radius / S); zeros outside the frame (the mask plane is 0 there)."""
@@ -613,12 +622,15 @@ def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, con
 # ------------------------------------------------------------------------------ block reconstruction
 
 
-def block_reconstruct(terms: PairTerms, beta: np.ndarray, params: BlockParams) -> np.ndarray:
+def block_reconstruct(
+    terms: PairTerms, beta: np.ndarray, params: BlockParams, *, packed: np.ndarray | None = None
+) -> np.ndarray:
     """Choi eq. 5: each pixel's weighted mean of the predictions alpha_c + beta_c^T (x_i - x_c) of the
     centres c whose window holds it, numba kernel.
 
     terms: PairTerms of the frame (the same as for the moments). beta: (Hc, Wc, G, K1, M) float32 from
     `solve_ridge`. Returns (C, H, W) float32 planes, C = G * M.
+    packed: `pack_planes(terms, target, params)` of the moments (target planes are ignored), if at hand.
     """
     hc, wc, g, _, m = beta.shape
     height, width = terms.sigma.shape
@@ -626,7 +638,7 @@ def block_reconstruct(terms: PairTerms, beta: np.ndarray, params: BlockParams) -
     layout = _Layout(terms, g * m)
     layout.c = 0  # the kernel reads no target planes
     ch, rows, cols = layout.prediction_entries()
-    planes = _phase_planes(layout.pack(terms, None), params)
+    planes = pack_planes(terms, None, params) if packed is None else packed
     num = np.zeros((s, g * m, height, planes.shape[3]), np.float32)
     den = np.zeros((s, height, planes.shape[3]), np.float32)
     coefs = np.ascontiguousarray(beta.reshape(hc, wc, -1).transpose(0, 2, 1))  # (Hc, G*K1*M, Wc)
@@ -714,11 +726,14 @@ def block_regression(
     target: (C, H, W) float32 planes of y (any sign, any scale). Returns (C, H, W) float32: the
     reconstruction of eq. 5. reference: use the plain-numpy kernels (slow; for tests).
     """
-    moments = block_moments_reference if reference else block_moments
-    reconstruct = block_reconstruct_reference if reference else block_reconstruct
-    gram, rhs = moments(terms, target, params)
+    if reference:
+        gram, rhs = block_moments_reference(terms, target, params)
+        beta = solve_ridge_reference(gram, rhs, params.ridge_relative, params.ridge_absolute)
+        return block_reconstruct_reference(terms, beta, params)
+    packed = pack_planes(terms, target, params)
+    gram, rhs = block_moments(terms, target, params, packed=packed)
     beta = solve_ridge(gram, rhs, params.ridge_relative, params.ridge_absolute)
-    return reconstruct(terms, beta, params)
+    return block_reconstruct(terms, beta, params, packed=packed)
 
 
 def to_planes(image: np.ndarray) -> np.ndarray:
@@ -739,9 +754,10 @@ def standardise(planes: np.ndarray) -> np.ndarray:
     """
     if planes.shape[0] == 0:
         return np.ascontiguousarray(planes, dtype=np.float32)
-    flat = planes.reshape(planes.shape[0], -1)
-    mean = flat.mean(axis=1, dtype=np.float64)
-    std = np.sqrt(np.maximum((flat * flat).mean(axis=1, dtype=np.float64) - mean * mean, 0.0))
+    mean = planes.reshape(planes.shape[0], -1).mean(axis=1, dtype=np.float64)
+    centred = planes - mean[:, None, None].astype(np.float32)
+    flat = centred.reshape(planes.shape[0], -1)
+    std = np.sqrt(np.einsum("kn,kn->k", flat, flat, dtype=np.float64) / max(flat.shape[1], 1))
     std = np.where(std > 1e-12 * (np.abs(mean) + 1.0), std, np.inf)
-    out = (planes - mean[:, None, None].astype(np.float32)) / std[:, None, None].astype(np.float32)
-    return np.ascontiguousarray(out, dtype=np.float32)
+    centred /= std[:, None, None].astype(np.float32)
+    return np.ascontiguousarray(centred, dtype=np.float32)

@@ -42,7 +42,9 @@ def test_command_line_denoise(name, tiny_sequence_dir, tmp_path):
     out = tmp_path / "out"
     run = subprocess.run(
         [sys.executable, "-m", "service", "denoise", str(tiny_sequence_dir), str(out), "--pipeline", name],
-        capture_output=True, text=True, check=False,
+        capture_output=True,
+        text=True,
+        check=False,
     )
     assert run.returncode == 0, run.stderr
     frame = read_frame(out / "frame_0002.exr")

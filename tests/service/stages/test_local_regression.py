@@ -123,7 +123,7 @@ def test_block_regression_reproduces_an_exact_linear_function_of_the_features():
     shared = np.stack([np.sin(x / 5.0), np.cos(y / 7.0), (x * y) / 500.0 + rng.random((height, width)) * 0.3])
     shared = shared.astype(np.float32)
     coef = np.array([[0.5, -2.0, 1.0], [1.5, 0.3, -0.7], [-1.0, 0.0, 2.0]], np.float32)
-    target = (np.einsum("ck,khw->chw", coef, shared) + np.array([1.0, -3.0, 0.2], np.float32)[:, None, None])
+    target = np.einsum("ck,khw->chw", coef, shared) + np.array([1.0, -3.0, 0.2], np.float32)[:, None, None]
     out = block_regression(plain_terms(standardise(shared)), target.astype(np.float32), BlockParams())
     np.testing.assert_allclose(out, target, atol=2e-3 * np.abs(target).max())
 
