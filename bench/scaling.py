@@ -1,8 +1,9 @@
 """`python -m bench scaling`: how each method's cost grows with frame size.
 
 Each (method, size) runs in its own Python process (same interpreter, same thread environment), so
-one method's memory never counts against another's: the synthetic scene at that size, one warm-up
-step, then `frames` timed steps through one sequence state. Reported per size: median ms per frame,
+one method's memory never counts against another's: the synthetic scene at that size, a warm-up
+of two steps through a discarded state (the first frame and one with history, as `bench run`), then
+`frames` timed steps through a fresh sequence state. Reported per size: median ms per frame,
 ms per megapixel, and peak memory of the steps:
 - peak_traced_mib: tracemalloc's peak over one extra step: the numpy arrays and Python objects one
   step allocates (the working memory that grows with the frame), exact whatever the allocator keeps.
@@ -51,18 +52,22 @@ def _reset_peak_rss() -> bool:
 def measure(method_name: str, width: int, height: int, frames: int) -> dict[str, Any]:
     """Time and measure one method at one size, in this process (the worker's body)."""
     from bench.methods import ANCHORS, anchor_method, pipeline_method
+    from bench.run import WARMUP_FRAMES
     from bench.synthetic import synthetic_sequence
     from service.frame import Frame
 
     method = anchor_method(method_name) if method_name in ANCHORS else pipeline_method(method_name)
-    sequence = [Frame.from_buffers(layers) for layers in synthetic_sequence(height, width, frames + 1, spp=2)]
+    count = max(frames, WARMUP_FRAMES)
+    sequence = [Frame.from_buffers(layers) for layers in synthetic_sequence(height, width, count, spp=2)]
     pipeline = method.make()
     reset = _reset_peak_rss()
     base_kib = _status_kib("VmRSS")
-    pipeline.step(sequence[0], pipeline.start(height, width))  # warm-up, state discarded
+    warm = pipeline.start(height, width)
+    for frame in sequence[:WARMUP_FRAMES]:
+        _, warm = pipeline.step(frame, warm)
     state = pipeline.start(height, width)
     ms = []
-    for frame in sequence[1:]:
+    for frame in sequence[:frames]:
         start = time.perf_counter()
         _, state = pipeline.step(frame, state)
         ms.append(1e3 * (time.perf_counter() - start))

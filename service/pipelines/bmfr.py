@@ -17,6 +17,7 @@ from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.stages.bmfr import BmfrParams, bmfr
 from service.stages.local_regression import FIREFLY_K
+from service.stages.range_clamp import clamp_to_local_range
 
 
 @dataclass(frozen=True)
@@ -39,4 +40,5 @@ class BmfrPipeline(Pipeline):
         opt = self.options
         params = BmfrParams(opt.window, opt.sparsity, opt.demodulate, opt.firefly_k)
         color = bmfr(frame["color"], frame["albedo"], frame["normal"], frame.get("depth"), params)
+        color = clamp_to_local_range(color, frame["color"], opt.window // 2)  # no extrapolated energy
         return {"color": color}, state

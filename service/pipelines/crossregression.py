@@ -17,6 +17,7 @@ from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
 from service.stages.local_regression import FIREFLY_K
+from service.stages.range_clamp import clamp_to_local_range
 
 
 @dataclass(frozen=True)
@@ -39,4 +40,5 @@ class CrossRegressionPipeline(Pipeline):
         params = CrossRegressionParams(opt.window, opt.sparsity, opt.firefly_k)
         pilot_a, pilot_b = cross_regression(frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], params)
         color = np.float32(0.5) * (log_to_linear(pilot_a) + log_to_linear(pilot_b))
+        color = clamp_to_local_range(color, frame["color"], opt.window // 2)  # no extrapolated energy
         return {"color": color}, state

@@ -18,6 +18,7 @@ from service.pipelines.base import Pipeline, SequenceState
 from service.stages.albedo import demodulate, remodulate
 from service.stages.flr import FlrParams, gbuffer_guides, local_linear_regression
 from service.stages.local_regression import FIREFLY_K
+from service.stages.range_clamp import clamp_to_local_range
 
 
 @dataclass(frozen=True)
@@ -45,4 +46,6 @@ class FlrPipeline(Pipeline):
         color = local_linear_regression(color, guides, params)
         if albedo is not None:
             color = remodulate(color, albedo)
+        # No extrapolated energy: the fit's support is about two cells of `scale` pixels each way.
+        color = clamp_to_local_range(color, frame["color"], 2 * opt.scale)
         return {"color": color}, state

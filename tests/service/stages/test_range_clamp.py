@@ -1,0 +1,39 @@
+import numpy as np
+import pytest
+
+from service.stages.range_clamp import clamp_to_local_range, local_range
+
+
+def _brute(image, radius):
+    h, w = image.shape[:2]
+    lo, hi = np.empty_like(image), np.empty_like(image)
+    for y in range(h):
+        for x in range(w):
+            win = image[max(0, y - radius):y + radius + 1, max(0, x - radius):x + radius + 1]
+            lo[y, x], hi[y, x] = win.min(axis=(0, 1)), win.max(axis=(0, 1))
+    return lo, hi
+
+
+@pytest.mark.parametrize("shape,radius", [((1, 1), 3), ((3, 5), 1), ((17, 31), 8), ((9, 4), 0), ((12, 13), 6)])
+def test_local_range_matches_brute_force(shape, radius):
+    image = np.random.default_rng(0).normal(size=(*shape, 3)).astype(np.float32)
+    lo, hi = local_range(image, radius)
+    blo, bhi = _brute(image, radius)
+    np.testing.assert_array_equal(lo, blo)
+    np.testing.assert_array_equal(hi, bhi)
+
+
+def test_clamp_removes_extrapolation_and_keeps_in_range_values():
+    image = np.zeros((10, 10, 1), np.float32)
+    image[5, 5] = 4.0
+    output = np.full_like(image, 1.0)
+    output[0, 0] = -0.5
+    out = clamp_to_local_range(output, image, 2)
+    assert out.min() == 0.0  # non-negative input: no negative output
+    assert out[5, 5, 0] == 1.0 and out[0, 0, 0] == 0.0  # inside the window of the 4.0: unchanged
+    assert out[9, 0, 0] == 0.0  # far from any non-zero input: the range is {0}
+
+
+def test_constant_image_is_unchanged():
+    image = np.full((6, 7, 3), 2.5, np.float32)
+    np.testing.assert_array_equal(clamp_to_local_range(image, image, 4), image)
