@@ -75,10 +75,11 @@ def load_folders(root: Path) -> list[Sequence]:
 
 
 def synthetic(count: int, seed: int) -> list[Sequence]:
-    """`count` bench.synthetic sequences of assorted sizes and seeds (8 frames, 8 spp)."""
+    """`count` bench.synthetic sequences of assorted sizes (24x40 to 128x96: the network must not over-smooth
+    small frames, where its 11x11 window spans whole objects) and seeds 100 + seed + i (8 frames, 8 spp)."""
     from bench.synthetic import synthetic_sequence
 
-    sizes = [(64, 96), (96, 128), (80, 80), (128, 96)]
+    sizes = [(24, 40), (64, 96), (32, 48), (96, 128), (48, 64), (80, 80), (40, 64), (128, 96)]
     out = []
     for i in range(count):
         height, width = sizes[i % len(sizes)]
@@ -164,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
             for s in sequences
         ],
         "command": "python -m models.train.warm_start " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "torch": torch.__version__,
+        "torch": str(torch.__version__),
         "machine": f"{platform.machine()}, {args.threads} torch threads",
         **summary,
     }

@@ -19,10 +19,12 @@ skipped (no padding). `edge_aware_filter` is compiled; `edge_aware_filter_numpy`
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numba import njit, prange
 
+from service.stages.bilateral import neg_exp
 from service.stages.window import overlap
 
 B3_SPLINE = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)  # Dammertz 2010 / Schied 2017 sec. 4.3: 1D B3-spline taps
@@ -57,6 +59,16 @@ class EdgeGuides:
     depth: np.ndarray
     depth_gradient: np.ndarray
     normal: np.ndarray
+
+    @cached_property
+    def hit(self) -> np.ndarray:
+        """(H, W) float32: 1 where a surface was hit (|n|^2 > NORMAL_HIT), else 0; computed once per frame."""
+        return (np.einsum("hwc,hwc->hw", self.normal, self.normal) > NORMAL_HIT).astype(np.float32)
+
+    @cached_property
+    def normal_planes(self) -> np.ndarray:
+        """(3, H, W) float32: the normal as planes, the layout of the compiled passes."""
+        return np.ascontiguousarray(np.moveaxis(self.normal, -1, 0), np.float32)
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
@@ -165,70 +177,106 @@ def edge_aware_filter_numpy(
     return out
 
 
-@njit(cache=True, inline="always")
-def _pow_normal(cos, sigma_normal, squarings):
-    if cos <= 0.0:
-        return np.float32(0.0)
+WEIGHT_FLOOR = 1e-18  # w_n below this is 0: keeps the squarings of cos out of float32 subnormals (slow)
+MAX_SQUARINGS = 10  # sigma_n up to 2^10 is evaluated by repeated squaring in the compiled pass
+
+
+@njit(cache=True, error_model="numpy")
+def _tap_weights(row_p, row_q, h, inv_distance, sigma_normal, squarings, cos_min, weight):
+    """Weights h * w_z * w_n * w_l (eqs. 1-5) of pixel pairs p, q along a row segment, into weight (n,) float32.
+
+    row_*: (depth, lum, hit, n0, n1, n2) (n,) float32 rows of p and of q; row_p also ends with inv_phi_z and
+    inv_phi_l. w_n = max(0, n_p . n_q)^sigma_n where both are hits (0 below cos_min, where it is under
+    WEIGHT_FLOOR), 1 where neither is, 0 where one is; squarings >= 0: sigma_n = 2^squarings. Branch-free (SIMD)."""
+    z_p, l_p, hit_p, p0, p1, p2, iz_p, il_p = row_p
+    z_q, l_q, hit_q, q0, q1, q2 = row_q
+    max_exponent = np.float32(MAX_EXPONENT)
+    one = np.float32(1.0)
+    for t in range(weight.size):
+        cos = p0[t] * q0[t] + p1[t] * q1[t] + p2[t] * q2[t]
+        weight[t] = cos if cos >= cos_min else np.float32(0.0)
     if squarings >= 0:
-        for _ in range(squarings):
-            cos = cos * cos
-        return cos
-    return cos ** sigma_normal
+        for t in range(weight.size):
+            cos = weight[t]
+            for k in range(MAX_SQUARINGS):
+                cos = cos * cos if k < squarings else cos
+            weight[t] = cos
+    else:
+        for t in range(weight.size):
+            weight[t] = weight[t] ** sigma_normal
+    for t in range(weight.size):
+        w_n = hit_p[t] * hit_q[t] * weight[t] + (one - hit_p[t]) * (one - hit_q[t])
+        exponent = abs(z_p[t] - z_q[t]) * iz_p[t] * inv_distance + abs(l_p[t] - l_q[t]) * il_p[t]
+        w = h * neg_exp(exponent) * w_n
+        weight[t] = w if exponent <= max_exponent else np.float32(0.0)
 
 
-@njit(parallel=True, cache=True)
-def _edge_aware_kernel(values, lum, phi_luminance, depth, grad, normal, hit, kernel, step, sigma_depth, sigma_normal,
-                       squarings, squared):
-    height, width, channels = values.shape
+@njit(cache=True, error_model="numpy")
+def _edge_aware_row(values, lum, inv_phi_l, depth, grad, normal, hit, kernel, step, sigma_depth, sigma_normal,
+                    squarings, cos_min, squared, y, out):
+    """One output row y of `_edge_aware_planes`. Each tap offset is a branch-free loop over a contiguous row
+    segment (1D slices indexed from 0, which LLVM turns into SIMD code)."""
+    channels, height, width = values.shape
     radius = kernel.size // 2
-    out = np.empty_like(values)
-    inv_distance = np.zeros((2 * radius + 1, 2 * radius + 1), np.float32)
+    num = np.zeros((channels, width), np.float32)
+    den = np.zeros(width, np.float32)
+    weight = np.empty(width, np.float32)
+    inv_phi_z = np.empty(width, np.float32)
+    grad_p = grad[y]
+    for x in range(width):
+        inv_phi_z[x] = np.float32(1.0) / (sigma_depth * grad_p[x] * np.float32(step))
     for i in range(-radius, radius + 1):
+        yn = y + i * step
+        if yn < 0 or yn >= height:
+            continue
         for j in range(-radius, radius + 1):
-            if i or j:
-                inv_distance[i + radius, j + radius] = np.float32(1.0) / np.float32(np.sqrt(np.float32(i * i + j * j)))
-    for yy in prange(height):
-        y = np.int64(yy)
-        acc = np.zeros(channels, np.float32)
-        for x in range(width):
-            acc[:] = 0.0
-            den = np.float32(0.0)
-            hit_p = hit[y, x]
-            inv_phi_z = np.float32(1.0) / (sigma_depth * grad[y, x] * np.float32(step))
-            inv_phi_l = np.float32(1.0) / phi_luminance[y, x]
-            z_p, l_p = depth[y, x], lum[y, x]
-            n0, n1, n2 = normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]
-            for i in range(-radius, radius + 1):
-                yn = y + i * step
-                if yn < 0 or yn >= height:
-                    continue
-                for j in range(-radius, radius + 1):
-                    xn = x + j * step
-                    if xn < 0 or xn >= width:
-                        continue
-                    h = kernel[i + radius] * kernel[j + radius]
-                    if i == 0 and j == 0:
-                        weight = h
-                    else:
-                        hit_q = hit[yn, xn]
-                        if hit_p and hit_q:
-                            cos = n0 * normal[yn, xn, 0] + n1 * normal[yn, xn, 1] + n2 * normal[yn, xn, 2]
-                            w_n = _pow_normal(cos, sigma_normal, squarings)
-                        elif hit_p or hit_q:
-                            continue  # weight 0: a surface never mixes with the background
-                        else:
-                            w_n = np.float32(1.0)
-                        exponent = abs(z_p - depth[yn, xn]) * inv_phi_z * inv_distance[i + radius, j + radius]
-                        exponent += abs(l_p - lum[yn, xn]) * inv_phi_l
-                        if exponent > MAX_EXPONENT or w_n == 0.0:
-                            continue  # weight below e^-MAX_EXPONENT: as good as zero
-                        weight = h * np.exp(-exponent) * w_n
-                    for c in range(channels):
-                        tap = weight * values[yn, xn, c]
-                        acc[c] += tap * weight if c == squared else tap
-                    den += weight
+            off = j * step
+            x0, x1 = max(0, -off), min(width, width - off)
+            if x0 >= x1:
+                continue
+            n = x1 - x0
+            p, q = slice(x0, x1), slice(x0 + off, x1 + off)
+            h = kernel[i + radius] * kernel[j + radius]
+            wt = weight[:n]
+            if i == 0 and j == 0:
+                wt[:] = h
+            else:
+                row_p = (depth[y, p], lum[y, p], hit[y, p], normal[0, y, p], normal[1, y, p], normal[2, y, p],
+                         inv_phi_z[p], inv_phi_l[y, p])
+                row_q = (depth[yn, q], lum[yn, q], hit[yn, q], normal[0, yn, q], normal[1, yn, q], normal[2, yn, q])
+                inv_distance = np.float32(1.0) / np.float32(np.sqrt(np.float32(i * i + j * j)))
+                _tap_weights(row_p, row_q, h, inv_distance, sigma_normal, squarings, cos_min, wt)
+            d = den[p]
+            for t in range(n):
+                d[t] += wt[t]
             for c in range(channels):
-                out[y, x, c] = acc[c] / (den * den) if c == squared else acc[c] / den
+                acc, v_q = num[c, p], values[c, yn, q]
+                if c == squared:
+                    for t in range(n):
+                        acc[t] += wt[t] * wt[t] * v_q[t]
+                else:
+                    for t in range(n):
+                        acc[t] += wt[t] * v_q[t]
+    for c in range(channels):
+        row = out[c, y]
+        acc = num[c]
+        if c == squared:
+            for x in range(width):
+                row[x] = acc[x] / (den[x] * den[x])
+        else:
+            for x in range(width):
+                row[x] = acc[x] / den[x]
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _edge_aware_planes(values, lum, inv_phi_l, depth, grad, normal, hit, kernel, step, sigma_depth, sigma_normal,
+                       squarings, cos_min, squared):
+    """`edge_aware_filter` on planar arrays: values (K, H, W), normal (3, H, W), the rest (H, W) float32; hit 1 or 0;
+    inv_phi_l = 1 / phi_l. Rows in parallel."""
+    out = np.empty(values.shape, np.float32)
+    for y in prange(values.shape[1]):
+        _edge_aware_row(values, lum, inv_phi_l, depth, grad, normal, hit, kernel, step, sigma_depth, sigma_normal,
+                        squarings, cos_min, squared, np.int64(y), out)
     return out
 
 
@@ -253,23 +301,71 @@ def edge_aware_filter(
     Returns (H, W, K) float32. The centre tap has weight h(0, 0) > 0, so the sums never vanish; a
     constant input is returned unchanged. Compiled; parity with `edge_aware_filter_numpy` is tested.
     """
+    planes = np.ascontiguousarray(np.moveaxis(np.asarray(values, np.float32), -1, 0))
+    out = _edge_aware_pass(planes, np.asarray(lum, np.float32), np.asarray(phi_luminance, np.float32), guides,
+                           kernel, step, sigma_depth, sigma_normal, squared_channel)
+    return np.ascontiguousarray(np.moveaxis(out, 0, -1))
+
+
+def _edge_aware_pass(
+    planes: np.ndarray,
+    lum: np.ndarray,
+    phi_luminance: np.ndarray,
+    guides: EdgeGuides,
+    kernel: np.ndarray,
+    step: int,
+    sigma_depth: float,
+    sigma_normal: float,
+    squared_channel: int,
+) -> np.ndarray:
+    """`edge_aware_filter` on planar values (K, H, W) float32; returns (K, H, W) float32."""
     exponent = int(sigma_normal)
-    power_of_two = exponent == sigma_normal and exponent > 0 and exponent & (exponent - 1) == 0
-    return _edge_aware_kernel(
-        np.ascontiguousarray(values, np.float32),
+    power_of_two = exponent == sigma_normal and 0 < exponent <= 1 << MAX_SQUARINGS and exponent & (exponent - 1) == 0
+    cos_min = np.float32(WEIGHT_FLOOR ** (1.0 / sigma_normal))  # max(0, cos)^sigma_n < WEIGHT_FLOOR below it
+    return _edge_aware_planes(
+        np.ascontiguousarray(planes, np.float32),
         np.ascontiguousarray(lum, np.float32),
-        np.ascontiguousarray(phi_luminance, np.float32),
+        np.ascontiguousarray(np.float32(1.0) / phi_luminance, np.float32),
         guides.depth,
         guides.depth_gradient,
-        guides.normal,
-        np.einsum("hwc,hwc->hw", guides.normal, guides.normal) > NORMAL_HIT,
+        guides.normal_planes,
+        guides.hit,
         np.asarray(kernel, np.float32),
         int(step),
         np.float32(sigma_depth),
         np.float32(sigma_normal),
         exponent.bit_length() - 1 if power_of_two else -1,
+        cos_min,
         int(squared_channel),
     )
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _pass_inputs(planes, sigma_luminance):
+    """Luminance of planes[0:3] and phi_l = sigma_l sqrt(g3x3(planes[3]) + eps) (Schied eq. 5), (H, W) float32 each.
+    The compiled twin of `luminance` and `prefilter_variance` (same arithmetic in float32)."""
+    _, height, width = planes.shape
+    lum = np.empty((height, width), np.float32)
+    phi = np.empty((height, width), np.float32)
+    wr, wg, wb = np.float32(LUMINANCE_WEIGHTS[0]), np.float32(LUMINANCE_WEIGHTS[1]), np.float32(LUMINANCE_WEIGHTS[2])
+    taps = np.empty(3, np.float32)
+    for k in range(3):
+        taps[k] = GAUSS_3X3[k]
+    for y in prange(height):
+        for x in range(width):
+            lum[y, x] = wr * planes[0, y, x] + wg * planes[1, y, x] + wb * planes[2, y, x]
+            num = np.float32(0.0)
+            den = np.float32(0.0)
+            for dy in range(-1, 2):
+                if 0 <= y + dy < height:
+                    for dx in range(-1, 2):
+                        if 0 <= x + dx < width:
+                            weight = taps[dy + 1] * taps[dx + 1]
+                            num += weight * planes[3, y + dy, x + dx]
+                            den += weight
+            filtered = max(num / den, np.float32(0.0))
+            phi[y, x] = sigma_luminance * np.sqrt(filtered + np.float32(VARIANCE_EPS))
+    return lum, phi
 
 
 def atrous(
@@ -283,16 +379,14 @@ def atrous(
     its temporal colour history. With 0 iterations all three are the input.
     """
     kernel = np.asarray(B3_SPLINE, np.float32)
-    values = np.concatenate([color, variance[..., None]], axis=-1).astype(np.float32)
-    first = color
+    planes = np.ascontiguousarray(np.concatenate([np.moveaxis(color, -1, 0), variance[None]], axis=0), np.float32)
+    first = None
     for k in range(params.iterations):
-        phi = np.float32(params.sigma_luminance) * np.sqrt(
-            np.maximum(prefilter_variance(values[..., 3]), 0) + np.float32(VARIANCE_EPS)
-        )
-        values = edge_aware_filter(
-            values, luminance(values[..., :3]), phi, guides, kernel, 1 << k, params.sigma_depth,
-            params.sigma_normal, squared_channel=3,
+        lum, phi = _pass_inputs(planes, np.float32(params.sigma_luminance))
+        planes = _edge_aware_pass(
+            planes, lum, phi, guides, kernel, 1 << k, params.sigma_depth, params.sigma_normal, squared_channel=3
         )
         if k == 0:
-            first = values[..., :3].copy()
-    return np.ascontiguousarray(values[..., :3]), np.ascontiguousarray(values[..., 3]), first
+            first = np.ascontiguousarray(np.moveaxis(planes[:3], 0, -1))
+    out = np.ascontiguousarray(np.moveaxis(planes[:3], 0, -1))
+    return out, np.ascontiguousarray(planes[3]), out.copy() if first is None else first

@@ -28,9 +28,10 @@ from service.stages.bilateral import DEPTH_FLOOR
 from service.stages.local_regression import (
     FIREFLY_K,
     RIDGE_RELATIVE,
+    cholesky_ridge_solve,
     clamp_fireflies,
     from_planes,
-    solve_ridge,
+    solve_ridge_reference,
     standardise,
     to_planes,
 )
@@ -102,7 +103,7 @@ def local_linear_regression(
     x = standardise(to_planes(guides))
     sums = (cell_sums_reference if reference else cell_sums)(x, y, params.scale)
     sums = (gaussian_blur_reference if reference else gaussian_blur)(sums, params.sigma, params.truncate)
-    slopes, offsets = solve_cells(sums, x.shape[0], y.shape[0], params)
+    slopes, offsets = (solve_cells_reference if reference else solve_cells)(sums, x.shape[0], y.shape[0], params)
     apply = apply_coefficients_reference if reference else apply_coefficients
     return from_planes(apply(x, slopes, offsets, params.scale))
 
@@ -148,30 +149,43 @@ def cell_sums_reference(x: np.ndarray, y: np.ndarray, scale: int) -> np.ndarray:
 
 @numba.njit(parallel=True, cache=True, fastmath=True)
 def _cell_sums_kernel(x, y, scale, out):
+    """Per cell row: every moment's product summed over the cell row's pixel rows into a (E, W) buffer
+    (contiguous along x, so it vectorises), then over each cell's `scale` columns."""
     q, height, width = x.shape
     c = y.shape[0]
-    ne = out.shape[2]
+    ne, ws = out.shape[2], out.shape[1]
+    fa = np.empty(ne, np.int64)  # moment e is the product of planes fa[e] and fb[e] of [1, x, y]
+    fb = np.empty(ne, np.int64)
+    for e in range(1 + q + c):
+        fa[e], fb[e] = 0, e
+    e = 1 + q + c
+    for i in range(q):
+        for j in range(i, q):
+            fa[e], fb[e] = 1 + i, 1 + j
+            e += 1
+    for i in range(q):
+        for k in range(c):
+            fa[e], fb[e] = 1 + i, 1 + q + k
+            e += 1
     for a in numba.prange(out.shape[0]):
-        px = np.empty(ne, np.float32)  # one pixel's products
-        px[0] = 1.0
+        acc = np.zeros((ne, width), np.float32)
+        planes = np.empty((1 + q + c, width), np.float32)
+        planes[0, :] = 1.0
         for yy in range(a * scale, min(height, a * scale + scale)):
-            for xx in range(width):
-                for i in range(q):
-                    px[1 + i] = x[i, yy, xx]
-                for k in range(c):
-                    px[1 + q + k] = y[k, yy, xx]
-                e = 1 + q + c
-                for i in range(q):
-                    for j in range(i, q):
-                        px[e] = px[1 + i] * px[1 + j]
-                        e += 1
-                for i in range(q):
-                    for k in range(c):
-                        px[e] = px[1 + i] * px[1 + q + k]
-                        e += 1
-                b = xx // scale
-                for e in range(ne):
-                    out[a, b, e] += px[e]
+            for i in range(q):
+                planes[1 + i, :] = x[i, yy]
+            for k in range(c):
+                planes[1 + q + k, :] = y[k, yy]
+            for e in range(ne):
+                pa, pb, dst = planes[fa[e]], planes[fb[e]], acc[e]
+                for xx in range(width):
+                    dst[xx] += pa[xx] * pb[xx]
+        for b in range(ws):
+            for e in range(ne):
+                total = np.float32(0.0)
+                for xx in range(b * scale, min(width, b * scale + scale)):
+                    total += acc[e, xx]
+                out[a, b, e] = total
 
 
 def gaussian_blur(sums: np.ndarray, sigma: float, truncate: float) -> np.ndarray:
@@ -249,42 +263,68 @@ def solve_cells(sums: np.ndarray, q: int, c: int, params: FlrParams) -> tuple[np
     """Slopes and offsets of every cell's weighted least-squares fit, from its blurred sums.
 
     sums: (h, w, E) float32 from `gaussian_blur(cell_sums(...))`. Returns slopes (h, w, Q, C) and
-    offsets (h, w, C), float32: fit(x) = offsets + x . slopes.
+    offsets (h, w, C), float32: fit(x) = offsets + x . slopes. One fused numba kernel (covariances, ridge
+    Cholesky, offsets); `solve_cells_reference` is the plain-numpy twin.
     """
     h, w = sums.shape[:2]
     _, _, _, ixx, _ = _moment_index(q, c)
     pick = np.array([[ixx[(i, j)] for j in range(q)] for i in range(q)], np.int64).reshape(q, q)
-    cov_xx = np.empty((h, w, q, q))
-    cov_xy = np.empty((h, w, q, c))
-    mean_x = np.empty((h, w, q))
-    mean_y = np.empty((h, w, c))
-    _covariance_kernel(np.ascontiguousarray(sums, dtype=np.float32), pick, cov_xx, cov_xy, mean_x, mean_y)
+    slopes = np.empty((h, w, q, c), np.float32)
+    offsets = np.empty((h, w, c), np.float32)
+    _solve_cells_kernel(np.ascontiguousarray(sums, dtype=np.float32), pick, float(params.ridge_relative),
+                        float(params.ridge_absolute), slopes, offsets)  # fmt: skip
+    return slopes, offsets
+
+
+def solve_cells_reference(sums: np.ndarray, q: int, c: int, params: FlrParams) -> tuple[np.ndarray, np.ndarray]:
+    """Plain-numpy twin of `solve_cells` (float64 covariances, `solve_ridge_reference`)."""
+    ix, iy, _, ixx, ixy = _moment_index(q, c)
+    sums = np.asarray(sums, np.float64)
+    s0 = np.maximum(sums[..., 0], 1e-30)[..., None]
+    mean_x, mean_y = sums[..., ix : ix + q] / s0, sums[..., iy : iy + c] / s0
+    pick = np.array([[ixx[(i, j)] for j in range(q)] for i in range(q)], np.int64).reshape(q, q)
+    cov_xx = sums[..., pick] / s0[..., None] - mean_x[..., :, None] * mean_x[..., None, :]
+    sum_xy = sums[..., ixy : ixy + q * c].reshape(*sums.shape[:2], q, c)
+    cov_xy = sum_xy / s0[..., None] - mean_x[..., :, None] * mean_y[..., None, :]
     if q == 0:
-        return np.zeros((h, w, 0, c), np.float32), mean_y.astype(np.float32)
-    slopes = solve_ridge(cov_xx, cov_xy, params.ridge_relative, params.ridge_absolute, weight_sum=np.ones((h, w)))
-    offsets = mean_y - np.einsum("hwq,hwqc->hwc", mean_x, slopes)
-    return slopes, np.ascontiguousarray(offsets, dtype=np.float32)
+        return np.zeros((*sums.shape[:2], 0, c), np.float32), mean_y.astype(np.float32)
+    slopes = solve_ridge_reference(cov_xx, cov_xy, params.ridge_relative, params.ridge_absolute,
+                                   weight_sum=np.ones(sums.shape[:2]))  # fmt: skip
+    offsets = mean_y - np.einsum("hwq,hwqc->hwc", mean_x, slopes.astype(np.float64))
+    return slopes, offsets.astype(np.float32)
 
 
-@numba.njit(cache=True)
-def _covariance_kernel(sums, pick, cov_xx, cov_xy, mean_x, mean_y):
-    """Weighted means and covariances (float64) of every cell from its sums (order of `_moment_index`)."""
-    h, w = sums.shape[0], sums.shape[1]
-    q, c = mean_x.shape[2], mean_y.shape[2]
+@numba.njit(parallel=True, cache=True)
+def _solve_cells_kernel(sums, pick, ridge_relative, ridge_absolute, slopes, offsets):
+    """Per cell, in float64: weighted means and covariances from its sums (order of `_moment_index`),
+    cov(x, x) a = cov(x, y) with the slope ridge (`cholesky_ridge_solve`, weight sum 1), b = mean(y) - a . mean(x)."""
+    h, w, q, c = slopes.shape
     ixy = 1 + q + c + q * (q + 1) // 2
-    for a in range(h):
+    for a in numba.prange(h):
+        mean_x = np.empty(q)
+        mean_y = np.empty(c)
+        cov = np.empty((q, q))
+        rhs = np.empty((q, c))
         for b in range(w):
             cell = sums[a, b]
             s0 = max(np.float64(cell[0]), 1e-30)
             for i in range(q):
-                mean_x[a, b, i] = cell[1 + i] / s0
+                mean_x[i] = cell[1 + i] / s0
             for k in range(c):
-                mean_y[a, b, k] = cell[1 + q + k] / s0
+                mean_y[k] = cell[1 + q + k] / s0
             for i in range(q):
                 for j in range(q):
-                    cov_xx[a, b, i, j] = cell[pick[i, j]] / s0 - mean_x[a, b, i] * mean_x[a, b, j]
+                    cov[i, j] = cell[pick[i, j]] / s0 - mean_x[i] * mean_x[j]
                 for k in range(c):
-                    cov_xy[a, b, i, k] = cell[ixy + i * c + k] / s0 - mean_x[a, b, i] * mean_y[a, b, k]
+                    rhs[i, k] = cell[ixy + i * c + k] / s0 - mean_x[i] * mean_y[k]
+            if q > 0:
+                cholesky_ridge_solve(cov, rhs, q, c, ridge_relative, ridge_absolute, False, 1.0)
+            for k in range(c):
+                off = mean_y[k]
+                for i in range(q):
+                    slopes[a, b, i, k] = rhs[i, k]
+                    off -= mean_x[i] * rhs[i, k]
+                offsets[a, b, k] = off
 
 
 # ------------------------------------------------------------------------------------------- apply
@@ -308,9 +348,10 @@ def apply_coefficients(x: np.ndarray, slopes: np.ndarray, offsets: np.ndarray, s
     hs, ws, c = offsets.shape
     coefs = np.ascontiguousarray(np.concatenate([offsets[:, :, None, :], slopes], axis=2), dtype=np.float32)
     ty = _bilinear_taps(height, hs, scale)
-    tx = _bilinear_taps(width, ws, scale)
+    x0, x1, fx = _bilinear_taps(width, ws, scale)
     out = np.empty((c, height, width), np.float32)
-    _apply_kernel(x, coefs, *ty, *tx, out)
+    # Unsigned column indices: numba skips the negative-index fix-up, so the row loops vectorise (gathers).
+    _apply_kernel(x, coefs, *ty, x0.astype(np.uint32), x1.astype(np.uint32), fx, out)
     return out
 
 
@@ -332,17 +373,18 @@ def _apply_kernel(x, coefs, y0, y1, fy, x0, x1, fx, out):
     q, height, width = x.shape
     ws, nf, c = coefs.shape[1], coefs.shape[2], coefs.shape[3]
     for yy in numba.prange(height):
-        # Coefficients of this row, interpolated vertically once per cell column.
+        # Coefficients of this row, interpolated vertically once per cell column: (nf, c, ws).
         a0, a1, ty = y0[yy], y1[yy], fy[yy]
-        row = np.empty((ws, nf, c), np.float32)
+        row = np.empty((nf, c, ws), np.float32)
         for b in range(ws):
             for f in range(nf):
                 for k in range(c):
-                    row[b, f, k] = (1 - ty) * coefs[a0, b, f, k] + ty * coefs[a1, b, f, k]
-        for xx in range(width):
-            b0, b1, tx = x0[xx], x1[xx], fx[xx]
-            for k in range(c):
-                acc = (1 - tx) * row[b0, 0, k] + tx * row[b1, 0, k]
-                for i in range(q):
-                    acc += ((1 - tx) * row[b0, 1 + i, k] + tx * row[b1, 1 + i, k]) * x[i, yy, xx]
-                out[k, yy, xx] = acc
+                    row[f, k, b] = (1 - ty) * coefs[a0, b, f, k] + ty * coefs[a1, b, f, k]
+        for k in range(c):  # then along the row, one feature plane at a time (contiguous in x)
+            dst, r = out[k, yy], row[0, k]
+            for xx in range(width):
+                dst[xx] = (1 - fx[xx]) * r[x0[xx]] + fx[xx] * r[x1[xx]]
+            for i in range(q):
+                r, feat = row[1 + i, k], x[i, yy]
+                for xx in range(width):
+                    dst[xx] += ((1 - fx[xx]) * r[x0[xx]] + fx[xx] * r[x1[xx]]) * feat[xx]

@@ -129,8 +129,10 @@ def solve_ridge(
     """
     lead, k, m = gram.shape[:-2], gram.shape[-1], rhs.shape[-1]
     count = int(np.prod(lead))
-    flat_gram = np.ascontiguousarray(gram.reshape(count, k, k), dtype=np.float64)
-    flat_rhs = np.ascontiguousarray(rhs.reshape(count, k, m), dtype=np.float64)
+    # float32 input stays float32 (the kernel widens each value to float64 as it reads it, the same values).
+    dtype = np.float32 if gram.dtype == np.float32 and rhs.dtype == np.float32 else np.float64
+    flat_gram = np.ascontiguousarray(gram.reshape(count, k, k), dtype=dtype)
+    flat_rhs = np.ascontiguousarray(rhs.reshape(count, k, m), dtype=dtype)
     constant = weight_sum is None
     sums = np.zeros(count) if constant else np.ascontiguousarray(np.broadcast_to(weight_sum, lead), np.float64).ravel()
     out = np.empty((count, k, m), np.float32)
@@ -138,40 +140,57 @@ def solve_ridge(
     return out.reshape(*lead, k, m)
 
 
+@numba.njit(inline="always")
+def cholesky_ridge_solve(a, b, k, m, ridge_relative, ridge_absolute, constant, weight_sum):
+    """numba-callable core of `solve_ridge` for one system, in place: a (k, k) float64 scratch holding
+    X^T W X (overwritten), b (k, m) float64 holding X^T W Y -> beta. constant / weight_sum: see
+    `solve_ridge` (weight_sum is ignored when `constant`). Scalar indexing only: no views in the loop."""
+    scale = max(a[0, 0] if constant else weight_sum, 1e-30)
+    if constant:
+        a[0, 0] = scale
+    for j in range(1 if constant else 0, k):
+        a[j, j] += ridge_relative * max(a[j, j], 0.0) + ridge_absolute * scale
+    floor = ridge_absolute * scale
+    for j in range(k):  # the diagonal of `a` ends up holding 1 / L_jj: one division per pivot
+        d = a[j, j]
+        for p in range(j):
+            d -= a[j, p] * a[j, p]
+        inv = 1.0 / np.sqrt(max(d, floor))
+        a[j, j] = inv
+        for i in range(j + 1, k):
+            v = a[i, j]
+            for p in range(j):
+                v -= a[i, p] * a[j, p]
+            a[i, j] = v * inv
+    for c in range(m):
+        for i in range(k):
+            v = b[i, c]
+            for p in range(i):
+                v -= a[i, p] * b[p, c]
+            b[i, c] = v * a[i, i]
+        for i in range(k - 1, -1, -1):
+            v = b[i, c]
+            for p in range(i + 1, k):
+                v -= a[p, i] * b[p, c]
+            b[i, c] = v * a[i, i]
+
+
 @numba.njit(parallel=True, cache=True)
 def _solve_kernel(gram, rhs, ridge_relative, ridge_absolute, constant, sums, out):
     count, k, m = rhs.shape
-    chunk = 256  # systems per task: scratch is allocated once per chunk, not per system
+    chunk = 1024  # systems per task: scratch is allocated once per chunk, not per system
     for first in numba.prange((count + chunk - 1) // chunk):
         a = np.empty((k, k))
         b = np.empty((k, m))
         for n in range(first * chunk, min(count, first * chunk + chunk)):
-            a[:, :] = gram[n]
-            b[:, :] = rhs[n]
-            scale = max(a[0, 0] if constant else sums[n], 1e-30)
-            if constant:
-                a[0, 0] = scale
-            for j in range(1 if constant else 0, k):
-                a[j, j] += ridge_relative * max(a[j, j], 0.0) + ridge_absolute * scale
-            floor = ridge_absolute * scale
-            for j in range(k):
-                for p in range(j):
-                    a[j, j] -= a[j, p] * a[j, p]
-                a[j, j] = np.sqrt(max(a[j, j], floor))
-                for i in range(j + 1, k):
-                    for p in range(j):
-                        a[i, j] -= a[i, p] * a[j, p]
-                    a[i, j] /= a[j, j]
-            for c in range(m):
-                for i in range(k):
-                    for p in range(i):
-                        b[i, c] -= a[i, p] * b[p, c]
-                    b[i, c] /= a[i, i]
-                for i in range(k - 1, -1, -1):
-                    for p in range(i + 1, k):
-                        b[i, c] -= a[p, i] * b[p, c]
-                    b[i, c] /= a[i, i]
-                for i in range(k):
+            for i in range(k):
+                for j in range(k):
+                    a[i, j] = gram[n, i, j]
+                for c in range(m):
+                    b[i, c] = rhs[n, i, c]
+            cholesky_ridge_solve(a, b, k, m, ridge_relative, ridge_absolute, constant, sums[n])
+            for i in range(k):
+                for c in range(m):
                     out[n, i, c] = b[i, c]
 
 

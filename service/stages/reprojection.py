@@ -9,7 +9,8 @@ depth/normal pairs are given, with matching depth and normal); the taps' weights
 over the consistent ones, as the SVGF reference implementation does (Schied et al. 2017, Falcor
 `SVGFReproject`). A pixel is valid when its sample point is on screen and the consistent taps carry
 at least `min_weight` of the bilinear weight. An integer motion therefore reproduces the previous
-pixel exactly. The same function serves every temporal pipeline.
+pixel exactly. The same function serves every temporal pipeline. `reproject` is compiled (numba, rows in
+parallel); `reproject_numpy` is its reference, and a parity test holds the two together.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 
 from service.stages.window import overlap
 
@@ -92,6 +94,71 @@ def erode(valid: np.ndarray) -> np.ndarray:
     return out
 
 
+def _checked(depth, prev_depth, normal, prev_normal, params):
+    if (depth is None) != (prev_depth is None) or (normal is None) != (prev_normal is None):
+        raise ValueError("reproject needs depth with prev_depth and normal with prev_normal (both or neither)")
+    return params or ReprojectionParams()
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tap_consistent(ty, tx, z, n0, n1, n2, hit, prev_depth, prev_normal, use_depth, use_normal, tolerance, cos_min):
+    """`_consistent` for one tap: does previous pixel (ty, tx) match the current surface (depth z, normal n, hit)?"""
+    if use_depth and not abs(z - prev_depth[ty, tx]) <= tolerance * max(abs(z), np.float32(DEPTH_FLOOR)):
+        return False
+    if use_normal:
+        p0, p1, p2 = prev_normal[ty, tx, 0], prev_normal[ty, tx, 1], prev_normal[ty, tx, 2]
+        hit_prev = p0 * p0 + p1 * p1 + p2 * p2 > np.float32(NORMAL_HIT)
+        if hit != hit_prev or (hit and not n0 * p0 + n1 * p1 + n2 * p2 >= cos_min):
+            return False
+    return True
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _reproject_kernel(buffer, motion, depth, prev_depth, normal, prev_normal, use_depth, use_normal, tolerance,
+                      cos_min, min_weight):
+    """`reproject_numpy` pixel by pixel, rows in parallel: the same float64 sample positions and float32 weights."""
+    height, width, channels = buffer.shape
+    warped = np.empty((height, width, channels), np.float32)
+    valid = np.empty((height, width), np.bool_)
+    one = np.float32(1.0)
+    for yy in prange(height):
+        y = np.int64(yy)
+        acc = np.empty(channels, np.float32)
+        for x in range(width):
+            valid[y, x] = False
+            for c in range(channels):
+                warped[y, x, c] = 0.0
+            ys = y + np.float64(motion[y, x, 1])
+            xs = x + np.float64(motion[y, x, 0])
+            if not (ys >= -0.5 and ys < height - 0.5 and xs >= -0.5 and xs < width - 0.5):
+                continue  # off screen (NaN motion lands here too)
+            y0, x0 = np.floor(ys), np.floor(xs)
+            fy, fx = np.float32(ys - y0), np.float32(xs - x0)
+            iy, ix = np.int64(y0), np.int64(x0)
+            z = depth[y, x] if use_depth else np.float32(0.0)
+            n0, n1, n2 = (normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]) if use_normal else (one, one, one)
+            hit = n0 * n0 + n1 * n1 + n2 * n2 > np.float32(NORMAL_HIT)
+            for c in range(channels):
+                acc[c] = 0.0
+            total = np.float32(0.0)
+            for tap in range(4):
+                ty, tx = iy + tap // 2, ix + tap % 2
+                weight = (fy if tap // 2 else one - fy) * (fx if tap % 2 else one - fx)
+                if ty < 0 or ty >= height or tx < 0 or tx >= width or not weight > 0:
+                    continue
+                if not _tap_consistent(ty, tx, z, n0, n1, n2, hit, prev_depth, prev_normal, use_depth, use_normal,
+                                       tolerance, cos_min):
+                    continue
+                for c in range(channels):
+                    acc[c] += weight * buffer[ty, tx, c]
+                total += weight
+            if total >= min_weight:
+                valid[y, x] = True
+                for c in range(channels):
+                    warped[y, x, c] = acc[c] / total
+    return warped, valid
+
+
 def reproject(
     buffer: np.ndarray,
     motion: np.ndarray,
@@ -115,9 +182,40 @@ def reproject(
     Returns (warped, valid): warped (H, W, C) float32, the bilinear sample renormalised over consistent
     taps, zero where invalid; valid (H, W) bool, see the module docstring (eroded if `params.erode`).
     """
-    params = params or ReprojectionParams()
-    if (depth is None) != (prev_depth is None) or (normal is None) != (prev_normal is None):
-        raise ValueError("reproject needs depth with prev_depth and normal with prev_normal (both or neither)")
+    params = _checked(depth, prev_depth, normal, prev_normal, params)
+    height, width = buffer.shape[:2]
+    no_depth, no_normal = np.zeros((1, 1), np.float32), np.zeros((1, 1, 3), np.float32)
+    warped, valid = _reproject_kernel(
+        np.ascontiguousarray(buffer, np.float32),
+        np.ascontiguousarray(motion, np.float32),
+        no_depth if depth is None else np.ascontiguousarray(depth.reshape(height, width), np.float32),
+        no_depth if prev_depth is None else np.ascontiguousarray(prev_depth.reshape(height, width), np.float32),
+        no_normal if normal is None else np.ascontiguousarray(normal, np.float32),
+        no_normal if prev_normal is None else np.ascontiguousarray(prev_normal, np.float32),
+        depth is not None,
+        normal is not None,
+        np.float32(params.depth_tolerance),
+        np.float32(params.normal_cos_min),
+        np.float32(params.min_weight),
+    )
+    if params.erode:
+        valid = erode(valid)
+        warped[~valid] = 0.0
+    return warped, valid
+
+
+def reproject_numpy(
+    buffer: np.ndarray,
+    motion: np.ndarray,
+    *,
+    depth: np.ndarray | None = None,
+    prev_depth: np.ndarray | None = None,
+    normal: np.ndarray | None = None,
+    prev_normal: np.ndarray | None = None,
+    params: ReprojectionParams | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reference implementation of `reproject` in numpy (same arguments and results)."""
+    params = _checked(depth, prev_depth, normal, prev_normal, params)
     height, width, channels = buffer.shape
     ys, xs, on_screen = sample_positions(motion)
     y0, x0 = np.floor(ys), np.floor(xs)

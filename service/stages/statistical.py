@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
-from service.stages.bilateral import BilateralParams, base_weights, pair_weight
+from service.stages.bilateral import BilateralParams, base_weights, neg_exp
 from service.stages.student_t import critical_value_table
 
 ALPHA = 0.005  # Sakai 2024 sec. 4.2: significance level of the Welch test
@@ -139,7 +139,7 @@ def membership(
     return passed.all(axis=-1)
 
 
-def _pair_crit2(table: np.ndarray, n_i: np.ndarray, n_j: np.ndarray) -> np.ndarray:
+def _pair_crit2_numpy(table: np.ndarray, n_i: np.ndarray, n_j: np.ndarray) -> np.ndarray:
     return table[np.minimum(np.maximum(n_i + n_j - 2, 0), table.size - 1)]
 
 
@@ -152,7 +152,7 @@ def statistical_filter_numpy(
     num = color.astype(np.float32, copy=True)
     den = np.ones(color.shape[:2], np.float32)
     for centre, neighbour, rho in base_weights(features, params.base.radius, params.base.sigma2_position):
-        crit2 = _pair_crit2(table, count[centre], count[neighbour])
+        crit2 = _pair_crit2_numpy(table, count[centre], count[neighbour])
         args = theta[centre], var[centre], theta[neighbour], var[neighbour], crit2
         into_centre = rho * membership(*args, params.symmetric)
         if params.symmetric:
@@ -167,80 +167,121 @@ def statistical_filter_numpy(
 
 
 STRIP_ROWS = 16  # rows per work item of the compiled kernel (at least the radius; see `_filter_kernel`)
-_TESTED = 3  # channels of theta and var at the front of the kernel's packed per-pixel record
+_TESTED = 3  # channels of theta and var (Sakai sec. 5: the test runs on all three colour channels)
 
 
-@njit(cache=True, inline="always")
-def _admit(record, y, x, yn, xn, c2, symmetric):
-    """`membership` for one pair: may neighbour (yn, xn) be averaged into pixel (y, x)?
-
-    record: (H, W, K) float32, channels 0-2 theta, 3-5 var (then the guide features)."""
-    for c in range(_TESTED):
-        diff = record[y, x, c] - record[yn, xn, c]
-        var_i, var_j = record[y, x, _TESTED + c], record[yn, xn, _TESTED + c]
-        if symmetric:
-            passed = diff * diff <= c2 * (var_i + var_j)
-        else:
-            passed = diff * diff + var_j <= (np.float32(1.0) + np.float32(2.0) * c2) * var_i
-        if not passed:
-            return False
-    return True
-
-
-@njit(cache=True)
-def _filter_strip(y0, y1, color, record, count, crit2, position_terms, radius, symmetric, acc):
-    """Accumulate every pair whose first pixel lies in rows [y0, y1) and whose second pixel follows it
-    in raster order within the window (half of the symmetric pairs), into both pixels' sums.
-
-    acc: (H, W, C + 1) float32 running sums of rho * color (channels 0..C-1) and of rho (channel C)."""
-    height, width, channels = color.shape
+@njit(cache=True, error_model="numpy")
+def _pair_crit2(crit2, count, y, yn, p, q, uniform, out):
+    """Squared critical values of the pairs (y, p) - (yn, q) into out: t^2_{1-alpha/2, n_i + n_j - 2} (table lookup)."""
+    if uniform:
+        out[:] = crit2[min(max(2 * count[0, 0] - 2, 0), crit2.size - 1)]
+        return
     last = crit2.size - 1
+    n_p, n_q = count[y, p], count[yn, q]
+    for t in range(out.size):
+        out[t] = crit2[min(max(n_p[t] + n_q[t] - 2, 0), last)]
+
+
+@njit(cache=True, error_model="numpy")
+def _pair_weights(theta, var, features, crit2, count, uniform, symmetric, y, yn, p, q, position_term, scratch,
+                  into_centre, into_neighbour):
+    """rho_ij m_ij of the pairs i = (y, p), j = (yn, q) along a row segment (p, q: slices of equal length n):
+    into_centre[:n] weights j -> i, into_neighbour[:n] i -> j (the same array when symmetric). Branch-free
+    loops over contiguous rows (SIMD); exp by `neg_exp`. scratch: (2, W) float32 work rows."""
+    n = into_centre.size
+    distance2, c2 = scratch[0, :n], scratch[1, :n]
+    distance2[:] = position_term
+    for k in range(features.shape[0]):
+        f_p, f_q = features[k, y, p], features[k, yn, q]
+        for t in range(n):
+            diff = f_q[t] - f_p[t]
+            distance2[t] += diff * diff
+    _pair_crit2(crit2, count, y, yn, p, q, uniform, c2)
+    t0, t1, t2 = theta[0, y, p], theta[1, y, p], theta[2, y, p]
+    u0, u1, u2 = theta[0, yn, q], theta[1, yn, q], theta[2, yn, q]
+    v0, v1, v2 = var[0, y, p], var[1, y, p], var[2, y, p]
+    w0, w1, w2 = var[0, yn, q], var[1, yn, q], var[2, yn, q]
+    half = np.float32(0.5)
+    one, two = np.float32(1.0), np.float32(2.0)
+    for t in range(n):
+        d0, d1, d2 = t0[t] - u0[t], t1[t] - u1[t], t2[t] - u2[t]
+        rho = neg_exp(half * distance2[t])
+        if symmetric:
+            passed = ((d0 * d0 <= c2[t] * (v0[t] + w0[t])) & (d1 * d1 <= c2[t] * (v1[t] + w1[t]))
+                      & (d2 * d2 <= c2[t] * (v2[t] + w2[t])))
+            into_centre[t] = rho if passed else np.float32(0.0)
+        else:
+            scale = one + two * c2[t]
+            passed = ((d0 * d0 + w0[t] <= scale * v0[t]) & (d1 * d1 + w1[t] <= scale * v1[t])
+                      & (d2 * d2 + w2[t] <= scale * v2[t]))
+            into_centre[t] = rho if passed else np.float32(0.0)
+            passed = ((d0 * d0 + v0[t] <= scale * w0[t]) & (d1 * d1 + v1[t] <= scale * w1[t])
+                      & (d2 * d2 + v2[t] <= scale * w2[t]))
+            into_neighbour[t] = rho if passed else np.float32(0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _filter_strip(y0, y1, color, theta, var, features, count, crit2, position_terms, radius, symmetric, acc):
+    """Accumulate every pair whose first pixel lies in rows [y0, y1) and whose second pixel follows it in raster
+    order within the window (half of the symmetric pairs), into both pixels' sums. Planar arrays: color (C, H, W),
+    theta and var (3, H, W), features (F, H, W) float32; count (H, W) int64 or (1, 1) when uniform.
+
+    acc: (C + 1, H, W) float32 running sums of rho * color (planes 0..C-1) and of rho (plane C)."""
+    channels, height, width = color.shape
     uniform = count.size == 1  # one sample count for the whole frame: one critical value
-    c2 = crit2[min(max(2 * count[0, 0] - 2, 0), last)]
-    first = 2 * _TESTED
+    scratch = np.empty((2, width), np.float32)
+    weights = np.empty((2, width), np.float32)
     for y in range(y0, y1):
-        for x in range(width):
-            for yn in range(y, min(height, y + radius + 1)):
-                for xn in range(x + 1 if yn == y else max(0, x - radius), min(width, x + radius + 1)):
-                    if not uniform:
-                        c2 = crit2[min(max(count[y, x] + count[yn, xn] - 2, 0), last)]
-                    into_centre = _admit(record, y, x, yn, xn, c2, symmetric)
-                    into_neighbour = into_centre if symmetric else _admit(record, yn, xn, y, x, c2, False)
-                    if not (into_centre or into_neighbour):
-                        continue
-                    term = position_terms[yn - y + radius, xn - x + radius]
-                    rho = pair_weight(record, y, x, yn, xn, term, first)
-                    if into_centre:
-                        for c in range(channels):
-                            acc[y, x, c] += rho * color[yn, xn, c]
-                        acc[y, x, channels] += rho
-                    if into_neighbour:
-                        for c in range(channels):
-                            acc[yn, xn, c] += rho * color[y, x, c]
-                        acc[yn, xn, channels] += rho
+        for dy in range(0, min(radius, height - 1 - y) + 1):
+            yn = y + dy
+            for dx in range(1 if dy == 0 else -radius, radius + 1):
+                x0, x1 = max(0, -dx), min(width, width - dx)
+                if x0 >= x1:
+                    continue
+                n = x1 - x0
+                p, q = slice(x0, x1), slice(x0 + dx, x1 + dx)
+                into_centre = weights[0, :n]
+                into_neighbour = into_centre if symmetric else weights[1, :n]
+                _pair_weights(theta, var, features, crit2, count, uniform, symmetric, y, yn, p, q,
+                              position_terms[dy + radius, dx + radius], scratch, into_centre, into_neighbour)
+                for c in range(channels):
+                    acc_p, color_q = acc[c, y, p], color[c, yn, q]
+                    for t in range(n):
+                        acc_p[t] += into_centre[t] * color_q[t]
+                acc_p = acc[channels, y, p]
+                for t in range(n):
+                    acc_p[t] += into_centre[t]
+                for c in range(channels):
+                    acc_q, color_p = acc[c, yn, q], color[c, y, p]
+                    for t in range(n):
+                        acc_q[t] += into_neighbour[t] * color_p[t]
+                acc_q = acc[channels, yn, q]
+                for t in range(n):
+                    acc_q[t] += into_neighbour[t]
 
 
-@njit(parallel=True, cache=True)
-def _filter_kernel(color, record, count, crit2, position_terms, radius, symmetric, strip_rows):
+@njit(parallel=True, cache=True, error_model="numpy")
+def _filter_kernel(color, theta, var, features, count, crit2, position_terms, radius, symmetric, strip_rows):
     """Symmetric-pair scatter in strips of `strip_rows` >= radius rows: a strip writes only to itself and
-    the next strip, so the even strips run in parallel, then the odd ones, without write conflicts."""
-    height, width, channels = color.shape
-    acc = np.empty((height, width, channels + 1), np.float32)
-    acc[:, :, :channels] = color
-    acc[:, :, channels] = 1.0
+    the next strip, so the even strips run in parallel, then the odd ones, without write conflicts.
+    Planar inputs as `_filter_strip`; returns (H, W, C) float32."""
+    channels, height, width = color.shape
+    acc = np.empty((channels + 1, height, width), np.float32)
+    acc[:channels] = color
+    acc[channels] = 1.0
     strips = (height + strip_rows - 1) // strip_rows
     for parity in range(2):
         for half in prange((strips - parity + 1) // 2):
             y0 = (2 * np.int64(half) + parity) * strip_rows
             _filter_strip(
-                y0, min(y0 + strip_rows, height), color, record, count, crit2, position_terms, radius, symmetric,
-                acc,
+                y0, min(y0 + strip_rows, height), color, theta, var, features, count, crit2, position_terms,
+                radius, symmetric, acc,
             )
-    out = np.empty_like(color)
+    out = np.empty((height, width, channels), np.float32)
     for y in prange(height):
         for x in range(width):
             for c in range(channels):
-                out[y, x, c] = acc[y, x, c] / acc[y, x, channels]
+                out[y, x, c] = acc[c, y, x] / acc[channels, y, x]
     return out
 
 
@@ -268,11 +309,12 @@ def statistical_filter(
     table = critical_values_squared(params.alpha, int(count.max(initial=0)))
     if count.size and count.min() == count.max():
         count = count[:1, :1]  # the kernel's uniform-count path
-    record = np.concatenate([estimates.theta, estimates.var, features], axis=-1, dtype=np.float32)
     radius = params.base.radius
     return _filter_kernel(
-        np.ascontiguousarray(color, np.float32),
-        np.ascontiguousarray(record),
+        _planes(color),
+        _planes(estimates.theta),
+        _planes(estimates.var),
+        _planes(features),
         np.ascontiguousarray(count, np.int64),
         table,
         position_terms(radius, params.base.sigma2_position),
@@ -280,3 +322,8 @@ def statistical_filter(
         params.symmetric,
         max(radius, STRIP_ROWS),
     )
+
+
+def _planes(array: np.ndarray) -> np.ndarray:
+    """(H, W, K) -> contiguous (K, H, W) float32, the layout of the compiled kernels."""
+    return np.ascontiguousarray(np.moveaxis(np.asarray(array, np.float32), -1, 0))

@@ -12,6 +12,7 @@ from service.stages.flr import (
     gbuffer_guides,
     local_linear_regression,
     solve_cells,
+    solve_cells_reference,
 )
 
 
@@ -43,6 +44,9 @@ def test_numba_kernels_match_the_numpy_reference(size, scale):
     blurred = gaussian_blur(sums, 1.0, 3.0)
     np.testing.assert_allclose(blurred, gaussian_blur_reference(sums, 1.0, 3.0), rtol=1e-5, atol=1e-4)
     slopes, offsets = solve_cells(blurred, 4, 3, FlrParams(scale=scale))
+    ref_slopes, ref_offsets = solve_cells_reference(blurred, 4, 3, FlrParams(scale=scale))
+    np.testing.assert_allclose(slopes, ref_slopes, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(offsets, ref_offsets, rtol=1e-4, atol=1e-4)
     fast = apply_coefficients(x, slopes, offsets, scale)
     np.testing.assert_allclose(fast, apply_coefficients_reference(x, slopes, offsets, scale), rtol=1e-5, atol=1e-5)
     assert fast.shape == (3, *size) and np.isfinite(fast).all()

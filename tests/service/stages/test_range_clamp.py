@@ -1,7 +1,12 @@
 import numpy as np
 import pytest
 
-from service.stages.range_clamp import clamp_to_local_range, local_range
+from service.stages.range_clamp import (
+    clamp_to_local_range,
+    clamp_to_local_range_reference,
+    local_range,
+    local_range_reference,
+)
 
 
 def _brute(image, radius):
@@ -37,3 +42,20 @@ def test_clamp_removes_extrapolation_and_keeps_in_range_values():
 def test_constant_image_is_unchanged():
     image = np.full((6, 7, 3), 2.5, np.float32)
     np.testing.assert_array_equal(clamp_to_local_range(image, image, 4), image)
+
+
+@pytest.mark.parametrize("shape,radius", [((1, 1), 3), ((3, 5), 1), ((17, 31), 8), ((9, 4), 0), ((40, 3), 5)])
+def test_numba_kernel_matches_the_numpy_reference(shape, radius):
+    rng = np.random.default_rng(1)
+    image = rng.normal(size=(*shape, 3)).astype(np.float32)
+    output = (2 * rng.normal(size=image.shape)).astype(np.float32)
+    for fast, slow in zip(local_range(image, radius), local_range_reference(image, radius), strict=True):
+        np.testing.assert_array_equal(fast, slow)
+    np.testing.assert_array_equal(clamp_to_local_range(output, image, radius),
+                                  clamp_to_local_range_reference(output, image, radius))
+
+
+def test_negative_radius_is_refused():
+    image = np.zeros((4, 4, 3), np.float32)
+    with pytest.raises(ValueError, match="radius must be >= 0, got -1"):
+        clamp_to_local_range(image, image, -1)
