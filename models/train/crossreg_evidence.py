@@ -57,9 +57,8 @@ def _wait_trained(state: Any) -> None:
     trainer = state.trainer
     target = trainer.frames_submitted - trainer.frames_dropped
     deadline = time.monotonic() + WAIT_S
-    while trainer.frames_trained < target and time.monotonic() < deadline and trainer.alive():
-        trainer.poll()
-        time.sleep(0.01)
+    while trainer.status()["frames_trained"] < target and time.monotonic() < deadline and trainer.alive():
+        time.sleep(0.01)  # status() reads progress and leaves the published weights to the pipeline
 
 
 def run_pipeline(name: str, frames: list[Frame], options: dict[str, Any], sync: bool) -> tuple[list, dict]:

@@ -24,6 +24,7 @@ import importlib
 import importlib.util
 import multiprocessing as mp
 import queue
+import threading
 import time
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -119,6 +120,7 @@ class OnlineTrainer:
         self.last_error: str | None = None
         self._ready = False
         self._failed = False
+        self._pending: tuple[int, dict[str, np.ndarray]] | None = None
         self._last_dropped = False
         self._closed = False
         self._process = ctx.Process(
@@ -128,6 +130,23 @@ class OnlineTrainer:
             daemon=True,
         )
         self._process.start()
+        # The worker's messages are read by a daemon thread into a local queue, so `poll` never blocks:
+        # a worker killed in the middle of writing a message would leave a reader waiting forever.
+        self._messages: queue.SimpleQueue = queue.SimpleQueue()
+        self._reader = threading.Thread(target=self._read_outbox, name="crossreg-online-reader", daemon=True)
+        self._reader.start()
+
+    def _read_outbox(self) -> None:
+        while True:
+            try:
+                message = self._outbox.get(timeout=0.2)
+            except queue.Empty:
+                if self._closed or not self._process.is_alive():
+                    return
+                continue
+            except (EOFError, OSError, ValueError):  # closed, or the worker's end is gone
+                return
+            self._messages.put(message)
 
     @property
     def pid(self) -> int | None:
@@ -154,14 +173,13 @@ class OnlineTrainer:
         self._last_dropped = False
         return True
 
-    def poll(self) -> tuple[int, dict[str, np.ndarray]] | None:
-        """Drain the worker's messages; returns (version, weights) of the newest published set, or None."""
-        newest = None
+    def _drain(self) -> None:
+        """Take in every message the reader thread has received; keep the newest weights for `poll`."""
         while True:
             try:
-                kind, payload = self._outbox.get_nowait()
-            except (queue.Empty, EOFError, OSError):
-                break
+                kind, payload = self._messages.get_nowait()
+            except queue.Empty:
+                return
             if kind == "ready":
                 self._ready = True
             elif kind == "trained":
@@ -170,14 +188,21 @@ class OnlineTrainer:
                 self.losses.append((payload["frame_index"], payload["loss"]))
             elif kind == "weights":
                 self.published += 1
-                newest = (payload["version"], payload["weights"])
+                self._pending = (payload["version"], payload["weights"])
             elif kind == "error":
                 self.last_error = payload
                 self._failed = True
+
+    def poll(self) -> tuple[int, dict[str, np.ndarray]] | None:
+        """(version, weights) of the newest set published since the last call, or None; never blocks."""
+        self._drain()
+        newest, self._pending = self._pending, None
         return newest
 
     def status(self) -> dict[str, Any]:
-        """running / lagging / starting / crashed / stopped, with counters (see crossreg online_status)."""
+        """running / lagging / starting / crashed / stopped, with counters (see crossreg online_status).
+        Reads the worker's progress messages but leaves published weights for `poll`."""
+        self._drain()
         if self._closed:
             state = "stopped"
         elif self._failed or not self._process.is_alive():

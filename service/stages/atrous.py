@@ -14,6 +14,9 @@ spatial moment estimate for pixels with short history (`service.stages.svgf`).
 
 Pixels where nothing was hit (zero normal) only mix with each other. Taps outside the frame are
 skipped (no padding). `edge_aware_filter` is compiled; `edge_aware_filter_numpy` is its reference.
+The compiled pass works on planar (K, H, W) arrays (`atrous` keeps them planar over its passes): rows
+in parallel, each tap offset a branch-free SIMD loop along the row, exp by `bilateral.neg_exp`. Taps
+with an exponent above MAX_EXPONENT or w_n below WEIGHT_FLOOR get weight 0 (no subnormal arithmetic).
 """
 
 from __future__ import annotations
@@ -343,28 +346,34 @@ def _edge_aware_pass(
 @njit(parallel=True, cache=True, error_model="numpy")
 def _pass_inputs(planes, sigma_luminance):
     """Luminance of planes[0:3] and phi_l = sigma_l sqrt(g3x3(planes[3]) + eps) (Schied eq. 5), (H, W) float32 each.
-    The compiled twin of `luminance` and `prefilter_variance` (same arithmetic in float32)."""
+    The compiled twin of `luminance` and `prefilter_variance` (taps in the same order), rows in parallel."""
     _, height, width = planes.shape
     lum = np.empty((height, width), np.float32)
     phi = np.empty((height, width), np.float32)
     wr, wg, wb = np.float32(LUMINANCE_WEIGHTS[0]), np.float32(LUMINANCE_WEIGHTS[1]), np.float32(LUMINANCE_WEIGHTS[2])
-    taps = np.empty(3, np.float32)
-    for k in range(3):
-        taps[k] = GAUSS_3X3[k]
-    for y in prange(height):
+    eps = np.float32(VARIANCE_EPS)
+    for yy in prange(height):
+        y = np.int64(yy)
+        r, g, b, out = planes[0, y], planes[1, y], planes[2, y], lum[y]
         for x in range(width):
-            lum[y, x] = wr * planes[0, y, x] + wg * planes[1, y, x] + wb * planes[2, y, x]
-            num = np.float32(0.0)
-            den = np.float32(0.0)
-            for dy in range(-1, 2):
-                if 0 <= y + dy < height:
-                    for dx in range(-1, 2):
-                        if 0 <= x + dx < width:
-                            weight = taps[dy + 1] * taps[dx + 1]
-                            num += weight * planes[3, y + dy, x + dx]
-                            den += weight
-            filtered = max(num / den, np.float32(0.0))
-            phi[y, x] = sigma_luminance * np.sqrt(filtered + np.float32(VARIANCE_EPS))
+            out[x] = wr * r[x] + wg * g[x] + wb * b[x]
+        num = np.zeros(width, np.float32)
+        den = np.zeros(width, np.float32)
+        for dy in range(-1, 2):
+            if not 0 <= y + dy < height:
+                continue
+            for dx in range(-1, 2):
+                x0, x1 = max(0, -dx), min(width, width - dx)
+                if x0 >= x1:
+                    continue
+                weight = np.float32(GAUSS_3X3[dy + 1] * GAUSS_3X3[dx + 1])
+                acc, d, v = num[x0:x1], den[x0:x1], planes[3, y + dy, x0 + dx:x1 + dx]
+                for t in range(x1 - x0):
+                    acc[t] += weight * v[t]
+                    d[t] += weight
+        out = phi[y]
+        for x in range(width):
+            out[x] = sigma_luminance * np.sqrt(max(num[x] / den[x], np.float32(0.0)) + eps)
     return lum, phi
 
 

@@ -167,7 +167,6 @@ def statistical_filter_numpy(
 
 
 STRIP_ROWS = 16  # rows per work item of the compiled kernel (at least the radius; see `_filter_kernel`)
-_TESTED = 3  # channels of theta and var (Sakai sec. 5: the test runs on all three colour channels)
 
 
 @njit(cache=True, error_model="numpy")
@@ -197,27 +196,53 @@ def _pair_weights(theta, var, features, crit2, count, uniform, symmetric, y, yn,
             diff = f_q[t] - f_p[t]
             distance2[t] += diff * diff
     _pair_crit2(crit2, count, y, yn, p, q, uniform, c2)
-    t0, t1, t2 = theta[0, y, p], theta[1, y, p], theta[2, y, p]
-    u0, u1, u2 = theta[0, yn, q], theta[1, yn, q], theta[2, yn, q]
-    v0, v1, v2 = var[0, y, p], var[1, y, p], var[2, y, p]
-    w0, w1, w2 = var[0, yn, q], var[1, yn, q], var[2, yn, q]
     half = np.float32(0.5)
-    one, two = np.float32(1.0), np.float32(2.0)
     for t in range(n):
-        d0, d1, d2 = t0[t] - u0[t], t1[t] - u1[t], t2[t] - u2[t]
-        rho = neg_exp(half * distance2[t])
+        into_centre[t] = neg_exp(half * distance2[t])
+    if not symmetric:
+        into_neighbour[:] = into_centre
+    for c in range(3):  # the test in every colour channel; one loop per channel keeps each loop at few streams
+        theta_p, theta_q, var_p, var_q = theta[c, y, p], theta[c, yn, q], var[c, y, p], var[c, yn, q]
         if symmetric:
-            passed = ((d0 * d0 <= c2[t] * (v0[t] + w0[t])) & (d1 * d1 <= c2[t] * (v1[t] + w1[t]))
-                      & (d2 * d2 <= c2[t] * (v2[t] + w2[t])))
-            into_centre[t] = rho if passed else np.float32(0.0)
+            _gate_symmetric(theta_p, theta_q, var_p, var_q, c2, into_centre)
         else:
-            scale = one + two * c2[t]
-            passed = ((d0 * d0 + w0[t] <= scale * v0[t]) & (d1 * d1 + w1[t] <= scale * v1[t])
-                      & (d2 * d2 + w2[t] <= scale * v2[t]))
-            into_centre[t] = rho if passed else np.float32(0.0)
-            passed = ((d0 * d0 + v0[t] <= scale * w0[t]) & (d1 * d1 + v1[t] <= scale * w1[t])
-                      & (d2 * d2 + v2[t] <= scale * w2[t]))
-            into_neighbour[t] = rho if passed else np.float32(0.0)
+            _gate_asymmetric(theta_p, theta_q, var_p, var_q, c2, into_centre)
+            _gate_asymmetric(theta_q, theta_p, var_q, var_p, c2, into_neighbour)
+
+
+@njit(cache=True, error_model="numpy")
+def _gate_symmetric(theta_i, theta_j, var_i, var_j, c2, weight):
+    """weight = 0 where eq. 12 rejects the pair in this channel: (theta_i - theta_j)^2 > c2 (var_i + var_j).
+    (LLVM vectorises a loop only while its runtime alias checks stay few: hence a loop per channel.)"""
+    for t in range(weight.size):
+        diff = theta_i[t] - theta_j[t]
+        weight[t] = weight[t] if diff * diff <= c2[t] * (var_i[t] + var_j[t]) else np.float32(0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _gate_asymmetric(theta_i, theta_j, var_i, var_j, c2, weight):
+    """weight = 0 where eq. 14 rejects j for the pixel i in this channel: d^2 + var_j > (1 + 2 c2) var_i."""
+    one, two = np.float32(1.0), np.float32(2.0)
+    for t in range(weight.size):
+        diff = theta_i[t] - theta_j[t]
+        passed = diff * diff + var_j[t] <= (one + two * c2[t]) * var_i[t]
+        weight[t] = weight[t] if passed else np.float32(0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _scatter(acc, color, weight, y, p, yn, q):
+    """acc[:C, y, p] += weight * color[:, yn, q] and acc[C, y, p] += weight (p, q: row segments of equal length).
+    One loop per plane: a loop writing several planes of acc would need more runtime alias checks than LLVM
+    makes before it vectorises."""
+    channels = color.shape[0]
+    n = weight.size
+    for c in range(channels):
+        acc_p, color_q = acc[c, y, p], color[c, yn, q]
+        for t in range(n):
+            acc_p[t] += weight[t] * color_q[t]
+    total = acc[channels, y, p]
+    for t in range(n):
+        total[t] += weight[t]
 
 
 @njit(cache=True, error_model="numpy")
@@ -227,7 +252,7 @@ def _filter_strip(y0, y1, color, theta, var, features, count, crit2, position_te
     theta and var (3, H, W), features (F, H, W) float32; count (H, W) int64 or (1, 1) when uniform.
 
     acc: (C + 1, H, W) float32 running sums of rho * color (planes 0..C-1) and of rho (plane C)."""
-    channels, height, width = color.shape
+    height, width = color.shape[1:]
     uniform = count.size == 1  # one sample count for the whole frame: one critical value
     scratch = np.empty((2, width), np.float32)
     weights = np.empty((2, width), np.float32)
@@ -244,20 +269,8 @@ def _filter_strip(y0, y1, color, theta, var, features, count, crit2, position_te
                 into_neighbour = into_centre if symmetric else weights[1, :n]
                 _pair_weights(theta, var, features, crit2, count, uniform, symmetric, y, yn, p, q,
                               position_terms[dy + radius, dx + radius], scratch, into_centre, into_neighbour)
-                for c in range(channels):
-                    acc_p, color_q = acc[c, y, p], color[c, yn, q]
-                    for t in range(n):
-                        acc_p[t] += into_centre[t] * color_q[t]
-                acc_p = acc[channels, y, p]
-                for t in range(n):
-                    acc_p[t] += into_centre[t]
-                for c in range(channels):
-                    acc_q, color_p = acc[c, yn, q], color[c, y, p]
-                    for t in range(n):
-                        acc_q[t] += into_neighbour[t] * color_p[t]
-                acc_q = acc[channels, yn, q]
-                for t in range(n):
-                    acc_q[t] += into_neighbour[t]
+                _scatter(acc, color, into_centre, y, p, yn, q)
+                _scatter(acc, color, into_neighbour, yn, q, y, p)
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -303,7 +316,8 @@ def statistical_filter(
     Returns (H, W, C) float32. The centre weight is 1 (m_ii = 1, rho_ii = 1), so the result is a convex
     combination of inputs within the window: a constant image is unchanged and nothing spreads further
     than `params.base.radius` pixels. Compiled (numba, parallel over strips of rows, each pair's weight
-    evaluated once); parity with `statistical_filter_numpy` is tested.
+    evaluated once, planar (K, H, W) copies of the inputs so that every window offset is a SIMD loop along a
+    row, exp by `bilateral.neg_exp`); parity with `statistical_filter_numpy` is tested.
     """
     count = estimates.count
     table = critical_values_squared(params.alpha, int(count.max(initial=0)))

@@ -20,8 +20,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 
-from service.stages.atrous import EdgeGuides, edge_aware_filter, luminance
+from service.stages.atrous import LUMINANCE_WEIGHTS, EdgeGuides, edge_aware_filter, luminance
 
 ALPHA_COLOR = 0.2  # Schied 2017 sec. 4.1: blend weight of the new frame in the colour history
 ALPHA_MOMENTS = 0.2  # Schied 2017 sec. 4.2: blend weight of the new frame in the moment history
@@ -53,6 +54,48 @@ def luminance_moments(color: np.ndarray) -> np.ndarray:
     return np.stack([lum, lum * lum], axis=-1)
 
 
+def accumulate_numpy(
+    color: np.ndarray,
+    moments: np.ndarray,
+    prev_color: np.ndarray,
+    prev_moments: np.ndarray,
+    prev_history: np.ndarray,
+    valid: np.ndarray,
+    params: TemporalParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reference implementation of `accumulate` in numpy (same arguments and results)."""
+    history = np.where(valid, prev_history + np.float32(1.0), np.float32(1.0)).astype(np.float32)
+    inverse = np.float32(1.0) / history
+    alpha_c = np.maximum(np.float32(params.alpha_color), inverse)[..., None]
+    alpha_m = np.maximum(np.float32(params.alpha_moments), inverse)[..., None]
+    keep = valid[..., None]
+    out_color = np.where(keep, prev_color + alpha_c * (color - prev_color), color)
+    out_moments = np.where(keep, prev_moments + alpha_m * (moments - prev_moments), moments)
+    return out_color.astype(np.float32), out_moments.astype(np.float32), history
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _accumulate_kernel(color, moments, prev_color, prev_moments, prev_history, valid, alpha_color, alpha_moments):
+    height, width, _ = color.shape
+    out_color = np.empty((height, width, 3), np.float32)
+    out_moments = np.empty((height, width, 2), np.float32)
+    history = np.empty((height, width), np.float32)
+    one = np.float32(1.0)
+    for y in prange(height):
+        for x in range(width):
+            keep = valid[y, x]
+            n = prev_history[y, x] + one if keep else one
+            history[y, x] = n
+            alpha_c, alpha_m = max(alpha_color, one / n), max(alpha_moments, one / n)
+            for c in range(3):
+                prev = prev_color[y, x, c]
+                out_color[y, x, c] = prev + alpha_c * (color[y, x, c] - prev) if keep else color[y, x, c]
+            for c in range(2):
+                prev = prev_moments[y, x, c]
+                out_moments[y, x, c] = prev + alpha_m * (moments[y, x, c] - prev) if keep else moments[y, x, c]
+    return out_color, out_moments, history
+
+
 def accumulate(
     color: np.ndarray,
     moments: np.ndarray,
@@ -68,16 +111,15 @@ def accumulate(
     `luminance_moments`; prev_color, prev_moments, prev_history: the same and (H, W) float32 history
     lengths in frames, reprojected from the previous frame; valid: (H, W) bool reprojection validity.
     Returns (color, moments, history) of shapes (H, W, 3), (H, W, 2), (H, W), float32. Where invalid
-    the history restarts: history 1, colour and moments of the current frame.
+    the history restarts: history 1, colour and moments of the current frame. Compiled (numba, rows in
+    parallel); parity with `accumulate_numpy` is tested.
     """
-    history = np.where(valid, prev_history + np.float32(1.0), np.float32(1.0)).astype(np.float32)
-    inverse = np.float32(1.0) / history
-    alpha_c = np.maximum(np.float32(params.alpha_color), inverse)[..., None]
-    alpha_m = np.maximum(np.float32(params.alpha_moments), inverse)[..., None]
-    keep = valid[..., None]
-    out_color = np.where(keep, prev_color + alpha_c * (color - prev_color), color)
-    out_moments = np.where(keep, prev_moments + alpha_m * (moments - prev_moments), moments)
-    return out_color.astype(np.float32), out_moments.astype(np.float32), history
+    return _accumulate_kernel(
+        *(np.ascontiguousarray(a, np.float32) for a in (color, moments, prev_color, prev_moments, prev_history)),
+        np.ascontiguousarray(valid, np.bool_),
+        np.float32(params.alpha_color),
+        np.float32(params.alpha_moments),
+    )
 
 
 def box_mean(values: np.ndarray, radius: int) -> np.ndarray:
@@ -99,6 +141,74 @@ def box_mean(values: np.ndarray, radius: int) -> np.ndarray:
     return out / count
 
 
+def clamp_history_numpy(
+    prev_color: np.ndarray, prev_moments: np.ndarray, color: np.ndarray, radius: int, spread: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reference implementation of `clamp_history` in numpy (same arguments and results)."""
+    mean = box_mean(color, radius)
+    std = np.sqrt(np.maximum(box_mean(color * color, radius) - mean * mean, np.float32(0.0)))
+    half = np.float32(spread) * std
+    clamped = np.clip(prev_color, mean - half, mean + half)
+    lum_old, lum_new = luminance(prev_color), luminance(clamped)
+    second = prev_moments[..., 1] - lum_old * lum_old + lum_new * lum_new
+    return clamped, np.stack([lum_new, second], axis=-1).astype(np.float32)
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _clamp_kernel(prev_color, prev_moments, color, radius, spread):
+    """`clamp_history_numpy` row by row: separable box sums of colour and colour^2 over the flat (H, 3W) rows, a
+    column offset dx being a flat offset 3 dx (contiguous slices, SIMD)."""
+    height, width, _ = color.shape
+    flat = color.reshape(height, 3 * width)
+    prev_flat = prev_color.reshape(height, 3 * width)
+    clamped = np.empty((height, width, 3), np.float32)
+    out_moments = np.empty((height, width, 2), np.float32)
+    clamped_flat = clamped.reshape(height, 3 * width)
+    wr, wg, wb = np.float32(LUMINANCE_WEIGHTS[0]), np.float32(LUMINANCE_WEIGHTS[1]), np.float32(LUMINANCE_WEIGHTS[2])
+    for yy in prange(height):
+        y = np.int64(yy)
+        column_sum = flat[y].copy()
+        column_sum2 = np.empty(3 * width, np.float32)
+        row = flat[y]
+        for i in range(3 * width):
+            column_sum2[i] = row[i] * row[i]
+        rows = 1
+        for shift in range(1, radius + 1):
+            for yn in (y - shift, y + shift):
+                if 0 <= yn < height:
+                    rows += 1
+                    other = flat[yn]
+                    for i in range(3 * width):
+                        column_sum[i] += other[i]
+                        column_sum2[i] += other[i] * other[i]
+        box = column_sum.copy()
+        box2 = column_sum2.copy()
+        count = np.ones(3 * width, np.float32)
+        for shift in range(1, radius + 1):
+            for dx in (-shift, shift):
+                x0, x1 = 3 * max(0, -dx), 3 * min(width, width - dx)
+                if x0 >= x1:
+                    continue
+                b, b2, n = box[x0:x1], box2[x0:x1], count[x0:x1]
+                s, s2 = column_sum[x0 + 3 * dx:x1 + 3 * dx], column_sum2[x0 + 3 * dx:x1 + 3 * dx]
+                for t in range(x1 - x0):
+                    b[t] += s[t]
+                    b2[t] += s2[t]
+                    n[t] += np.float32(1.0)
+        prev_row, out_row = prev_flat[y], clamped_flat[y]
+        for i in range(3 * width):
+            total = count[i] * np.float32(rows)
+            mean = box[i] / total
+            half = spread * np.sqrt(max(box2[i] / total - mean * mean, np.float32(0.0)))
+            out_row[i] = min(max(prev_row[i], mean - half), mean + half)
+        for x in range(width):
+            lum_old = wr * prev_color[y, x, 0] + wg * prev_color[y, x, 1] + wb * prev_color[y, x, 2]
+            lum_new = wr * clamped[y, x, 0] + wg * clamped[y, x, 1] + wb * clamped[y, x, 2]
+            out_moments[y, x, 0] = lum_new
+            out_moments[y, x, 1] = prev_moments[y, x, 1] - lum_old * lum_old + lum_new * lum_new
+    return clamped, out_moments
+
+
 def clamp_history(
     prev_color: np.ndarray, prev_moments: np.ndarray, color: np.ndarray, radius: int, spread: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -110,14 +220,16 @@ def clamp_history(
 
     prev_color: (H, W, 3), prev_moments: (H, W, 2) reprojected history; color: (H, W, 3) current frame;
     all float32. Returns (color, moments) history of the same shapes, float32.
+
+    Compiled (numba, rows in parallel); parity with `clamp_history_numpy` is tested.
     """
-    mean = box_mean(color, radius)
-    std = np.sqrt(np.maximum(box_mean(color * color, radius) - mean * mean, np.float32(0.0)))
-    half = np.float32(spread) * std
-    clamped = np.clip(prev_color, mean - half, mean + half)
-    lum_old, lum_new = luminance(prev_color), luminance(clamped)
-    second = prev_moments[..., 1] - lum_old * lum_old + lum_new * lum_new
-    return clamped, np.stack([lum_new, second], axis=-1).astype(np.float32)
+    return _clamp_kernel(
+        np.ascontiguousarray(prev_color, np.float32),
+        np.ascontiguousarray(prev_moments, np.float32),
+        np.ascontiguousarray(color, np.float32),
+        int(radius),
+        np.float32(spread),
+    )
 
 
 def _bounding_box(mask: np.ndarray, margin: int) -> tuple[slice, slice]:

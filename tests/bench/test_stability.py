@@ -26,7 +26,7 @@ from service import pipelines
 from service.frame import Frame
 from service.pipelines.base import Pipeline, SequenceState
 
-HEIGHT, WIDTH = 12, 20  # size of the cases without a fixed size: tiny, the suite must stay fast
+HEIGHT, WIDTH = 32, 48  # size of the cases without a fixed size: small, the suite must stay fast
 FRAMES = 3
 
 

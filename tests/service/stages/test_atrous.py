@@ -3,7 +3,9 @@ import pytest
 
 from service.stages.atrous import (
     B3_SPLINE,
+    VARIANCE_EPS,
     AtrousParams,
+    _pass_inputs,
     atrous,
     depth_gradient,
     edge_aware_filter,
@@ -25,10 +27,14 @@ def _guides(h, w, seed=0, background=False):
     return edge_guides(depth, normal)
 
 
-@pytest.mark.parametrize("step, sigma_normal, squared", [(1, 128.0, 3), (2, 3.0, -1), (4, 128.0, 0)])
-def test_compiled_pass_matches_numpy_reference(step, sigma_normal, squared):
+@pytest.mark.parametrize(
+    "step, sigma_normal, squared, shape",
+    [(1, 128.0, 3, (13, 17)), (2, 3.0, -1, (13, 17)), (4, 128.0, 0, (13, 17)), (1, 2048.0, 3, (9, 40)),
+     (16, 1.0, 3, (40, 9)), (1, 128.0, 3, (1, 1))],
+)
+def test_compiled_pass_matches_numpy_reference(step, sigma_normal, squared, shape):
     rng = np.random.default_rng(1)
-    h, w = 13, 17
+    h, w = shape
     guides = _guides(h, w, background=True)
     values = rng.random((h, w, 4), dtype=np.float32)
     lum = luminance(values[..., :3])
@@ -59,6 +65,16 @@ def test_depth_gradient_ignores_silhouettes():
 
 def test_prefilter_is_normalised_at_borders():
     np.testing.assert_allclose(prefilter_variance(np.full((3, 4), 2.0, np.float32)), 2.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 7), (13, 17)])
+def test_compiled_pass_inputs_match_luminance_and_prefilter(shape):
+    rng = np.random.default_rng(6)
+    planes = rng.random((4, *shape), dtype=np.float32)
+    lum, phi = _pass_inputs(planes, np.float32(4.0))
+    np.testing.assert_allclose(lum, luminance(np.moveaxis(planes[:3], 0, -1)), rtol=1e-6, atol=1e-7)
+    expected = 4.0 * np.sqrt(np.maximum(prefilter_variance(planes[3]), 0) + np.float32(VARIANCE_EPS))
+    np.testing.assert_allclose(phi, expected, rtol=1e-6)
 
 
 def test_firefly_stays_within_the_filter_reach():

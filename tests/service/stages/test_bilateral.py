@@ -90,3 +90,14 @@ def test_invalid_params_are_refused():
         BilateralParams(radius=-1)
     with pytest.raises(ValueError, match="sigma2_albedo"):
         BilateralParams(sigma2_albedo=0)
+
+
+def test_neg_exp_matches_exp_over_its_range():
+    from service.stages.bilateral import NEG_EXP_MAX, neg_exp
+
+    x = np.concatenate([np.linspace(0, float(NEG_EXP_MAX), 20001), [0.125, 0.375, 86.9, 1e-30]]).astype(np.float32)
+    got = np.array([neg_exp(v) for v in x], np.float32)
+    np.testing.assert_allclose(got, np.exp(-x.astype(np.float64)), rtol=3e-7, atol=0)
+    for beyond in (NEG_EXP_MAX * np.float32(1.0001), np.float32(1e30), np.float32(np.inf), np.float32(np.nan)):
+        assert neg_exp(beyond) == 0.0  # nothing subnormal, no NaN
+    assert neg_exp(np.float32(-1.0)) == 1.0  # negative arguments count as 0

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from service.stages.reprojection import ReprojectionParams, erode, reproject
+from service.stages.reprojection import ReprojectionParams, erode, reproject, reproject_numpy
 
 
 def _motion(h, w, x, y):
@@ -96,3 +96,28 @@ def test_depth_without_prev_depth_is_refused():
         reproject(np.ones((2, 2, 1), np.float32), _motion(2, 2, 0, 0), depth=np.ones((2, 2, 1), np.float32))
     with pytest.raises(ValueError, match="depth_tolerance"):
         ReprojectionParams(depth_tolerance=0)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (5, 3), (23, 37)])
+@pytest.mark.parametrize("guided, erode_mask", [(False, False), (True, False), (True, True)])
+def test_compiled_reproject_matches_numpy_reference(shape, guided, erode_mask):
+    rng = np.random.default_rng(5)
+    h, w = shape
+    prev = rng.normal(size=(h, w, 6)).astype(np.float32)
+    motion = rng.normal(0, 2, (h, w, 2)).astype(np.float32)
+    motion[0, 0] = np.nan  # invalid, as off-screen motion
+    motion.flat[1::7] = np.round(motion.flat[1::7])  # integer motion: taps of weight zero
+    kwargs = {"params": ReprojectionParams(erode=erode_mask)}
+    if guided:
+        depth = (2 + rng.random((h, w, 1))).astype(np.float32)
+        normal = np.tile(np.float32([0, 0, 1]), (h, w, 1))
+        prev_normal = normal.copy()
+        prev_normal[::3] = np.float32([0, 0.6, 0.8])  # cos 0.8 < 0.9: inconsistent
+        prev_normal[1::4] = 0  # nothing hit
+        kwargs.update(depth=depth, prev_depth=depth * rng.uniform(0.85, 1.15, (h, w, 1)).astype(np.float32),
+                      normal=normal, prev_normal=prev_normal)
+    warped, valid = reproject(prev, motion, **kwargs)
+    with np.errstate(invalid="ignore"):  # the reference casts the NaN position before discarding it
+        expected, expected_valid = reproject_numpy(prev, motion, **kwargs)
+    np.testing.assert_array_equal(valid, expected_valid)
+    np.testing.assert_allclose(warped, expected, rtol=1e-6, atol=1e-7)

@@ -173,3 +173,14 @@ def test_tiny_and_odd_sizes_negative_radiance_and_float16_inputs(shape, symmetri
 def test_invalid_alpha_is_refused():
     with pytest.raises(ValueError, match="alpha"):
         StatisticalParams(alpha=1.5)
+
+
+@pytest.mark.parametrize("guides, shape, radius", [(False, (9, 40), 6), (True, (40, 7), 3), (True, (25, 33), 20)])
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_compiled_kernel_matches_numpy_reference_uniform_counts_and_shapes(guides, shape, radius, symmetric):
+    """Uniform sample counts (one critical value), no guide features, windows beyond the frame, strips."""
+    color, features, est, _ = _frame(*shape, guides=guides, seed=7)
+    assert est.count.min() == est.count.max()
+    params = _params(radius=radius, symmetric=symmetric)
+    np.testing.assert_allclose(statistical_filter(color, features, est, params),
+                               statistical_filter_numpy(color, features, est, params), rtol=1e-5, atol=1e-6)

@@ -1,11 +1,14 @@
 import numpy as np
+import pytest
 
 from service.stages.atrous import edge_guides
 from service.stages.svgf import (
     TemporalParams,
     accumulate,
+    accumulate_numpy,
     box_mean,
     clamp_history,
+    clamp_history_numpy,
     estimate_variance,
     luminance_moments,
 )
@@ -55,3 +58,21 @@ def test_box_mean_and_clamp():
     np.testing.assert_allclose(clamped, 0.3, rtol=1e-6)  # zero local spread: history clamped to the frame
     np.testing.assert_allclose(shifted[..., 0], 0.3, rtol=1e-5)
     np.testing.assert_allclose(shifted[..., 1] - shifted[..., 0] ** 2, 0.04, rtol=1e-3)
+
+
+@pytest.mark.parametrize("shape, radius", [((1, 1), 1), ((3, 5), 1), ((17, 31), 2), ((6, 4), 3)])
+def test_compiled_accumulate_and_clamp_match_numpy_references(shape, radius):
+    rng = np.random.default_rng(3)
+    h, w = shape
+    color = rng.lognormal(0, 1, (h, w, 3)).astype(np.float32)
+    prev = rng.normal(1, 2, (h, w, 3)).astype(np.float32)  # negative history values too
+    moments = luminance_moments(prev)
+    moments[..., 1] += 0.1
+    args = prev, moments, color, radius, 1.0
+    for a, b in zip(clamp_history(*args), clamp_history_numpy(*args), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    valid = rng.random((h, w)) > 0.3
+    history = rng.integers(0, 10, (h, w)).astype(np.float32)
+    args = color, luminance_moments(color), prev, moments, history, valid, TemporalParams()
+    for a, b in zip(accumulate(*args), accumulate_numpy(*args), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)

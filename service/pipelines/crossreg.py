@@ -1,0 +1,254 @@
+"""`crossreg`: online neural denoising with cross-regression (Choi et al. 2024).
+
+Stages, per frame (emission already split off by Pipeline.step, added back after):
+  1. cross-regression of the two half buffers -> pilots A, B in log1p space (sec. 4.1)
+  2. reprojection of the previous output and pilots with depth/normal checks, mask eroded 3x3, then
+     history screening against the current pilots' 7x7 range (authors' code)
+  3. U-Net in ONNX Runtime on [pilots, previous output, albedo, normal] -> theta per pixel (sec. 4.2, 4.4)
+  4. spatiotemporal filter: 11x11 cross-bilateral means, temporal blend, A/B combination (eqs. 8-10)
+  5. optional: the frame's training sample goes to the online worker (sec. 4.3); weights it publishes are
+     swapped into ONNX Runtime at the start of a later frame
+State kept explicitly in CrossregState: previous output and pilots (log1p), previous depth and normal, the
+ONNX model of the sequence, the online trainer. Without `online` the shipped warm-start weights
+(models/weights/crossreg_unet.onnx) serve; with it they are the starting point, or random weights with
+`random_init` (the paper's setting).
+"""
+
+from __future__ import annotations
+
+import logging
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.frame import Frame
+from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, stack_channels
+from service.online.trainer import OnlineConfig, OnlineTrainer, require_torch
+from service.pipelines import register
+from service.pipelines.base import Pipeline, SequenceState
+from service.runtime import OnnxModel, WeightError, default_init
+from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
+from service.stages.reprojection import ReprojectionParams, reproject
+from service.stages.spatiotemporal_filter import FilterOutput, screen_history, spatiotemporal_filter
+
+log = logging.getLogger(__name__)
+
+WEIGHTS_DIR = Path(__file__).resolve().parents[2] / "models" / "weights"
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "crossreg_unet.onnx"  # warm start, see models/weights/crossreg_unet.json
+# Depth and normal consistency, success mask eroded 3x3 (Choi 2024 authors' code: reproject + erosion2d).
+REPROJECTION = ReprojectionParams(erode=True)
+
+
+@dataclass(frozen=True)
+class CrossregOptions:
+    weights: str = ""  # path of the U-Net .onnx; "": the shipped warm start (DEFAULT_WEIGHTS)
+    online: bool = False  # fine-tune online in a torch worker process (needs the `train` extra)
+    publish_every: int = 4  # K: frames the worker trains between weight publications
+    crop: int = 128  # side of the random training crop sent to the worker, pixels (0: whole frame)
+    random_init: bool = False  # start from random weights (Choi 2024 sec. 4.4) instead of the warm start
+    steps_per_frame: int = 1  # worker gradient steps per frame (Choi 2024: 1)
+    worker_threads: int = 1  # torch threads of the worker
+    threads: int = 0  # ONNX Runtime intra-op threads (0: $MCDENOISE_ORT_THREADS or ORT's default)
+    screen: bool = True  # reject history outside the current pilots' 7x7 range (authors' code)
+    seed: int = 0  # random initialisation and crop positions
+
+
+@dataclass
+class History:
+    """What frame t keeps for frame t + 1; all (H, W, C) float32."""
+
+    output: np.ndarray  # (H, W, 3) filter output f(x), log1p radiance
+    pilots: np.ndarray  # (H, W, 6) pilots A then B, log1p radiance
+    normal: np.ndarray  # (H, W, 3) for the reprojection's normal test
+    depth: np.ndarray | None  # (H, W, 1) for the depth test, when the frames carry depth
+
+
+@dataclass
+class Prepared:
+    """One frame ready for the network and the filter; (H, W, C) float32 log1p radiance unless stated."""
+
+    pilot_a: np.ndarray
+    pilot_b: np.ndarray
+    previous: np.ndarray  # reprojected previous output where `valid`, the pilots' mean elsewhere
+    valid: np.ndarray  # (H, W) bool: history usable (reprojected, consistent, screened)
+    previous_pilot_a: np.ndarray  # temporal label of output B (eq. 13), current pilot A where invalid
+    previous_pilot_b: np.ndarray  # temporal label of output A
+    features: np.ndarray  # (H, W, 15) network input, layout.CROSSREG_INPUTS order
+
+    def sample(self) -> np.ndarray:
+        """(H, W, 22) training sample in layout.CROSSREG_SAMPLE order."""
+        extra = np.concatenate(
+            [self.valid[..., None].astype(np.float32), self.previous_pilot_a, self.previous_pilot_b], axis=-1
+        )
+        out = np.concatenate([self.features, extra], axis=-1)
+        assert out.shape[-1] == sum(g.channels for g in CROSSREG_SAMPLE)
+        return np.ascontiguousarray(out, dtype=np.float32)
+
+
+def prepare_frame(
+    frame: Frame,
+    history: History | None,
+    *,
+    screen: bool = True,
+    params: CrossRegressionParams | None = None,
+    pilots: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Prepared:
+    """Stages 1-2 and the network input. frame: emission-free Frame with colorA, colorB, albedo, normal,
+    motion (depth optional). history: the previous frame's, or None at the start of a sequence.
+    pilots: the frame's (pilot_a, pilot_b) when already computed (offline training caches them)."""
+    albedo, normal = frame["albedo"], frame["normal"]
+    if pilots is None:
+        pilots = cross_regression(frame["colorA"], frame["colorB"], albedo, normal, params)
+    pilot_a, pilot_b = pilots
+    mean = 0.5 * (pilot_a + pilot_b)
+    if history is None:
+        valid = np.zeros(mean.shape[:2], bool)
+        previous, prev_a, prev_b = mean, pilot_a, pilot_b
+    else:
+        stacked = np.concatenate([history.output, history.pilots], axis=-1)
+        warped, valid = reproject(
+            stacked, frame["motion"], depth=frame.get("depth"), prev_depth=history.depth,
+            normal=normal, prev_normal=history.normal, params=REPROJECTION,
+        )  # fmt: skip
+        valid_a = valid_b = valid
+        if screen:
+            valid = screen_history(mean, warped[..., 0:3], valid)
+            valid_a = screen_history(pilot_a, warped[..., 3:6], valid_a)
+            valid_b = screen_history(pilot_b, warped[..., 6:9], valid_b)
+        previous = np.where(valid[..., None], warped[..., 0:3], mean)
+        prev_a = np.where(valid_a[..., None], warped[..., 3:6], pilot_a)
+        prev_b = np.where(valid_b[..., None], warped[..., 6:9], pilot_b)
+    groups = {"pilotA": pilot_a, "pilotB": pilot_b, "previous": previous, "albedo": albedo, "normal": normal}
+    features = stack_channels(CROSSREG_INPUTS, groups)
+    return Prepared(pilot_a, pilot_b, previous.astype(np.float32), valid, prev_a, prev_b, features)
+
+
+def filter_frame(prepared: Prepared, params: np.ndarray, frame: Frame) -> FilterOutput:
+    """Stage 4: eqs. 8-10 with the network's params (H, W, 6), in log1p space."""
+    return spatiotemporal_filter(
+        prepared.pilot_a, prepared.pilot_b, frame["albedo"], frame["normal"], params,
+        prepared.previous, prepared.valid,
+    )  # fmt: skip
+
+
+def next_history(frame: Frame, prepared: Prepared, output: FilterOutput) -> History:
+    pilots = np.concatenate([prepared.pilot_a, prepared.pilot_b], axis=-1)
+    return History(output.color, pilots, frame["normal"], frame.get("depth"))
+
+
+@dataclass
+class CrossregState(SequenceState):
+    """Per-sequence state: history of the previous frame, the sequence's model, the online trainer."""
+
+    history: History | None = None
+    model: OnnxModel | None = None
+    trainer: OnlineTrainer | None = None
+    refused: int = 0  # weight sets refused (non-finite or not fitting the graph)
+    last_refusal: str | None = None
+    init: str = "warm start"  # where the running weights started: "warm start" or "random"
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def online_status(self) -> dict[str, Any]:
+        """What the HTTP service reports: state (off / starting / running / lagging / crashed / stopped),
+        running, crashed, lagging, frames_trained, frames_dropped, weights_version, last_error, ..."""
+        version = self.model.version if self.model is not None else 0
+        if self.trainer is None:
+            status: dict[str, Any] = {
+                "state": "off", "running": False, "crashed": False, "lagging": False,
+                "frames_submitted": 0, "frames_trained": 0, "frames_dropped": 0, "last_loss": None,
+                "last_error": None,
+            }  # fmt: skip
+        else:
+            status = self.trainer.status()
+        status.update(weights_version=version, weights_refused=self.refused, init=self.init)
+        if self.last_refusal and not status.get("last_error"):
+            status["last_error"] = self.last_refusal
+        return status
+
+    def close(self) -> None:
+        """Stop the online worker, if any (also done when the state is garbage-collected)."""
+        if self.trainer is not None:
+            self.trainer.close()
+
+
+@register
+class CrossregPipeline(Pipeline):
+    name = "crossreg"
+    summary = (
+        "cross-regression pilots + U-Net-driven spatiotemporal filter (Choi 2024); warm-start weights, "
+        "optional online fine-tuning (online=true); keeps shadows and texture"
+    )
+    requires = ("colorA", "colorB", "albedo", "normal", "motion")
+    optional = ("depth", "emission")
+    temporal = True
+    Options = CrossregOptions
+
+    def __init__(self, **options: Any):
+        super().__init__(**options)
+        opt = self.options
+        if opt.online:
+            require_torch()
+        self._online_config = OnlineConfig(
+            publish_every=opt.publish_every, crop=opt.crop, steps_per_frame=opt.steps_per_frame,
+            worker_threads=opt.worker_threads, seed=opt.seed,
+        )  # fmt: skip
+        self._model: OnnxModel | None = None  # loaded on first use, shared by states that never swap
+
+    def model(self) -> OnnxModel:
+        if self._model is None:
+            path = Path(self.options.weights) if self.options.weights else DEFAULT_WEIGHTS
+            if not path.is_file():
+                raise FileNotFoundError(f"crossreg weights not found: {path} (regenerate: see models/weights/README)")
+            self._model = OnnxModel.from_file(path, threads=self.options.threads or None)
+        return self._model
+
+    def new_state(self, height: int, width: int) -> CrossregState:
+        opt = self.options
+        shared = self.model()
+        state = CrossregState(height, width)
+        if not (opt.online or opt.random_init):
+            state.model = shared
+            return state
+        state.model = shared.copy()
+        initial = None
+        if opt.random_init:
+            initial = default_init(state.model.info.weight_shapes, opt.seed)
+            state.model.swap_weights(initial)
+            state.init = "random"
+        if opt.online:
+            config = OnlineConfig(**{**self._online_config.__dict__, "alignment": state.model.info.alignment})
+            state.trainer = OnlineTrainer(state.model.model_bytes, initial, config)
+            weakref.finalize(state, state.trainer.close)
+        return state
+
+    def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        assert isinstance(state, CrossregState) and state.model is not None
+        if state.trainer is not None:
+            self._take_published_weights(state)
+        prepared = prepare_frame(frame, state.history, screen=self.options.screen)
+        params = state.model.run_hwc(prepared.features)
+        output = filter_frame(prepared, params, frame)
+        if state.trainer is not None:
+            state.trainer.submit(prepared.sample(), state.frame_index)
+        state.history = next_history(frame, prepared, output)
+        color = np.maximum(log_to_linear(output.color), np.float32(0.0))
+        return {"color": color}, state
+
+    @staticmethod
+    def _take_published_weights(state: CrossregState) -> None:
+        """Swap in the newest weights the worker published; refuse (and report) weights that do not fit."""
+        assert state.trainer is not None and state.model is not None
+        published = state.trainer.poll()
+        if published is None:
+            return
+        version, weights = published
+        try:
+            state.model.swap_weights(weights)
+        except WeightError as err:
+            state.refused += 1
+            state.last_refusal = f"worker weights v{version} refused: {err}"
+            log.warning("crossreg: %s; keeping weights version %d", state.last_refusal, state.model.version)
