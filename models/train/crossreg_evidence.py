@@ -136,6 +136,18 @@ def _median_ms(fn, repeats: int) -> float:
     return float(statistics.median(times))
 
 
+def _interleaved_ms(first, second, repeats: int) -> tuple[float, float]:
+    """Medians of `first` and `second` timed alternately (A B A B ...), so a shared CPU's load drifts hit
+    both alike."""
+    a, b = [], []
+    for _ in range(repeats):
+        for fn, times in ((first, a), (second, b)):
+            start = time.perf_counter()
+            fn()
+            times.append(1e3 * (time.perf_counter() - start))
+    return float(statistics.median(a)), float(statistics.median(b))
+
+
 def _time_size(width: int, height: int, repeats: int) -> dict[str, float]:
     import torch  # noqa: F401  (the training step below)
 
@@ -163,13 +175,14 @@ def _time_size(width: int, height: int, repeats: int) -> dict[str, float]:
     opt = make_optimizer(net)
     rng = np.random.default_rng(0)
     crop128 = samples_to_tensor(random_crop(sample, 128, 4, rng))
+    crossreg_ms, oidn_ms = _interleaved_ms(step, lambda: _oidn(frames[1]), repeats)
     row = {
-        "crossreg inference (whole step)": _median_ms(step, repeats),
+        "crossreg inference (whole step)": crossreg_ms,
+        "OIDN high (pyoidn, albedo + normal)": oidn_ms,
         "  cross-regression + reprojection + screening": _median_ms(lambda: prepare_frame(frames[1], history), repeats),
         "  U-Net (ONNX Runtime)": _median_ms(lambda: state.model.run_hwc(prepared.features), repeats),
         "  spatiotemporal filter (numba)": _median_ms(lambda: filter_frame(prepared, params, frames[1]), repeats),
         "training step, 128x128 crop (torch, 1 thread)": _median_ms(lambda: train_step(net, opt, crop128), repeats),
-        "OIDN high (pyoidn, albedo + normal)": _median_ms(lambda: _oidn(frames[1]), repeats),
     }
     if width * height <= 256 * 256:
         whole = samples_to_tensor(random_crop(sample, 0, 4, rng))

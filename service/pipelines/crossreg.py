@@ -114,10 +114,10 @@ def prepare_frame(
             normal=normal, prev_normal=history.normal, params=REPROJECTION,
         )  # fmt: skip
         valid_a = valid_b = valid
-        if screen:
-            valid = screen_history(mean, warped[..., 0:3], valid)
-            valid_a = screen_history(pilot_a, warped[..., 3:6], valid_a)
-            valid_b = screen_history(pilot_b, warped[..., 6:9], valid_b)
+        if screen:  # output against the pilots' mean, each previous pilot against its current pilot
+            current = np.concatenate([mean, pilot_a, pilot_b], axis=-1)
+            masks = screen_history(current, warped, valid, groups=3)
+            valid, valid_a, valid_b = masks[..., 0], masks[..., 1], masks[..., 2]
         previous = np.where(valid[..., None], warped[..., 0:3], mean)
         prev_a = np.where(valid_a[..., None], warped[..., 3:6], pilot_a)
         prev_b = np.where(valid_b[..., None], warped[..., 6:9], pilot_b)

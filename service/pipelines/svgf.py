@@ -18,6 +18,7 @@ from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.stages.albedo import demodulate, remodulate
 from service.stages.atrous import AtrousParams, atrous, edge_guides
+from service.stages.range_clamp import clamp_to_local_range
 from service.stages.reprojection import ReprojectionParams, reproject
 from service.stages.svgf import (
     ALPHA_COLOR,
@@ -47,6 +48,10 @@ class SvgfOptions:
 # Radiance above this is scaled down before filtering so that squared luminance moments stay finite in
 # float32 (max 3.4e38): (1e15)^2 = 1e30 leaves room for sums over windows and histories.
 SAFE_RADIANCE = 1e15
+# Output is clipped to the noisy input's range within this many pixels (service/stages/range_clamp.py):
+# demodulating by a near-black albedo magnifies irradiance ~1/ALBEDO_EPS, and the wide a-trous footprint
+# would carry it onto brighter-albedo neighbours as energy the input cannot explain.
+CLAMP_RADIUS = 8
 
 
 @dataclass
@@ -118,4 +123,4 @@ class SvgfPipeline(Pipeline):
         state.depth, state.normal, state.scale = depth, normal, scale
         filtered = filtered * np.float32(scale)
         out = filtered if albedo is None else remodulate(filtered, albedo)
-        return {"color": out}, state
+        return {"color": clamp_to_local_range(out, frame["color"], CLAMP_RADIUS)}, state

@@ -200,35 +200,64 @@ SCREEN_RADIUS = 3  # 7x7 window of the history screening (authors' code: tempora
 
 
 def _window_extrema(image: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel min and max over the (2 radius + 1)^2 window, per channel, frame edges replicated.
+    """Per-pixel min and max over the (2 radius + 1)^2 window, per channel, the window cut at the frame edge.
 
-    image: (H, W, C) float32. Returns (min, max), both (H, W, C) float32. Separable: rows then columns.
+    image: (H, W, C) float32. Returns (min, max), both (H, W, C) float32.
     """
-    lo, hi = image, image
-    for axis in (0, 1):
-        size = image.shape[axis]
-        pad = [(0, 0)] * 3
-        pad[axis] = (radius, radius)
-        lo_p, hi_p = np.pad(lo, pad, mode="edge"), np.pad(hi, pad, mode="edge")
-        lo, hi = lo_p.take(range(0, size), axis=axis), hi_p.take(range(0, size), axis=axis)
-        for shift in range(1, 2 * radius + 1):
-            window = range(shift, shift + size)
-            lo = np.minimum(lo, lo_p.take(window, axis=axis))
-            hi = np.maximum(hi, hi_p.take(window, axis=axis))
+    lo = np.empty_like(image)
+    hi = np.empty_like(image)
+    _extrema_kernel(np.ascontiguousarray(image, dtype=np.float32), int(radius), lo, hi)
     return lo, hi
 
 
+@numba.njit(parallel=True, cache=True)
+def _extrema_kernel(image, radius, lo, hi):  # pragma: no cover - jitted
+    """Separable: min/max along rows into lo/hi, then along columns in place (per row band)."""
+    height, width, channels = image.shape
+    row_lo = np.empty_like(image)
+    row_hi = np.empty_like(image)
+    for y in numba.prange(height):
+        for x in range(width):
+            x0, x1 = max(0, x - radius), min(width, x + radius + 1)
+            for c in range(channels):
+                a = image[y, x0, c]
+                b = a
+                for xx in range(x0 + 1, x1):
+                    v = image[y, xx, c]
+                    a = min(a, v)
+                    b = max(b, v)
+                row_lo[y, x, c] = a
+                row_hi[y, x, c] = b
+    for y in numba.prange(height):
+        y0, y1 = max(0, y - radius), min(height, y + radius + 1)
+        for x in range(width):
+            for c in range(channels):
+                a = row_lo[y0, x, c]
+                b = row_hi[y0, x, c]
+                for yy in range(y0 + 1, y1):
+                    a = min(a, row_lo[yy, x, c])
+                    b = max(b, row_hi[yy, x, c])
+                lo[y, x, c] = a
+                hi[y, x, c] = b
+
+
 def screen_history(
-    current: np.ndarray, history: np.ndarray, valid: np.ndarray, radius: int = SCREEN_RADIUS
+    current: np.ndarray, history: np.ndarray, valid: np.ndarray, radius: int = SCREEN_RADIUS, groups: int = 1
 ) -> np.ndarray:
-    """Where reprojected `history` is still plausible: `valid` and, in every channel, within the min-max
-    range of `current` over the (2 radius + 1)^2 window around the pixel.
+    """Where reprojected `history` is still plausible: `valid` and, in every channel of a group, within the
+    min-max range of `current` over the (2 radius + 1)^2 window around the pixel.
 
     From the authors' code (temporal_screening), not the paper's text: it rejects history that motion
     vectors carry correctly but whose shading changed (a moving shadow on a static floor). We compare
     with <= where the authors compare strictly, so flat regions (all-black background) keep their history.
-    current, history: (H, W, C) float32 in the same (log1p) space; valid: (H, W) bool. Returns (H, W) bool.
+    current, history: (H, W, C) float32 in the same (log1p) space, C = groups x channels per group (several
+    quantities screened in one pass); valid: (H, W) bool. Returns (H, W) bool for groups = 1, else
+    (H, W, groups) bool, one mask per group of consecutive channels.
     """
+    height, width, channels = current.shape
+    if channels % groups:
+        raise ValueError(f"{channels} channels do not split into {groups} groups")
     lo, hi = _window_extrema(current, radius)
-    inside = np.all((history >= lo) & (history <= hi), axis=-1)
-    return valid & inside
+    inside = ((history >= lo) & (history <= hi)).reshape(height, width, groups, channels // groups)
+    masks = valid[..., None] & np.all(inside, axis=-1)
+    return masks[..., 0] if groups == 1 else masks

@@ -81,7 +81,7 @@ def test_window_extrema_match_a_brute_force(radius):
 
     x = np.random.default_rng(2).random((7, 10, 3)).astype(np.float32)
     lo, hi = _window_extrema(x, radius)
-    padded = np.pad(x, ((radius, radius), (radius, radius), (0, 0)), mode="edge")
+    padded = np.pad(x, ((radius, radius), (radius, radius), (0, 0)), mode="edge")  # edge copies: same extrema
     view = sliding_window_view(padded, (2 * radius + 1, 2 * radius + 1), axis=(0, 1))
     np.testing.assert_array_equal(lo, view.min(axis=(-2, -1)))
     np.testing.assert_array_equal(hi, view.max(axis=(-2, -1)))
@@ -97,3 +97,16 @@ def test_screening_rejects_history_outside_the_current_range():
     out = screen_history(current, history, valid)
     assert not out[1, 1] and not out[7, 7]
     assert out.sum() == 62  # flat regions keep their history (<=, not <)
+
+
+def test_grouped_screening_equals_one_call_per_group():
+    rng = np.random.default_rng(4)
+    current = rng.random((9, 11, 9), np.float32)
+    history = current + rng.normal(0, 0.3, current.shape).astype(np.float32)
+    valid = rng.random((9, 11)) > 0.2
+    masks = screen_history(current, history, valid, groups=3)
+    for g in range(3):
+        part = slice(3 * g, 3 * g + 3)
+        np.testing.assert_array_equal(masks[..., g], screen_history(current[..., part], history[..., part], valid))
+    with pytest.raises(ValueError, match="9 channels do not split into 2 groups"):
+        screen_history(current, history, valid, groups=2)
