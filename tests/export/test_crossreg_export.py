@@ -49,3 +49,21 @@ def test_metadata_carries_the_contract(exported):
         np.testing.assert_array_equal(stored[name], value.detach().numpy())
     assert json.loads(info.metadata and json.dumps(info.metadata))  # JSON round trip
     assert METADATA_KEY == "mcdenoise"
+
+
+def test_shipped_warm_start_is_consistent_with_its_checkpoint_and_manifest():
+    import json
+    from pathlib import Path
+
+    from models.nets.crossreg_unet import load_checkpoint
+
+    folder = Path(__file__).resolve().parents[2] / "models" / "weights"
+    net, ckpt = load_checkpoint(str(folder / "crossreg_unet.pt"))
+    model_bytes = (folder / "crossreg_unet.onnx").read_bytes()
+    stored = initializers(model_bytes)
+    for name, value in net.named_parameters():
+        np.testing.assert_array_equal(stored[name], value.detach().numpy(), err_msg=name)
+    manifest = json.loads((folder / "crossreg_unet.json").read_text())
+    assert manifest == ckpt["manifest"]
+    assert {"seed", "steps", "data", "loss_last_200", "loss_curve_per_50_steps", "command"} <= set(manifest)
+    assert OnnxModel(model_bytes).info.metadata["training"]["steps"] == manifest["steps"]
