@@ -55,6 +55,11 @@ def cmd_denoise(args: argparse.Namespace) -> int:
         out = np.mean([r.rel_l2_out for r in scored])
         line += f", relL2 (0.1% trimmed) {noisy:.4f} -> {out:.4f}"
     print(line)
+    if results and results[-1].online is not None:
+        status = results[-1].online
+        print(f"online training: {status['state']}, {status['frames_trained']} frames trained, "
+              f"{status['frames_dropped']} dropped, weights version {status['weights_version']}"
+              + (f", last error: {status['last_error']}" if status.get("last_error") else ""))
     print(f"outputs in {args.out_dir}")
     return 0
 

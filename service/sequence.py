@@ -6,6 +6,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from service.exr import list_sequence, read_frame, write_frame
 from service.frame import FrameError
@@ -23,6 +24,7 @@ class FrameResult:
     nonfinite: int  # NaN/Inf values repaired in the input
     rel_l2_noisy: float | None  # relL2 (0.1% trimmed) of the input `color` vs `reference`, if present
     rel_l2_out: float | None  # relL2 (0.1% trimmed) of the output vs `reference`, if present
+    online: dict[str, Any] | None = None  # online-training status after this frame, for pipelines that train
 
 
 def denoise_folder(
@@ -31,29 +33,34 @@ def denoise_folder(
     """Denoise every frame of `in_dir` in order; write `out_dir/<name>` (layer `color`, float32) and,
     with `png`, `out_dir/<stem>.png` previews. Yields one FrameResult per frame as it completes.
 
-    Raises FrameError (naming the file and layer) on the first bad frame.
+    Raises FrameError (naming the file and layer) on the first bad frame. The sequence state is closed at
+    the end (stopping an online-training worker, if any).
     """
     out_dir = Path(out_dir)
     state = None
-    for path in list_sequence(in_dir):
-        try:
-            frame = read_frame(path)
-            if state is None:
-                state = pipeline.start(frame.height, frame.width)
-            start = time.perf_counter()
-            out, state = pipeline.step(frame, state)
-            ms = 1e3 * (time.perf_counter() - start)
-        except FrameError as err:
-            raise FrameError(f"{path.name}: {err}", err.layer) from err
-        write_frame(out_dir / path.name, {"color": out["color"]})
-        if png:
-            write_preview(out_dir / f"{path.stem}.png", out["color"])
-        reference = frame.get("reference")
-        yield FrameResult(
-            path.name,
-            ms,
-            frame.nonfinite_total,
-            None if reference is None else rel_l2(frame["color"], reference, trim=TRIM_FRACTION),
-            None if reference is None else rel_l2(out["color"], reference, trim=TRIM_FRACTION),
-        )
-
+    try:
+        for path in list_sequence(in_dir):
+            try:
+                frame = read_frame(path)
+                if state is None:
+                    state = pipeline.start(frame.height, frame.width)
+                start = time.perf_counter()
+                out, state = pipeline.step(frame, state)
+                ms = 1e3 * (time.perf_counter() - start)
+            except FrameError as err:
+                raise FrameError(f"{path.name}: {err}", err.layer) from err
+            write_frame(out_dir / path.name, {"color": out["color"]})
+            if png:
+                write_preview(out_dir / f"{path.stem}.png", out["color"])
+            reference = frame.get("reference")
+            yield FrameResult(
+                path.name,
+                ms,
+                frame.nonfinite_total,
+                None if reference is None else rel_l2(frame["color"], reference, trim=TRIM_FRACTION),
+                None if reference is None else rel_l2(out["color"], reference, trim=TRIM_FRACTION),
+                getattr(state, "online_status", None),
+            )
+    finally:
+        if state is not None and hasattr(state, "close"):
+            state.close()

@@ -2,6 +2,7 @@
 worker end to end (training, swap, crash), and the CLI's --online."""
 
 import os
+import re
 import signal
 import time
 
@@ -161,4 +162,6 @@ def test_cli_online_flag(tiny_sequence_dir, tmp_path, capsys):
     code = cli_main(["denoise", "--pipeline", "crossreg", "--online", "-o", "crop=8", str(tiny_sequence_dir),
                      str(tmp_path / "out")])  # fmt: skip
     assert code == 0 and len(list((tmp_path / "out").glob("*.exr"))) == 3
-    assert "crossreg: 3 frames" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "crossreg: 3 frames" in out
+    assert re.search(r"online training: (starting|running|lagging), \d+ frames trained, \d+ dropped", out)
