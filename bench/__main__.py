@@ -39,7 +39,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     methods = select(args.pipelines, args.anchors)
     print(f"methods: {', '.join(m.name for m in methods)}; sequences: {', '.join(map(str, args.sequences))}")
     command = ["python", "-m", "bench", *sys.argv[1:]]
-    results, runs = benchmark(args.sequences, methods, flip=not args.no_flip, command=command)
+    results, runs = benchmark(args.sequences, methods, flip=not args.no_flip, repeats=args.repeats, command=command)
     paths = write_all(results, runs, args.out)
     print(overall_table(results["overall"]))
     for seq in results["sequences"]:
@@ -113,6 +113,7 @@ def main() -> int:
     run.add_argument("--anchors", type=_names, default=None, help="noisy, oidn-high, oidn-fast, oidn, all (default)")
     run.add_argument("--out", type=Path, required=True, help="report folder")
     run.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")
+    run.add_argument("--repeats", type=int, default=3, help="timed passes per sequence and method (median of all)")
     run.set_defaults(func=cmd_run)
 
     sca = sub.add_parser("scaling", help="ms per megapixel and peak memory from 128x128 to 1920x1080")

@@ -153,6 +153,29 @@ def pareto_front(points: dict[str, tuple[float, float]]) -> list[str]:
     return front
 
 
+def _label_points(ax: Any, points: dict[str, tuple[float, float]], fontsize: float = 8.5) -> None:
+    """Label every point, trying four positions around it and taking the first whose text box (estimated
+    from the name's length) overlaps no label placed before."""
+    ax.autoscale_view()
+    placed: list[tuple[float, float, float, float]] = []  # display-space boxes (x0, y0, x1, y1)
+    char_w, height = 0.6 * fontsize, fontsize  # points; a rough width of one character
+    scale = ax.figure.dpi / 72.0
+    for name, (x, y) in sorted(points.items(), key=lambda kv: kv[1]):
+        px, py = ax.transData.transform((x, y))
+        width = char_w * len(name)
+        box = None
+        for dx, dy, ha in ((6, 4, "left"), (6, -13, "left"), (-6, 4, "right"), (-6, -13, "right")):
+            x0 = px + scale * (dx if ha == "left" else dx - width)
+            candidate = (x0, py + scale * dy, x0 + scale * width, py + scale * (dy + height))
+            if not any(c[0] < b[2] and b[0] < c[2] and c[1] < b[3] and b[1] < c[3]
+                       for b in placed for c in (candidate,)):
+                box = (dx, dy, ha, candidate)
+                break
+        dx, dy, ha, candidate = box or (6, 4, "left", (px, py, px, py))
+        placed.append(candidate)
+        ax.annotate(name, (x, y), textcoords="offset points", xytext=(dx, dy), ha=ha, fontsize=fontsize)
+
+
 def pareto_plot(overall: dict[str, dict[str, Any]], path: Path, *, subtitle: str = "") -> None:
     """ms per megapixel against relL2, log-log, one labelled point per method, Pareto front drawn."""
     points = {
@@ -173,9 +196,9 @@ def pareto_plot(overall: dict[str, dict[str, Any]], path: Path, *, subtitle: str
         anchor = overall[name]["kind"] == "anchor"
         ax.scatter([x], [y], s=46, zorder=3, marker="s" if anchor else "o",
                    color="tab:orange" if anchor else "tab:blue", edgecolor="black" if name in front else "none")
-        ax.annotate(name, (x, y), textcoords="offset points", xytext=(6, 4), fontsize=8.5)
     ax.set_xscale("log")
     ax.set_yscale("log")
+    _label_points(ax, points)
     ax.set_xlabel("ms per megapixel (median per frame, lower is faster)")
     ax.set_ylabel("relL2 (mean over sequences, lower is better)")
     ax.set_title("Speed against error" + (f"\n{subtitle}" if subtitle else ""), fontsize=9)

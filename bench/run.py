@@ -3,10 +3,10 @@
 For each sequence (a folder of EXR frames with a `reference` layer) and each method (bench.methods):
 a warm-up of WARMUP_FRAMES steps on a throw-away state (numba compilation, ONNX session and OIDN filter
 set-up happen there; two frames, so a temporal pipeline's with-history path is compiled too), then
-every frame in order through a fresh state. The time of a frame is the wall time
-of `pipeline.step` alone (reading the EXR and scoring are outside it); a method's speed on a sequence
-is the median over its frames. Frames are read from disk again for each method, so memory stays at a
-few frames whatever the sequence length.
+every frame in order through a fresh state, scored, then TIMING_REPEATS - 1 more timed passes. The time
+of a frame is the wall time of `pipeline.step` alone (reading the EXR and scoring are outside it); a
+method's speed on a sequence is the median over the frames of all passes. Frames are read from disk
+again for each pass, so memory stays at a few frames whatever the sequence length.
 """
 
 from __future__ import annotations
@@ -27,7 +27,9 @@ from bench.methods import Method
 from bench.scoring import SequenceScore, disoccluded_mask, score_frame, unavailable
 from service.exr import list_sequence, read_frame
 from service.metrics import TRIM_FRACTION
+from service.pipelines.base import Pipeline
 
+TIMING_REPEATS = 3  # timed passes over each sequence per method; ms per frame is the median of all of them
 WARMUP_FRAMES = 2  # steps on a discarded state before the timed pass: the first frame and one with history
 CROP_SIZE = 96  # side of the square crop shown side by side in report.html, pixels
 REFERENCE_METHOD = "oidn-high"  # the anchor the overall table compares against
@@ -116,11 +118,26 @@ def _masks(seq: Sequence, progress: bool) -> list[np.ndarray | None]:
     return masks
 
 
+def _timed_pass(pipeline: Pipeline, seq: Sequence) -> list[float]:
+    """Milliseconds of `pipeline.step` for every frame of `seq` through a fresh state (no scoring)."""
+    state = pipeline.start(seq.height, seq.width)
+    ms = []
+    for path in seq.frames:
+        frame = read_frame(path)
+        start = time.perf_counter()
+        _, state = pipeline.step(frame, state)
+        ms.append(1e3 * (time.perf_counter() - start))
+    return ms
+
+
 def run_method(
     method: Method, seq: Sequence, masks: list[np.ndarray | None], crop: tuple[int, int, int, int],
-    crop_frame: int, *, flip: bool = True, progress: bool = True,
+    crop_frame: int, *, flip: bool = True, progress: bool = True, repeats: int = TIMING_REPEATS,
 ) -> tuple[dict[str, Any], np.ndarray | None]:
     """Run `method` over `seq`; returns (result record, the output crop of frame `crop_frame`).
+
+    The first pass is timed and scored; `repeats - 1` more passes through fresh states are only timed,
+    so the median has repeats x frames samples on a busy machine.
 
     The record has status "ok" with summary, per-frame scores and timings; "skipped" with a note when
     the sequence lacks a required layer; "failed" with the error when the method raised.
@@ -149,6 +166,8 @@ def run_method(
             prev = (image, reference)
             if index == crop_frame:
                 out_crop = image[y0 : y0 + ch, x0 : x0 + cw].copy()
+        for _ in range(repeats - 1):
+            score.ms.extend(_timed_pass(pipeline, seq))
     except Exception as err:  # a failing method is a result, not the end of the benchmark
         return {
             "status": "failed",
@@ -164,7 +183,7 @@ def run_method(
 
 
 def run_sequence(seq: Sequence, methods: list[Method], *, flip: bool = True, progress: bool = True,
-                 outer: tqdm | None = None) -> SequenceRun:
+                 repeats: int = TIMING_REPEATS, outer: tqdm | None = None) -> SequenceRun:
     """All methods on one sequence; crops are taken from its last frame."""
     crop_frame = len(seq.frames) - 1
     last = read_frame(seq.frames[crop_frame])
@@ -177,7 +196,8 @@ def run_sequence(seq: Sequence, methods: list[Method], *, flip: bool = True, pro
     for method in methods:
         if outer is not None:
             outer.set_postfix_str(f"{seq.name} / {method.name}")
-        record, out_crop = run_method(method, seq, masks, crop, crop_frame, flip=flip, progress=progress)
+        record, out_crop = run_method(method, seq, masks, crop, crop_frame, flip=flip, progress=progress,
+                                     repeats=repeats)
         run.results[method.name] = record
         if out_crop is not None:
             run.crops[method.name] = out_crop
@@ -212,7 +232,7 @@ def overall(runs: list[SequenceRun], methods: list[Method]) -> dict[str, dict[st
 
 def benchmark(
     sequence_dirs: list[Path], methods: list[Method], *, flip: bool = True, progress: bool = True,
-    command: list[str] | None = None,
+    repeats: int = TIMING_REPEATS, command: list[str] | None = None,
 ) -> tuple[dict[str, Any], list[SequenceRun]]:
     """Run every method on every sequence. Returns (results.json content, the runs with their crops)."""
     sequences = [open_sequence(p, n) for p, n in zip(sequence_dirs, unique_names(sequence_dirs), strict=True)]
@@ -221,7 +241,7 @@ def benchmark(
     runs = []
     with tqdm(total=len(sequences) * len(methods), desc="benchmark", unit="run", disable=not progress) as outer:
         for seq in sequences:
-            runs.append(run_sequence(seq, methods, flip=flip, progress=progress, outer=outer))
+            runs.append(run_sequence(seq, methods, flip=flip, progress=progress, repeats=repeats, outer=outer))
     env["machine"]["load_average_1m_end"] = os.getloadavg()[0]  # other work on the machine skews timings
     results = {
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -230,8 +250,9 @@ def benchmark(
         "environment": env,
         "settings": {
             "warmup": f"the first {WARMUP_FRAMES} frames through a discarded state before the timed pass",
-            "ms_per_frame": "median over all frames of the wall time of pipeline.step (EXR reading and scoring "
-                            "excluded); ms_per_megapixel = ms_per_frame / (H * W / 1e6)",
+            "ms_per_frame": f"median over all frames of {repeats} passes of the wall time of pipeline.step (EXR "
+                            "reading and scoring excluded); ms_per_megapixel = ms_per_frame / (H * W / 1e6)",
+            "timing_repeats": repeats,
             "rel_l2_trim": TRIM_FRACTION,
             "flip": flip,
             "overall": "errors: mean over the sequences a method ran on; ms_per_megapixel: median over them; "

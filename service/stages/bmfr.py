@@ -24,6 +24,7 @@ from service.stages.local_regression import (
     RIDGE_RELATIVE,
     BlockParams,
     block_regression,
+    box_regression,
     clamp_fireflies,
     from_planes,
     plain_terms,
@@ -65,11 +66,12 @@ def gbuffer_features(albedo: np.ndarray, normal: np.ndarray, depth: np.ndarray |
     normal XYZ, log depth (when given), pixel x and y; each plane standardised over the frame.
     """
     height, width = albedo.shape[:2]
-    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    x = np.broadcast_to(np.arange(width, dtype=np.float32), (1, height, width))
+    y = np.broadcast_to(np.arange(height, dtype=np.float32)[:, None], (1, height, width))
     parts = [to_planes(albedo), to_planes(normal)]
     if depth is not None:
         parts.append(np.log(np.maximum(to_planes(depth), DEPTH_FLOOR)))
-    parts += [x[None], y[None]]
+    parts += [x, y]
     return standardise(np.concatenate(parts, axis=0))
 
 
@@ -92,6 +94,9 @@ def bmfr(
     planes = to_planes(signal)
     if params.firefly_k is not None:
         planes = clamp_fireflies(planes, params.firefly_k)
-    terms = plain_terms(gbuffer_features(albedo, normal, depth))
-    out = from_planes(block_regression(terms, planes, params.block(), reference=reference))
+    features, block = gbuffer_features(albedo, normal, depth), params.block()
+    if block.sigma_position is None:  # flat weights: exact box sums, same result
+        out = from_planes(box_regression(features, planes, block, reference=reference))
+    else:
+        out = from_planes(block_regression(plain_terms(features), planes, block, reference=reference))
     return remodulate(out, albedo) if params.demodulate else out

@@ -84,7 +84,7 @@ def gbuffer_guides(
         parts.append(ao)
     if not parts:
         raise ValueError("gbuffer_guides needs at least one guide layer")
-    return np.concatenate(parts, axis=-1).astype(np.float32)
+    return np.concatenate(parts, axis=-1).astype(np.float32, copy=False)
 
 
 def local_linear_regression(
@@ -349,7 +349,8 @@ def apply_coefficients(x: np.ndarray, slopes: np.ndarray, offsets: np.ndarray, s
     coefs = np.ascontiguousarray(np.concatenate([offsets[:, :, None, :], slopes], axis=2), dtype=np.float32)
     ty = _bilinear_taps(height, hs, scale)
     x0, x1, fx = _bilinear_taps(width, ws, scale)
-    out = np.empty((c, height, width), np.float32)
+    # (C, H, W) view of (H, W, C) memory: `from_planes` of the result is then free.
+    out = np.empty((height, width, c), np.float32).transpose(2, 0, 1)
     # Unsigned column indices: numba skips the negative-index fix-up, so the row loops vectorise (gathers).
     _apply_kernel(x, coefs, *ty, x0.astype(np.uint32), x1.astype(np.uint32), fx, out)
     return out

@@ -382,19 +382,20 @@ def block_moments(
         np.asarray(terms.scaled, np.bool_),
         spatial_weights(params), params.radius, params.sparsity, _constants(), fa, fb, acc,
     )  # fmt: skip
-    gram = np.zeros((hc, wc, g, k1, k1), np.float32)
-    rhs = np.zeros((hc, wc, g, k1, m), np.float32)
+    gram_src, gram_dst, rhs_src, rhs_dst = [], [], [], []
     for e, (kind, gi, p, q) in enumerate(dest):
-        plane = acc[:, e, :]
-        if kind == 0:  # gram entry of every group (shared block)
-            gram[:, :, :, p, q] = plane[:, :, None]
-            gram[:, :, :, q, p] = plane[:, :, None]
-        elif kind == 1:
-            gram[:, :, gi, p, q] = plane
-            gram[:, :, gi, q, p] = plane
-        else:
-            rhs[:, :, gi, p, q] = plane
-    return gram, rhs
+        if kind == 2:
+            rhs_src.append(e), rhs_dst.append((gi * k1 + p) * m + q)
+            continue
+        for gg in range(g) if kind == 0 else (gi,):  # kind 0: the shared block, in every group
+            for i, j in {(p, q), (q, p)}:
+                gram_src.append(e), gram_dst.append((gg * k1 + i) * k1 + j)
+    entries = acc.transpose(0, 2, 1)  # (Hc, Wc, entries): one gather per output, no strided loop
+    gram = np.empty((hc, wc, g * k1 * k1), np.float32)
+    gram[:, :, gram_dst] = entries[:, :, gram_src]
+    rhs = np.empty((hc, wc, g * k1 * m), np.float32)
+    rhs[:, :, rhs_dst] = entries[:, :, rhs_src]
+    return gram.reshape(hc, wc, g, k1, k1), rhs.reshape(hc, wc, g, k1, m)
 
 
 def block_moments_reference(terms: PairTerms, target: np.ndarray, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
@@ -487,13 +488,17 @@ class _Layout:
     def counts(self) -> np.ndarray:
         return np.array([self.d, self.ks, self.g, self.kg, self.c], np.int64)
 
-    def pack(self, terms: PairTerms, target: np.ndarray | None) -> np.ndarray:
+    def parts(self, terms: PairTerms, target: np.ndarray | None) -> list[np.ndarray]:
+        """The packed planes in order, as (k, H, W) float32 blocks (see the layout comment above)."""
         height, width = terms.sigma.shape
         parts = [np.ones((1, height, width), np.float32), terms.weight_variance[None], terms.sigma[None],
                  terms.weight_guide, terms.shared, terms.grouped.reshape(-1, height, width)]  # fmt: skip
         if target is not None:
             parts.append(target)
-        return np.concatenate(parts, axis=0).astype(np.float32, copy=False)
+        return [np.ascontiguousarray(part, dtype=np.float32) for part in parts if part.shape[0]]
+
+    def pack(self, terms: PairTerms, target: np.ndarray | None) -> np.ndarray:
+        return np.concatenate(self.parts(terms, target), axis=0)
 
     def row(self, g: int, f: int) -> int:
         """Feature row of group g's feature f (0: constant, 1..Ks: shared, then grouped)."""
@@ -538,12 +543,39 @@ def _pad_lanes(params: BlockParams) -> int:
 
 def pack_planes(terms: PairTerms, target: np.ndarray | None, params: BlockParams) -> np.ndarray:
     """The kernels' input: every plane of `terms` (and `target`) packed and split into phase planes."""
-    return _phase_planes(_Layout(terms, 0 if target is None else target.shape[0]).pack(terms, target), params)
+    parts = _Layout(terms, 0 if target is None else target.shape[0]).parts(terms, target)
+    s, pad = params.sparsity, _pad_lanes(params)
+    height, width = terms.sigma.shape
+    out = np.empty((s, sum(part.shape[0] for part in parts), height, centre_count(width, s) + 2 * pad + 1), np.float32)
+    first = 0
+    for part in parts:  # straight into the phase planes: no concatenated copy of the frame
+        _phase_copy_kernel(part, first, pad, out)
+        first += part.shape[0]
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _phase_copy_kernel(src, first, pad, out):
+    """Planes src (k, H, W) into out[:, first : first + k] of `_phase_planes`' layout, zeros around."""
+    count, height, width = src.shape
+    s, lanes = out.shape[0], out.shape[3]
+    for y in numba.prange(height):
+        for p in range(s):
+            n = (width - p + s - 1) // s if p < width else 0
+            for k in range(count):
+                dst, row = out[p, first + k, y], src[k, y]
+                for j in range(pad):
+                    dst[j] = 0.0
+                for j in range(n):
+                    dst[pad + j] = row[p + s * j]
+                for j in range(pad + n, lanes):
+                    dst[j] = 0.0
 
 
 def _phase_planes(planes: np.ndarray, params: BlockParams) -> np.ndarray:
-    """(P, H, W) -> (S, P, H, Wc + 2 pad + 1) float32, S = sparsity: pixel x = S q + phase lands at
-    [phase, :, :, q + pad], pad = ceil(radius / S); zeros outside the frame (the mask plane is 0 there)."""
+    """Plain-numpy twin of `pack_planes`' phase split: (P, H, W) -> (S, P, H, Wc + 2 pad + 1) float32,
+    S = sparsity: pixel x = S q + phase lands at [phase, :, :, q + pad], pad = ceil(radius / S); zeros
+    outside the frame (the mask plane is 0 there)."""
     s, pad = params.sparsity, _pad_lanes(params)
     count, height, width = planes.shape
     wc = centre_count(width, s)
@@ -770,7 +802,17 @@ def standardise(planes: np.ndarray) -> np.ndarray:
 
     planes: (K, H, W) float32. A regression with a constant term is unchanged by this affine change of
     features; it puts every feature on unit scale, which the absolute ridge floor and float32 moments need.
+    numba kernel (float64 sums, one task per plane); `standardise_reference` is the plain-numpy twin.
     """
+    planes = np.ascontiguousarray(planes, dtype=np.float32)
+    out = np.empty_like(planes)
+    if planes.shape[0]:
+        _standardise_kernel(planes.reshape(planes.shape[0], -1), out.reshape(planes.shape[0], -1))
+    return out
+
+
+def standardise_reference(planes: np.ndarray) -> np.ndarray:
+    """Plain-numpy twin of `standardise`."""
     if planes.shape[0] == 0:
         return np.ascontiguousarray(planes, dtype=np.float32)
     mean = planes.reshape(planes.shape[0], -1).mean(axis=1, dtype=np.float64)
@@ -780,3 +822,162 @@ def standardise(planes: np.ndarray) -> np.ndarray:
     std = np.where(std > 1e-12 * (np.abs(mean) + 1.0), std, np.inf)
     centred /= std[:, None, None].astype(np.float32)
     return np.ascontiguousarray(centred, dtype=np.float32)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _standardise_kernel(flat, out):
+    """flat, out: (K, N) float32. Mean and variance of each row in float64, then (x - mean) / std."""
+    count, n = flat.shape
+    for k in numba.prange(count):
+        src, dst = flat[k], out[k]
+        total = 0.0
+        for j in range(n):
+            total += np.float64(src[j])
+        mean = total / max(n, 1)
+        mean32 = np.float32(mean)
+        square = 0.0
+        for j in range(n):
+            c = np.float64(src[j] - mean32)
+            square += c * c
+        std = np.sqrt(square / max(n, 1))
+        inv = np.float32(1.0 / std) if std > 1e-12 * (abs(mean) + 1.0) else np.float32(0.0)
+        for j in range(n):
+            dst[j] = (src[j] - mean32) * inv
+
+
+# ------------------------------------------------------------------- flat weights: exact box sums
+
+
+def box_regression(
+    features: np.ndarray, target: np.ndarray, params: BlockParams, *, reference: bool = False
+) -> np.ndarray:
+    """`block_regression(plain_terms(features), target, params)` for flat weights, from box sums.
+
+    With flat weights (no weight guide, no scaled features, `params.sigma_position` None) every moment of
+    Choi eq. 4 is a polynomial in the centre's features and the window's raw sums of [1, x, y] products:
+    gram_pq = M_pq - z_p M_0q - z_q M_0p + z_p z_q M_00, rhs_pm = R_pm - z_p R_0m (z: the centre's
+    features, z_0 = 0). Those sums are taken once per window row and column (float64, so the expansion
+    loses nothing to cancellation), the systems are solved in the same kernel, and eq. 5 becomes a box sum
+    of the centres' coefficients: out_i = mean over c of (alpha_c - beta_c . z_c) + x_i . mean of beta_c.
+    The constant pair weight (1 + WEIGHT_FLOOR) cancels in both.
+
+    features: (K, H, W) float32 shared features (standardised); target: (C, H, W) float32 planes.
+    Returns (C, H, W) float32. reference: the plain-numpy pair-by-pair path (`block_regression`).
+    """
+    if params.sigma_position is not None:
+        raise ValueError("box_regression needs flat weights (sigma_position None)")
+    if reference:
+        return block_regression(plain_terms(features), target, params, reference=True)
+    features = np.ascontiguousarray(features, dtype=np.float32)
+    target = np.ascontiguousarray(target, dtype=np.float32)
+    k, height, width = features.shape
+    s = params.sparsity
+    coefs = np.empty((centre_count(height, s), centre_count(width, s), target.shape[0], 1 + k))
+    _box_solve_kernel(features, target, params.radius, s, float(params.ridge_relative),
+                      float(params.ridge_absolute), coefs)  # fmt: skip
+    out = np.empty(target.shape, np.float32)
+    _box_reconstruct_kernel(features, coefs, params.radius, s, out)
+    return out
+
+
+BOX_TILE = 256  # columns per tile of `_box_solve_kernel`: 85 float64 sums x 256 = 170 KiB, in L2
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _box_solve_kernel(x, y, radius, sparsity, ridge_relative, ridge_absolute, coefs):
+    """coefs[a, b, m] = [alpha_m - beta_m . z, beta_m (K)] of centre (a s, b s), float64."""
+    k, height, width = x.shape
+    c = y.shape[0]
+    hc, wc = coefs.shape[0], coefs.shape[1]
+    k1, n1 = 1 + k, 1 + k + c  # planes [1, x, y]; sums of every product but y y
+    ne = k1 * n1 - k * k1 // 2
+    fa = np.empty(ne, np.int64)
+    fb = np.empty(ne, np.int64)
+    index = np.full((k1, n1), -1, np.int64)
+    e = 0
+    for p in range(k1):
+        for q in range(p, n1):
+            fa[e], fb[e], index[p, q] = p, q, e
+            e += 1
+    for a in numba.prange(hc):
+        cy = a * sparsity
+        acc = np.zeros((ne, width))
+        row = np.empty((n1, BOX_TILE))
+        row[0, :] = 1.0
+        for t0 in range(0, width, BOX_TILE):  # column tiles: the tile's sums stay in cache over the rows
+            n = min(BOX_TILE, width - t0)
+            for yy in range(max(0, cy - radius), min(height, cy + radius + 1)):  # the window's rows
+                for i in range(k):
+                    row[1 + i, :n] = x[i, yy, t0 : t0 + n]
+                for i in range(c):
+                    row[k1 + i, :n] = y[i, yy, t0 : t0 + n]
+                for e in range(ne):
+                    pa, pb, dst = row[fa[e]], row[fb[e]], acc[e, t0 : t0 + n]
+                    for xx in range(n):
+                        dst[xx] += pa[xx] * pb[xx]
+        sums = np.empty(ne)
+        z = np.zeros(k1)
+        gram = np.empty((k1, k1))
+        rhs = np.empty((k1, c))
+        for b in range(wc):
+            cx = b * sparsity
+            x0, x1 = max(0, cx - radius), min(width, cx + radius + 1)
+            for e in range(ne):  # then its columns
+                total = 0.0
+                for xx in range(x0, x1):
+                    total += acc[e, xx]
+                sums[e] = total
+            for i in range(k):
+                z[1 + i] = x[i, cy, cx]
+            for p in range(k1):
+                for q in range(p, k1):
+                    v = sums[index[p, q]] - z[p] * sums[index[0, q]] - z[q] * sums[index[0, p]] + z[p] * z[q] * sums[0]
+                    gram[p, q] = v
+                    gram[q, p] = v
+                for m in range(c):
+                    rhs[p, m] = sums[index[p, k1 + m]] - z[p] * sums[index[0, k1 + m]]
+            cholesky_ridge_solve(gram, rhs, k1, c, ridge_relative, ridge_absolute, True, 0.0)
+            for m in range(c):
+                gamma = rhs[0, m]
+                for p in range(1, k1):
+                    gamma -= rhs[p, m] * z[p]
+                    coefs[a, b, m, p] = rhs[p, m]
+                coefs[a, b, m, 0] = gamma
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _box_reconstruct_kernel(x, coefs, radius, sparsity, out):
+    """out[m, y, x] = mean over the centres whose window holds the pixel of gamma_m + beta_m . x."""
+    k, height, width = x.shape
+    hc, wc, c, k1 = coefs.shape
+    nq = c * k1
+    flat = coefs.reshape(hc, wc, nq)
+    b_lo = np.empty(width, np.uint32)  # unsigned: no negative-index fix-up, so the gathers vectorise
+    b_hi = np.empty(width, np.uint32)
+    inv_cols = np.empty(width)
+    for xx in range(width):  # centre columns b with |x - b s| <= r: b_lo <= b < b_hi
+        b_lo[xx] = max(0, -((radius - xx) // sparsity))
+        b_hi[xx] = min(wc - 1, (xx + radius) // sparsity) + 1
+        inv_cols[xx] = 1.0 / (b_hi[xx] - b_lo[xx])
+    for yy in numba.prange(height):
+        a_lo, a_hi = max(0, -((radius - yy) // sparsity)), min(hc - 1, (yy + radius) // sparsity) + 1
+        inv_rows = 1.0 / (a_hi - a_lo)
+        prefix = np.zeros((nq, wc + 1))  # running sums over centre columns of the column sums
+        for b in range(wc):
+            for q in range(nq):
+                v = 0.0
+                for a in range(a_lo, a_hi):
+                    v += flat[a, b, q]
+                prefix[q, b + 1] = prefix[q, b] + v
+        coef = np.empty((nq, width), np.float32)  # the pixels' summed coefficients, over the count
+        for q in range(nq):
+            src, dst = prefix[q], coef[q]
+            for xx in range(width):
+                dst[xx] = (src[b_hi[xx]] - src[b_lo[xx]]) * (inv_cols[xx] * inv_rows)
+        for m in range(c):  # contiguous along x: vectorises
+            dst, base = out[m, yy], m * k1
+            dst[:] = coef[base]
+            for p in range(1, k1):
+                cp, xp = coef[base + p], x[p - 1, yy]
+                for xx in range(width):
+                    dst[xx] += cp[xx] * xp[xx]

@@ -101,6 +101,15 @@ def test_standardise_puts_planes_on_unit_scale_and_zeroes_constant_ones():
     assert out[1].mean() == pytest.approx(0.0, abs=1e-6) and out[1].std() == pytest.approx(1.0, rel=1e-5)
 
 
+def test_standardise_matches_the_numpy_reference():
+    from service.stages.local_regression import standardise_reference
+
+    rng = np.random.default_rng(6)
+    planes = (rng.standard_normal((4, 13, 17)) * [[[1.0]], [[1e3]], [[0.0]], [[1e-3]]] + 5.0).astype(np.float32)
+    np.testing.assert_allclose(standardise(planes), standardise_reference(planes), rtol=1e-5, atol=1e-5)
+    assert standardise(np.zeros((0, 3, 4), np.float32)).shape == (0, 3, 4)
+
+
 @pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22), (7, 400)])  # 400: more centres than LANE_CHUNK
 def test_block_kernels_match_the_numpy_reference(size):
     rng = np.random.default_rng(2)
@@ -114,6 +123,32 @@ def test_block_kernels_match_the_numpy_reference(size):
     out, out_ref = block_reconstruct(terms, beta, params), block_reconstruct_reference(terms, beta, params)
     assert out.shape == (3, *size) and out.dtype == np.float32
     np.testing.assert_allclose(out, out_ref, rtol=1e-3, atol=1e-3 * np.abs(out_ref).max())
+
+
+@pytest.mark.parametrize("size", [(1, 1), (3, 5), (29, 22)])
+def test_pack_planes_matches_the_numpy_phase_split(size):
+    from service.stages.local_regression import _Layout, _phase_planes, pack_planes
+
+    terms, target = _random_terms(np.random.default_rng(5), *size)
+    params = BlockParams(radius=5, sparsity=3)
+    expected = _phase_planes(_Layout(terms, 3).pack(terms, target), params)
+    np.testing.assert_array_equal(pack_planes(terms, target, params), expected)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (3, 5), (29, 22), (7, 300)])
+def test_box_regression_matches_the_pair_by_pair_reference(size):
+    from service.stages.local_regression import box_regression
+
+    rng = np.random.default_rng(7)
+    y, x = np.mgrid[0 : size[0], 0 : size[1]].astype(np.float32)
+    features = standardise(np.concatenate([rng.standard_normal((3, *size), dtype=np.float32), x[None], y[None]]))
+    target = rng.standard_normal((3, *size), dtype=np.float32)
+    params = BlockParams(radius=5, sparsity=3)
+    out, ref = box_regression(features, target, params), box_regression(features, target, params, reference=True)
+    assert out.shape == (3, *size) and out.dtype == np.float32
+    np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-4 * np.abs(ref).max())
+    with pytest.raises(ValueError, match="flat weights"):
+        box_regression(features, target, BlockParams(radius=5, sparsity=3, sigma_position=2.0))
 
 
 def test_block_regression_reproduces_an_exact_linear_function_of_the_features():
