@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 # The rendered sample sequence bundled with the repository (models/data/samples, README "Rendering data");
 # the demo falls back to the synthetic sequence when it is absent.
 SAMPLE ?= models/data/samples/shadows
-DEMO_PIPELINE ?= bilateral
+DEMO_PIPELINE ?= auto
 
 .PHONY: setup demo test lint clean bench bench-data
 

@@ -25,7 +25,7 @@ def test_denoise_end_to_end_in_a_subprocess(tiny_sequence_dir, tmp_path):
 
 def test_bad_frame_exits_nonzero_with_one_line_reason(tiny_sequence_dir, tmp_path, capsys):
     write_frame(tiny_sequence_dir / "frame_0001.exr", {"albedo": np.ones((24, 40, 3), np.float32)})
-    code = main(["denoise", str(tiny_sequence_dir), str(tmp_path / "o")])
+    code = main(["denoise", "--pipeline", "bilateral", str(tiny_sequence_dir), str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()
     assert code == 2
     assert err == ("error: frame_0001.exr: missing layer 'color' required by pipeline 'bilateral' "
@@ -44,7 +44,7 @@ def test_missing_folder_and_unknown_pipeline_and_bad_option(tmp_path, tiny_seque
 def test_pipelines_lists_layers(capsys):
     assert main(["pipelines"]) == 0
     out = capsys.readouterr().out
-    assert "bilateral [default]" in out and "requires: color" in out
+    assert "crossregression [default]" in out and "requires: color" in out
 
 
 def test_inspect_reports_types_stats_and_nans(tmp_path, capsys):
@@ -57,3 +57,13 @@ def test_inspect_reports_types_stats_and_nans(tmp_path, capsys):
     row = next(line for line in out.splitlines() if line.startswith("color.R"))
     assert row.split()[1:] == ["half", "1", "1", "1", "1", "0"]
     assert next(line for line in out.splitlines() if line.startswith("depth.Z")).split()[2] == "2"
+
+
+def test_auto_picks_the_preferred_pipeline_the_frames_can_feed(tiny_sequence_dir, tmp_path, capsys):
+    assert main(["denoise", str(tiny_sequence_dir), str(tmp_path / "o")]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("pipeline: crossregression (auto") and "crossregression: 3 frames" in out
+    only_color = tmp_path / "c"
+    write_frame(only_color / "frame_0000.exr", {"color": np.ones((4, 4, 3), np.float32)})
+    assert main(["denoise", str(only_color), str(tmp_path / "o2")]) == 0
+    assert capsys.readouterr().out.startswith("pipeline: bilateral (auto")

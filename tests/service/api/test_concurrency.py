@@ -130,8 +130,8 @@ def test_a_slow_frame_stalls_no_other_session_and_a_full_pool_answers_503(make_s
     url = make_server(worker_threads=2, max_inflight=2, retry_after_s=2)
     spec = json.dumps({"pipeline": "test_gated", "width": WIDTH, "height": HEIGHT}).encode()
     slow = call(url, "POST", "/v1/sessions", spec, {"Content-Type": "application/json"}).json()
-    fast = call(url, "POST", "/v1/sessions", json.dumps({"width": WIDTH, "height": HEIGHT}).encode(),
-                {"Content-Type": "application/json"}).json()
+    fast_spec = json.dumps({"pipeline": "bilateral", "width": WIDTH, "height": HEIGHT}).encode()
+    fast = call(url, "POST", "/v1/sessions", fast_spec, {"Content-Type": "application/json"}).json()
     with ThreadPoolExecutor(2) as pool:
         try:
             blocked = pool.submit(exr_post, url, f"/v1/sessions/{slow['id']}/frames", sequence_exr[0])

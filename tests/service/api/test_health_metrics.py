@@ -20,8 +20,8 @@ def test_health_and_readiness(server):
 def test_metrics_count_frames_errors_latency_and_sessions(make_server, sequence_exr):
     url = make_server()
     for data in sequence_exr[:3]:
-        assert exr_post(url, "/v1/denoise", data).status == 200
-    assert exr_post(url, "/v1/denoise", b"junk" * 30).status == 400
+        assert exr_post(url, "/v1/denoise?pipeline=bilateral", data).status == 200
+    assert exr_post(url, "/v1/denoise?pipeline=bilateral", b"junk" * 30).status == 400
     assert exr_post(url, "/v1/denoise?pipeline=nope", sequence_exr[0]).status == 400
     call(url, "POST", "/v1/sessions", b'{"width": 48, "height": 32}', {"Content-Type": "application/json"})
     answer = call(url, "GET", "/metrics")

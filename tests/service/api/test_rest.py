@@ -8,6 +8,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
+from service import pipelines
 from service.exr import encode_frame, read_frame
 from tests.service.api.conftest import HEIGHT, WIDTH, call, exr_post
 
@@ -18,7 +19,7 @@ def test_pipelines_lists_layers_and_temporal_flag(server):
     answer = call(server, "GET", "/v1/pipelines")
     assert answer.status == 200
     body = answer.json()
-    assert body["default"] == "bilateral"
+    assert body["default"] == pipelines.DEFAULT
     bilateral = next(p for p in body["pipelines"] if p["name"] == "bilateral")
     assert bilateral["requires"] == ["color"] and "albedo" in bilateral["optional"]
     assert bilateral["temporal"] is False and bilateral["options"]["radius"] == 6
@@ -35,19 +36,20 @@ def test_denoise_equals_the_cli_frame_by_frame(server, sequence_exr, cli_outputs
 
 
 def test_png_preview_when_accepted(server, sequence_exr):
-    answer = exr_post(server, "/v1/denoise", sequence_exr[0], Accept="image/png")
+    answer = exr_post(server, "/v1/denoise?pipeline=bilateral", sequence_exr[0], Accept="image/png")
     assert answer.status == 200 and answer.headers["content-type"] == "image/png"
     assert answer.body.startswith(b"\x89PNG\r\n\x1a\n")
     width, height = int.from_bytes(answer.body[16:20], "big"), int.from_bytes(answer.body[20:24], "big")
     assert (width, height) == (WIDTH, HEIGHT)
     # EXR wins a tie and is the default for other Accept values
-    assert exr_post(server, "/v1/denoise", sequence_exr[0], Accept="*/*").headers["content-type"] == "image/x-exr"
+    answer = exr_post(server, "/v1/denoise?pipeline=bilateral", sequence_exr[0], Accept="*/*")
+    assert answer.headers["content-type"] == "image/x-exr"
 
 
 def test_nonfinite_input_is_repaired_and_counted(server):
     color = np.ones((8, 8, 3), np.float32)
     color[0, 0, :] = np.nan
-    answer = exr_post(server, "/v1/denoise", encode_frame({"color": color}))
+    answer = exr_post(server, "/v1/denoise?pipeline=bilateral", encode_frame({"color": color}))
     assert answer.status == 200 and answer.headers["x-nonfinite-repaired"] == "3"
     assert np.isfinite(read_frame(answer.body)["color"]).all()
 
@@ -103,7 +105,7 @@ def _body(spec, frame: bytes) -> bytes:
 @pytest.mark.parametrize(("case", "body", "headers", "status", "code", "message", "layer"), BAD_INPUTS,
                          ids=[c[0] for c in BAD_INPUTS])
 def test_bad_input_is_a_4xx_json_error(server, sequence_exr, case, body, headers, status, code, message, layer):
-    answer = call(server, "POST", "/v1/denoise", _body(body, sequence_exr[0]),
+    answer = call(server, "POST", "/v1/denoise?pipeline=bilateral", _body(body, sequence_exr[0]),
                   {"Content-Type": "image/x-exr"} if headers is None else headers)
     assert answer.status == status, answer.body
     assert answer.headers["content-type"] == "application/json"
@@ -115,7 +117,7 @@ def test_bad_input_is_a_4xx_json_error(server, sequence_exr, case, body, headers
         assert error["message"] == message
     assert error.get("layer") == layer
     # nothing else changed: the next good frame is answered
-    assert exr_post(server, "/v1/denoise", sequence_exr[1]).status == 200
+    assert exr_post(server, "/v1/denoise?pipeline=bilateral", sequence_exr[1]).status == 200
 
 
 def test_unknown_pipeline_and_bad_query(server, sequence_exr):
@@ -130,5 +132,5 @@ def test_unknown_pipeline_and_bad_query(server, sequence_exr):
 def test_unknown_route_and_method_are_json(server):
     answer = call(server, "GET", "/v2/nothing")
     assert (answer.status, answer.json()) == (404, {"code": "not_found", "message": "Not Found"})
-    answer = call(server, "GET", "/v1/denoise")
+    answer = call(server, "GET", "/v1/denoise?pipeline=bilateral")
     assert (answer.status, answer.json()["code"]) == (405, "method_not_allowed")
