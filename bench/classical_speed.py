@@ -2,9 +2,11 @@
 
     python -m bench.classical_speed                                # crossregression, bmfr, flr; 256x256, 1280x720
     python -m bench.classical_speed --pipelines flr bilateral --sizes 640x360 --repeats 7
+    python -m bench.classical_speed --pipelines statistical:radius=6 svgf crossreg
 
 Every method denoises the same synthetic frame (bench.synthetic, all layers) through `Pipeline.step`
-(layer check, emission split and guard included); OIDN gets pyoidn.denoise(color, albedo, normal,
+(layer check, emission split and guard included), each on one sequence state, so a temporal pipeline is
+timed with its history after the first step; OIDN gets pyoidn.denoise(color, albedo, normal,
 hdr=True, quality=...) on the same frame. One untimed call each first (numba compilation or cache load,
 OIDN device creation), then the methods take turns for `--repeats` rounds so that load from other
 processes falls on all of them alike; the median and the minimum of the wall times are reported.
@@ -22,16 +24,22 @@ import numpy as np
 
 from bench.synthetic import synthetic_frame
 from service import pipelines
+from service.cli import parse_options
 from service.frame import Frame
 
 DEFAULT_PIPELINES = ("crossregression", "bmfr", "flr")
 
 
-def _pipeline_runner(name: str, frame: Frame) -> Callable[[], None]:
-    pipeline = pipelines.get(name)
+def _pipeline_runner(spec: str, frame: Frame) -> Callable[[], None]:
+    """A runner stepping one sequence state, so temporal pipelines are timed in steady state (with
+    history) after the warm-up step. spec: NAME or NAME:KEY=VALUE,KEY=VALUE (pipeline options)."""
+    name, _, option_text = spec.partition(":")
+    pipeline = pipelines.get(name, **parse_options(option_text.split(",") if option_text else []))
+    state = pipeline.start(frame.height, frame.width)
 
     def run() -> None:
-        pipeline.step(frame, pipeline.start(frame.height, frame.width))
+        nonlocal state
+        _, state = pipeline.step(frame, state)
 
     return run
 
@@ -71,12 +79,13 @@ def time_methods(
 
 def main() -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.classical_speed", description=__doc__.split("\n")[0])
-    parser.add_argument("--pipelines", nargs="+", default=list(DEFAULT_PIPELINES), help="registered pipeline names")
+    parser.add_argument("--pipelines", nargs="+", default=list(DEFAULT_PIPELINES),
+                        help="registered pipeline names, or NAME:KEY=VALUE,... with options")
     parser.add_argument("--sizes", nargs="+", default=["256x256", "1280x720"], help="WxH frame sizes")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--oidn", default="high", choices=["high", "balanced", "fast", "none"])
     args = parser.parse_args()
-    unknown = sorted(set(args.pipelines) - set(pipelines.names()))
+    unknown = sorted({spec.partition(":")[0] for spec in args.pipelines} - set(pipelines.names()))
     if unknown:
         parser.error(f"unknown pipeline(s) {', '.join(unknown)}; available: {', '.join(pipelines.names())}")
     print(f"cpus: {os.cpu_count()}, load average: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")

@@ -21,7 +21,7 @@ from service.frame import FrameError
 from service.sequence import denoise_folder
 
 
-def _parse_options(items: Sequence[str]) -> dict[str, Any]:
+def parse_options(items: Sequence[str]) -> dict[str, Any]:
     """`KEY=VALUE` strings -> dict; values are parsed as JSON when they are JSON (numbers, true, ...)."""
     options: dict[str, Any] = {}
     for item in items:
@@ -36,7 +36,7 @@ def _parse_options(items: Sequence[str]) -> dict[str, Any]:
 
 
 def cmd_denoise(args: argparse.Namespace) -> int:
-    options = _parse_options(args.option)
+    options = parse_options(args.option)
     if args.online:
         options["online"] = True  # a pipeline without this option refuses it: "has no option 'online'"
     name = args.pipeline

@@ -83,11 +83,11 @@ def add_stream_args(p: argparse.ArgumentParser) -> None:
 
 
 def run_stream(args: argparse.Namespace) -> int:
-    from service.cli import _parse_options
+    from service.cli import parse_options
     from service.client import Client, ServiceError
     from service.exr import list_sequence, read_frame
 
-    options = _parse_options(args.option)
+    options = parse_options(args.option)
     first = read_frame(list_sequence(args.in_dir)[0])
     try:
         with Client(args.url, args.api_key) as client, client.session(

@@ -26,6 +26,7 @@ from service.stages.local_regression import (
     block_regression,
     box_regression,
     clamp_fireflies,
+    clamp_outlier_clusters,
     from_planes,
     plain_terms,
     standardise,
@@ -41,6 +42,7 @@ class BmfrParams:
     sparsity: int = 6  # centre pixels on every 6th row and column (cheaper than 4, as accurate here)
     demodulate: bool = True  # regress radiance / albedo and multiply back (Koskela 2019 sec. 3)
     firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
+    robust_clamp: bool = True  # sigma-clipped clamp of outlier clusters (local_regression.clamp_outlier_clusters)
     ridge_relative: float = RIDGE_RELATIVE  # Tikhonov, relative to each feature's scale (local_regression)
     ridge_absolute: float = RIDGE_ABSOLUTE  # Tikhonov floor x sum of weights (local_regression)
     sigma_position: float | None = None  # pixels; Gaussian falloff of the weights with distance, None: flat
@@ -94,6 +96,8 @@ def bmfr(
     planes = to_planes(signal)
     if params.firefly_k is not None:
         planes = clamp_fireflies(planes, params.firefly_k)
+    if params.robust_clamp:  # clusters of outliers, which the 3x3 clamp cannot see
+        planes = clamp_outlier_clusters(planes)
     features, block = gbuffer_features(albedo, normal, depth), params.block()
     if block.sigma_position is None:  # flat weights: exact box sums, same result
         out = from_planes(box_regression(features, planes, block, reference=reference))

@@ -30,6 +30,7 @@ from service.stages.local_regression import (
     RIDGE_RELATIVE,
     cholesky_ridge_solve,
     clamp_fireflies,
+    clamp_outlier_clusters,
     from_planes,
     solve_ridge_reference,
     standardise,
@@ -48,6 +49,7 @@ class FlrParams:
     sigma: float = 0.5  # std of the Gaussian blur on the low-resolution grid, in cells (x scale = pixels)
     truncate: float = 3.0  # Gaussian support radius in sigmas
     firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
+    robust_clamp: bool = True  # sigma-clipped clamp of outlier clusters (local_regression.clamp_outlier_clusters)
     ridge_relative: float = RIDGE_RELATIVE  # Tikhonov on the slopes, relative to each guide's local variance
     ridge_absolute: float = RIDGE_ABSOLUTE_FLR  # Tikhonov floor on the slopes (standardised guide units)
 
@@ -100,6 +102,8 @@ def local_linear_regression(
     y = to_planes(radiance)
     if params.firefly_k is not None:
         y = clamp_fireflies(y, params.firefly_k)
+    if params.robust_clamp:  # clusters of outliers, which the 3x3 clamp cannot see
+        y = clamp_outlier_clusters(y)
     x = standardise(to_planes(guides))
     sums = (cell_sums_reference if reference else cell_sums)(x, y, params.scale)
     sums = (gaussian_blur_reference if reference else gaussian_blur)(sums, params.sigma, params.truncate)

@@ -11,6 +11,8 @@ from service.stages.local_regression import (
     block_regression,
     clamp_fireflies,
     clamp_fireflies_reference,
+    clamp_outlier_clusters,
+    clamp_outlier_clusters_reference,
     neighbour_mean,
     plain_terms,
     solve_ridge,
@@ -168,3 +170,34 @@ def test_block_regression_of_a_constant_is_the_constant():
     terms, _ = _random_terms(rng, 23, 19)
     target = np.full((3, 23, 19), 0.37, np.float32)
     np.testing.assert_allclose(block_regression(terms, target, BlockParams()), target, rtol=1e-5)
+
+
+def _cluster_frame(rng, height=40, width=48):
+    """Dim smooth background (0.5 .. 1.0, 4-spp-like noise) with a 3x3 cluster of fireflies at 1e3."""
+    ramp = np.linspace(0.5, 1.0, width, dtype=np.float32)
+    clean = np.broadcast_to(ramp, (3, height, width)).astype(np.float32)
+    noisy = clean * rng.gamma(4.0, 0.25, (3, height, width)).astype(np.float32)
+    noisy[:, 18:21, 20:23] = 1e3
+    return clean, noisy
+
+
+def test_clamp_outlier_clusters_matches_reference_and_keeps_smooth_images():
+    rng = np.random.default_rng(3)
+    _, noisy = _cluster_frame(rng)
+    noisy[1, 5, 7] = -400.0  # a negative outlier (emission-subtraction residual)
+    np.testing.assert_allclose(clamp_outlier_clusters(noisy), clamp_outlier_clusters_reference(noisy), rtol=1e-5)
+    ramp = np.broadcast_to(np.linspace(0.1, 5.0, 30, dtype=np.float32), (2, 20, 30)).copy()
+    np.testing.assert_array_equal(clamp_outlier_clusters(ramp), ramp)
+    np.testing.assert_array_equal(clamp_outlier_clusters(np.full((1, 1, 1), 7.0, np.float32)), np.full((1, 1, 1), 7.0))
+
+
+def test_clamp_outlier_clusters_rejects_a_cluster_the_3x3_clamp_keeps():
+    rng = np.random.default_rng(4)
+    clean, noisy = _cluster_frame(rng)
+    assert clamp_fireflies(noisy)[:, 19, 21].min() == 1e3  # shielded by its own neighbours
+    out = clamp_outlier_clusters(noisy)
+    assert out[:, 18:21, 20:23].max() < 20.0
+    outside = np.ones(noisy.shape[1:], bool)
+    outside[18:21, 20:23] = False
+    changed = (out != noisy)[:, outside].mean()
+    assert changed < 0.01  # the background noise is left almost untouched
