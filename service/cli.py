@@ -53,7 +53,7 @@ def cmd_denoise(args: argparse.Namespace) -> int:
         out = "" if r.rel_l2_out is None else f"{r.rel_l2_out:.4f}"
         print(f"{r.name:<24} {r.ms:>9.1f} {noisy:>10} {out:>10} {r.nonfinite:>8}", flush=True)
     ms = [r.ms for r in results]
-    line = f"{pipeline.name}: {len(results)} frames, mean {np.mean(ms):.1f} ms/frame"
+    line = f"{pipeline.name}: {len(results)} frames, median {np.median(ms):.1f} ms/frame (mean {np.mean(ms):.1f})"
     scored = [r for r in results if r.rel_l2_out is not None]
     if scored:
         noisy = np.mean([r.rel_l2_noisy for r in scored])
