@@ -19,7 +19,7 @@ DEFAULT = "crossregression"
 AUTO = "auto"  # CLI name: the first pipeline of _PREFERENCE that the sequence's frames can feed
 # Preference of `auto`, best first by the benchmark's relL2 against OIDN-high at moderate cost; `bilateral`
 # needs only `color` and so is the fallback for any frame.
-_PREFERENCE = ("crossregression", "svgf", "crossreg", "statistical", "bmfr", "flr", "bilateral")
+_PREFERENCE = ("crossregression", "flr", "svgf", "crossreg", "bmfr", "statistical", "bilateral")
 
 
 class UnknownPipelineError(KeyError):
