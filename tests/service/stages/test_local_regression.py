@@ -4,6 +4,7 @@ import pytest
 from service.stages.local_regression import (
     BlockParams,
     PairTerms,
+    _log_fast,
     block_moments,
     block_moments_reference,
     block_reconstruct,
@@ -189,6 +190,23 @@ def test_clamp_outlier_clusters_matches_reference_and_keeps_smooth_images():
     ramp = np.broadcast_to(np.linspace(0.1, 5.0, 30, dtype=np.float32), (2, 20, 30)).copy()
     np.testing.assert_array_equal(clamp_outlier_clusters(ramp), ramp)
     np.testing.assert_array_equal(clamp_outlier_clusters(np.full((1, 1, 1), 7.0, np.float32)), np.full((1, 1, 1), 7.0))
+
+
+@pytest.mark.parametrize("shape, radius", [((1, 1, 1), 3), ((2, 2, 5), 3), ((1, 5, 2), 3), ((3, 17, 33), 3),
+                                           ((2, 35, 20), 1), ((1, 30, 30), 0), ((2, 50, 41), 5)])  # fmt: skip
+def test_clamp_outlier_clusters_matches_reference_at_odd_sizes(shape, radius):
+    rng = np.random.default_rng(5)
+    x = rng.gamma(1.0, 1.0, shape) * np.where(rng.random(shape) < 0.05, 300.0, 1.0)  # sparse outliers
+    x = (x * np.where(rng.random(shape) < 0.1, -1.0, 1.0)).astype(np.float32)  # negative ones too
+    np.testing.assert_allclose(
+        clamp_outlier_clusters(x, radius), clamp_outlier_clusters_reference(x, radius), rtol=1e-5, atol=1e-6
+    )
+
+
+def test_log_fast_matches_log():
+    v = np.concatenate([1.0 + np.geomspace(1e-7, 1e9, 5000), [1.0, 1.41421, 1.41422, 2.0]]).astype(np.float32)
+    got = np.array([_log_fast(x) for x in v], np.float64)
+    np.testing.assert_allclose(got, np.log(v.astype(np.float64)), rtol=3e-7, atol=1e-7)
 
 
 def test_clamp_outlier_clusters_rejects_a_cluster_the_3x3_clamp_keeps():
