@@ -46,8 +46,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         for name, record in seq["results"].items():
             if record["status"] != "ok":
                 print(f"{seq['name']} / {name}: {record['status']}: {record['note']}")
-    for name, reason in results["unavailable"].items():
-        print(f"not measured: {name} ({reason})")
     print(f"wrote {', '.join(str(p) for p in paths.values())} in {results['wall_seconds']:.0f} s")
     return 0
 

@@ -133,10 +133,6 @@ def markdown(results: dict[str, Any]) -> str:
             sequence_table(seq),
             "",
         ]
-    if results["unavailable"]:
-        parts += ["## Not measured", ""]
-        parts += [f"- `{name}`: {reason}" for name, reason in results["unavailable"].items()]
-        parts.append("")
     return "\n".join(parts)
 
 

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from bench import environment
 from bench.methods import Method
-from bench.scoring import SequenceScore, disoccluded_mask, score_frame, unavailable
+from bench.scoring import SequenceScore, disoccluded_mask, score_frame
 from service.exr import list_sequence, read_frame
 from service.metrics import TRIM_FRACTION
 from service.pipelines.base import Pipeline
@@ -108,7 +108,7 @@ class SequenceRun:
 
 
 def _masks(seq: Sequence, progress: bool) -> list[np.ndarray | None]:
-    """Disoccluded-pixel mask of every frame (None for the first and where unavailable)."""
+    """Disoccluded-pixel mask of every frame (None for the first and where the frame has no motion)."""
     masks: list[np.ndarray | None] = [None]
     prev = read_frame(seq.frames[0])
     for path in tqdm(seq.frames[1:], desc=f"{seq.name}: disocclusion", leave=False, disable=not progress):
@@ -274,6 +274,5 @@ def benchmark(
             for r in runs
         ],
         "overall": overall(runs, methods),
-        "unavailable": unavailable(),
     }
     return results, runs

@@ -10,47 +10,27 @@ benchmark); this module only decides which frames and pixels each one sees and h
 - disoccluded relL2: untrimmed relL2 over the pixels the reprojection stage marks invalid (surfaces
   not visible in the previous frame, `~valid` of service.stages.reprojection.reproject), pooled over
   frames 1..N-1. That is where a temporal pipeline has no history to lean on.
-
-A metric or stage that is not importable yet scores None, and `unavailable()` names it, so the
-report says what is missing instead of failing.
 """
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from service.frame import Frame
-from service.metrics import TRIM_FRACTION, rel_l2, rel_l2_map
-
-_MISSING: dict[str, str] = {}  # "module.name" -> reason, for the report
-
-
-def _lookup(module: str, name: str) -> Any | None:
-    """`module.name`, or None (remembered in _MISSING) while another engineer has not added it yet."""
-    try:
-        return getattr(importlib.import_module(module), name)
-    except (ImportError, AttributeError) as err:
-        _MISSING[f"{module}.{name}"] = f"{type(err).__name__}: {err}"
-        return None
-
-
-def unavailable() -> dict[str, str]:
-    """Metrics and stages that could not be imported during this process, with the reason."""
-    return dict(_MISSING)
+from service.metrics import TRIM_FRACTION, dssim, flip_error, rel_l2_map, temporal_rel_l2, trimmed_mean
+from service.stages.reprojection import reproject
 
 
 def disoccluded_mask(frame: Frame, prev: Frame) -> np.ndarray | None:
     """(H, W) bool: pixels of `frame` whose surface was not visible in `prev` (motion invalid).
 
     Uses the reprojection stage with every G-buffer both frames have. None when the frame has no
-    `motion` layer or the stage is not available.
+    `motion` layer.
     """
-    reproject = _lookup("service.stages.reprojection", "reproject")
-    if reproject is None or "motion" not in frame:
+    if "motion" not in frame:
         return None
     _, valid = reproject(
         prev["color"],
@@ -65,10 +45,10 @@ def disoccluded_mask(frame: Frame, prev: Frame) -> np.ndarray | None:
 
 @dataclass
 class FrameScore:
-    """Scores of one output frame; None where a metric is unavailable or does not apply."""
+    """Scores of one output frame; None where a metric was not computed or does not apply."""
 
     rel_l2: float
-    dssim: float | None
+    dssim: float | None  # None only in hand-built scores; score_frame always computes it
     flip: float | None
     temporal: float | None  # None on the first frame
     disoccluded_sum: float | None  # sum of per-pixel relL2 over disoccluded pixels
@@ -102,20 +82,16 @@ def score_frame(
     or None on the first frame. mask: (H, W) bool disoccluded pixels or None. flip: whether to compute
     FLIP (the slowest metric).
     """
-    dssim = _lookup("service.metrics", "dssim")
-    flip_error = _lookup("service.metrics", "flip_error") if flip else None
-    temporal_rel_l2 = _lookup("service.metrics", "temporal_rel_l2")
-    temporal = None
-    if prev is not None and temporal_rel_l2 is not None:
-        temporal = float(temporal_rel_l2(prev[0], image, prev[1], reference))
+    temporal = None if prev is None else float(temporal_rel_l2(prev[0], image, prev[1], reference))
+    errors = rel_l2_map(image, reference)
     dis_sum, dis_count = None, 0
     if mask is not None:
         dis_count = int(mask.sum())
-        dis_sum = float(rel_l2_map(image, reference)[mask].sum()) if dis_count else 0.0
+        dis_sum = float(errors[mask].sum()) if dis_count else 0.0
     return FrameScore(
-        rel_l2=rel_l2(image, reference, trim=TRIM_FRACTION),
-        dssim=None if dssim is None else float(dssim(image, reference)),
-        flip=None if flip_error is None else float(flip_error(image, reference)),
+        rel_l2=trimmed_mean(errors, TRIM_FRACTION),
+        dssim=float(dssim(image, reference)),
+        flip=float(flip_error(image, reference)) if flip else None,
         temporal=temporal,
         disoccluded_sum=dis_sum,
         disoccluded_pixels=dis_count,

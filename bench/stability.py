@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.synthetic import NOISE_SIGMA, synthetic_sequence
+from bench.synthetic import lognormal_samples, synthetic_sequence
 from service.exr import encode_frame, read_frame
 from service.frame import RADIANCE_LAYERS, Frame
 from service.pipelines.base import Pipeline
@@ -52,11 +52,7 @@ Layers = dict[str, np.ndarray]
 def _samples(layers: Layers, rng: np.random.Generator) -> np.ndarray:
     """(SPP, H, W, 3) float32 samples of the frame: reference radiance times a log-normal factor of
     mean 1 (as bench.synthetic), plus the noise-free emission."""
-    emission = layers["emission"]
-    radiance = layers["reference"] - emission
-    shape = (SPP, *radiance.shape[:2], 1)
-    factors = rng.lognormal(-0.5 * NOISE_SIGMA**2, NOISE_SIGMA, shape).astype(np.float32)
-    return radiance[None] * factors + emission[None]
+    return lognormal_samples(layers["reference"] - layers["emission"], layers["emission"], SPP, rng)
 
 
 def _with_samples(layers: Layers, samples: np.ndarray) -> Layers:

@@ -29,6 +29,13 @@ def _sphere(height: int, width: int, t: int, speed: float) -> tuple[float, float
     return 0.3 * width + speed * t, 0.45 * height, radius
 
 
+def lognormal_samples(radiance: np.ndarray, emission: np.ndarray, spp: int, rng: np.random.Generator) -> np.ndarray:
+    """(spp, H, W, 3) float32 samples: `radiance` times a log-normal factor of mean 1 per sample and pixel
+    (sigma NOISE_SIGMA), plus the noise-free `emission`; both (H, W, 3) float32 linear radiance."""
+    factors = rng.lognormal(-0.5 * NOISE_SIGMA**2, NOISE_SIGMA, (spp, *radiance.shape[:2], 1)).astype(np.float32)
+    return radiance[None] * factors + emission[None]
+
+
 def synthetic_frame(
     height: int, width: int, t: int, *, spp: int = 8, speed: float = 3.0, rng: np.random.Generator
 ) -> dict[str, np.ndarray]:
@@ -59,8 +66,7 @@ def synthetic_frame(
     emission[emitter] = EMITTER_RADIANCE
     albedo[emitter] = 0.0
     radiance[emitter] = 0.0
-    factors = rng.lognormal(-0.5 * NOISE_SIGMA**2, NOISE_SIGMA, (spp, height, width, 1)).astype(np.float32)
-    samples = radiance[None] * factors + emission[None]
+    samples = lognormal_samples(radiance, emission, spp, rng)
     half = spp // 2
     motion = np.zeros((height, width, 2), np.float32)
     motion[on_sphere, 0] = -speed

@@ -16,7 +16,7 @@ import numpy as np
 
 from service import pipelines
 from service.api.cli import add_serve_args, add_stream_args, run_serve, run_stream
-from service.exr import list_sequence, read_channels, read_frame
+from service.exr import list_sequence, read_channels, read_header
 from service.frame import FrameError
 from service.sequence import denoise_folder
 
@@ -39,12 +39,7 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     options = parse_options(args.option)
     if args.online:
         options["online"] = True  # a pipeline without this option refuses it: "has no option 'online'"
-    name = args.pipeline
-    if name == pipelines.AUTO:
-        first = list_sequence(args.in_dir)[0]
-        name = pipelines.auto(set(read_frame(first).buffers))
-        print(f"pipeline: {name} (auto: the preferred pipeline whose layers {first.name} has)")
-    pipeline = pipelines.get(name, **options)
+    pipeline = pipelines.get(resolve_pipeline(args.pipeline, args.in_dir), **options)
     print(f"{'frame':<24} {'ms':>9} {'relL2 in':>10} {'relL2 out':>10} {'NaN/Inf':>8}")
     results = []
     for r in denoise_folder(pipeline, args.in_dir, args.out_dir, png=args.png):
@@ -103,16 +98,32 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 Command = tuple[str, str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
 
 
-def _args_denoise(p: argparse.ArgumentParser) -> None:
+def resolve_pipeline(name: str, in_dir: Path) -> str:
+    """`name`, or for 'auto' the preferred pipeline whose required layers the sequence's first frame has
+    (read from its header); says which on stdout."""
+    if name != pipelines.AUTO:
+        return name
+    first = list_sequence(in_dir)[0]
+    name = pipelines.auto(read_header(first).layers)
+    print(f"pipeline: {name} (auto: the preferred pipeline whose layers {first.name} has)")
+    return name
+
+
+def add_sequence_args(p: argparse.ArgumentParser) -> None:
+    """Arguments of the commands that run a sequence folder through a pipeline (`denoise`, `stream`)."""
     p.add_argument("in_dir", type=Path, help="sequence folder of frame EXR files")
     p.add_argument("out_dir", type=Path, help="folder for the denoised EXR files (same names)")
     p.add_argument("--pipeline", default=pipelines.AUTO,
                    help="pipeline name, or 'auto' (default): the best pipeline the first frame's layers can feed")
     p.add_argument("--option", "-o", action="append", default=[], metavar="KEY=VALUE",
                    help="pipeline option, repeatable (see `pipelines --json`)")
-    p.add_argument("--png", action="store_true", help="also write tone-mapped PNG previews")
     p.add_argument("--online", action="store_true",
                    help="fine-tune the pipeline's network while the sequence runs (sets option online=true)")
+
+
+def _args_denoise(p: argparse.ArgumentParser) -> None:
+    add_sequence_args(p)
+    p.add_argument("--png", action="store_true", help="also write tone-mapped PNG previews")
 
 
 def _args_pipelines(p: argparse.ArgumentParser) -> None:

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import io
 import json
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -53,9 +54,7 @@ def group_layers(channels: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """
     by_layer: dict[str, dict[str, np.ndarray]] = {}
     for full, pixels in channels.items():
-        layer, _, chan = full.rpartition(".")
-        if not layer and full in ("R", "G", "B") and not any(c.startswith("color.") for c in channels):
-            layer, chan = "color", full
+        layer, chan = _split_channel(full, channels)
         by_layer.setdefault(layer, {})[chan] = pixels
     layers: dict[str, np.ndarray] = {}
     for layer, chans in by_layer.items():
@@ -66,6 +65,43 @@ def group_layers(channels: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         names = _match_channel_names(layer, spec.channels, tuple(chans))
         layers[layer] = np.stack([chans[c] for c in names], axis=-1)
     return layers
+
+
+def _split_channel(full: str, all_names: Iterable[str]) -> tuple[str, str]:
+    """(layer, channel) of a channel name: `LAYER.CHANNEL`, or a bare R/G/B read as `color` when the
+    file has no `color.*` channel."""
+    layer, _, chan = full.rpartition(".")
+    if not layer and full in ("R", "G", "B") and not any(c.startswith("color.") for c in all_names):
+        return "color", full
+    return layer, chan
+
+
+@dataclass(frozen=True)
+class ExrHeader:
+    """What an EXR header tells without decoding pixels."""
+
+    width: int  # pixels, of the data window
+    height: int  # pixels, of the data window
+    layers: frozenset[str]  # known layers present; `color` also when `colorA` and `colorB` are
+
+
+def read_header(source: str | Path | bytes) -> ExrHeader:
+    """Size and layers of an EXR file or in-memory EXR bytes, from its header alone.
+
+    Raises FrameError when the data is not a readable OpenEXR image."""
+    handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
+    what = "data" if isinstance(source, bytes | bytearray) else f"file '{source}'"
+    try:
+        with OpenEXR.File(handle, header_only=True) as exr:  # the header dict empties when the file closes
+            header = exr.header()
+            names = [ch.name for ch in header["channels"]]
+            low, high = header["dataWindow"]
+    except Exception as err:  # the binding raises RuntimeError/TypeError/OSError/KeyError on bad data
+        raise FrameError(f"{what} is not a readable OpenEXR image ({err})") from err
+    layers = {_split_channel(name, names)[0] for name in names} & set(LAYERS)
+    if {"colorA", "colorB"} <= layers:
+        layers.add("color")
+    return ExrHeader(int(high[0] - low[0] + 1), int(high[1] - low[1] + 1), frozenset(layers))
 
 
 def _match_channel_names(layer: str, expected: tuple[str, ...], present: tuple[str, ...]) -> tuple[str, ...]:

@@ -117,17 +117,12 @@ def pad_amounts(height: int, width: int, alignment: int) -> tuple[int, int]:
 def pad_hwc(arr: np.ndarray, alignment: int) -> np.ndarray:
     """Pad (H, W, C) at the bottom and right by edge replication up to multiples of `alignment`.
 
-    Returns the input itself when no padding is needed. Undo with `crop_hwc(out, H, W)`.
+    Returns the input itself when no padding is needed. Undo by slicing `out[:H, :W]`.
     """
     rows, cols = pad_amounts(arr.shape[0], arr.shape[1], alignment)
     if rows == 0 and cols == 0:
         return arr
     return np.pad(arr, ((0, rows), (0, cols), (0, 0)), mode="edge")
-
-
-def crop_hwc(arr: np.ndarray, height: int, width: int) -> np.ndarray:
-    """The top-left (height, width, C) part of (H', W', C), H' >= height, W' >= width."""
-    return arr[:height, :width]
 
 
 def hwc_to_nchw(arr: np.ndarray) -> np.ndarray:

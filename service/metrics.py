@@ -33,9 +33,17 @@ def rel_l2(image: np.ndarray, reference: np.ndarray, *, trim: float = 0.0) -> fl
 
     trim: fraction in [0, 1) of the highest per-pixel errors dropped before averaging.
     """
+    return trimmed_mean(rel_l2_map(image, reference), trim)
+
+
+def trimmed_mean(errors: np.ndarray, trim: float) -> float:
+    """Mean of `errors` (any shape, e.g. a `rel_l2_map` or its masked pixels) without the highest `trim`
+    fraction in [0, 1) of them; NaN when `errors` is empty."""
     if not 0.0 <= trim < 1.0:
         raise ValueError(f"trim must be in [0, 1), got {trim}")
-    errors = rel_l2_map(image, reference).ravel()
+    errors = np.ravel(errors)
+    if errors.size == 0:
+        return float("nan")
     if trim > 0.0:
         keep = errors.size - int(np.floor(errors.size * trim))
         errors = np.partition(errors, keep - 1)[:keep]
@@ -140,6 +148,6 @@ def temporal_rel_l2(prev_image: np.ndarray, image: np.ndarray, prev_reference: n
     by the reference's change would blow up on static pixels). 0 when the output changes exactly as
     the reference does (a static bias included), large for flicker.
     """
-    delta = (image.astype(np.float64) - prev_image) - (reference.astype(np.float64) - prev_reference)
-    m = reference.astype(np.float64).mean(axis=-1, keepdims=True)
-    return float((delta * delta / (m * m + REL_L2_EPS)).mean())
+    # (x_t - x_{t-1}) - (r_t - r_{t-1}) = (x_t - x_{t-1} + r_{t-1}) - r_t: rel_l2_map of that image.
+    moved = image.astype(np.float64) - prev_image + prev_reference
+    return float(rel_l2_map(moved, reference).mean())

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from service.layout import ChannelGroup, crop_hwc, groups_from_json, hwc_to_nchw, nchw_to_hwc, pad_hwc, total_channels
+from service.layout import ChannelGroup, groups_from_json, hwc_to_nchw, nchw_to_hwc, pad_hwc, total_channels
 
 METADATA_KEY = "mcdenoise"  # ONNX metadata_props key of the JSON contract
 THREADS_ENV = "MCDENOISE_ORT_THREADS"  # intra-op threads when no argument says otherwise (0: ORT default)
@@ -143,7 +143,7 @@ class OnnxModel:
             raise ValueError(f"network input has shape {features.shape}; expected (H, W, {expected})")
         height, width = features.shape[:2]
         out = self.run_nchw(hwc_to_nchw(pad_hwc(features, self.info.alignment)))
-        return np.ascontiguousarray(crop_hwc(nchw_to_hwc(out), height, width))
+        return nchw_to_hwc(out[..., :height, :width])  # crop, then one contiguous copy
 
     def check_weights(self, weights: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Validated float32 copies of `weights`; raises WeightError / NonFiniteWeightsError naming the first

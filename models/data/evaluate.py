@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from service.exr import list_sequence, read_frame, read_metadata
-from service.metrics import TRIM_FRACTION, rel_l2, rel_l2_map
+from service.metrics import TRIM_FRACTION, rel_l2, rel_l2_map, trimmed_mean
 from service.stages.reprojection import reproject
 
 DUAL_DIFFERS_PX = 1e-3  # motionDual and motion differ at a pixel when they are this far apart, pixels
@@ -24,9 +24,7 @@ DUAL_DIFFERS_PX = 1e-3  # motionDual and motion differ at a pixel when they are 
 
 def _masked(image: np.ndarray, reference: np.ndarray, mask: np.ndarray, trim: float) -> float:
     """Mean relL2 over `mask` (H, W) bool, the highest `trim` fraction of pixel errors dropped; NaN if empty."""
-    errors = np.sort(rel_l2_map(image, reference)[mask])
-    keep = errors.size - int(np.floor(errors.size * trim))
-    return float(errors[:keep].mean()) if keep > 0 else float("nan")
+    return trimmed_mean(rel_l2_map(image, reference)[mask], trim)
 
 
 def warp_errors(prev_reference: np.ndarray, reference: np.ndarray, motion: np.ndarray,

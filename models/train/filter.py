@@ -27,7 +27,10 @@ class FilterResult:
     weight_b: torch.Tensor
 
 
-def _sq_dist(padded: torch.Tensor, centre: torch.Tensor, dy: int, dx: int, r: int) -> torch.Tensor:
+def _sq_dist(
+    padded: torch.Tensor, centre: torch.Tensor, dy: int, dx: int, r: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(squared distance summed over channels (N, 1, H, W), the shifted neighbours (N, C, H, W))."""
     height, width = centre.shape[-2:]
     nb = padded[..., r + dy : r + dy + height, r + dx : r + dx + width]
     return ((nb - centre) ** 2).sum(dim=1, keepdim=True), nb

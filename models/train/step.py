@@ -14,11 +14,11 @@ import torch
 from models.nets.crossreg_unet import CrossRegUNet
 from models.train.filter import FilterResult, spatiotemporal_filter
 from models.train.loss import crossreg_loss
-from service.layout import CROSSREG_SAMPLE, channel_slices, total_channels
+from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, channel_slices, total_channels
 
 LEARNING_RATE = 1e-3  # Choi 2024 sec. 4.4, Adam
 SLICES = channel_slices(CROSSREG_SAMPLE)
-N_INPUTS = total_channels(CROSSREG_SAMPLE[:5])
+N_INPUTS = total_channels(CROSSREG_INPUTS)
 
 
 def make_optimizer(net: CrossRegUNet, lr: float = LEARNING_RATE) -> torch.optim.Optimizer:

@@ -31,7 +31,7 @@ from models.nets.crossreg_unet import count_parameters, make_unet, save_checkpoi
 from models.train.step import LEARNING_RATE, forward, make_optimizer, samples_to_tensor
 from service.exr import list_sequence, read_frame
 from service.frame import RADIANCE_LAYERS, Frame
-from service.pipelines.crossreg import History, Prepared, prepare_frame
+from service.pipelines.crossreg import History, Prepared, next_history, prepare_frame
 from service.stages.cross_regression import cross_regression
 
 log = logging.getLogger("models.train.warm_start")
@@ -117,8 +117,7 @@ def train(sequences: list[Sequence], *, seconds: float, max_steps: int, seed: in
                 prepared = prepare_frame(frame, history, pilots=pilots)
                 loss, color = _step_frame(net, optimizer, prepared)
                 losses.append(loss)
-                pilots_stacked = np.concatenate(pilots, axis=-1)
-                history = History(color, pilots_stacked, frame["normal"], frame.get("depth"))
+                history = next_history(frame, prepared, color)
             if time.monotonic() - start >= seconds or len(losses) >= max_steps:
                 break
         epochs += 1

@@ -9,9 +9,7 @@ import argparse
 import os
 import sys
 import time
-from pathlib import Path
 
-from service import pipelines
 from service.api.core.config import Settings
 
 WS_SLACK_BYTES = 1024 * 1024  # a WebSocket message may exceed the body limit by this before uvicorn drops it
@@ -70,12 +68,9 @@ def limit_threads(n: int) -> None:
 
 
 def add_stream_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("in_dir", type=Path, help="sequence folder of frame EXR files")
-    p.add_argument("out_dir", type=Path, help="folder for the denoised EXR files (same names)")
-    p.add_argument("--pipeline", default=pipelines.DEFAULT, help=f"pipeline name (default {pipelines.DEFAULT})")
-    p.add_argument("--option", "-o", action="append", default=[], metavar="KEY=VALUE",
-                   help="pipeline option, repeatable")
-    p.add_argument("--online", action="store_true", help="fine-tune online while streaming (crossreg)")
+    from service.cli import add_sequence_args
+
+    add_sequence_args(p)
     p.add_argument("--url", default="http://127.0.0.1:8000", help="service url (default http://127.0.0.1:8000)")
     p.add_argument("--api-key", default=os.environ.get("MCDENOISE_API_KEY"),
                    help="API key (default: $MCDENOISE_API_KEY)")
@@ -83,15 +78,16 @@ def add_stream_args(p: argparse.ArgumentParser) -> None:
 
 
 def run_stream(args: argparse.Namespace) -> int:
-    from service.cli import parse_options
+    from service.cli import parse_options, resolve_pipeline
     from service.client import Client, ServiceError
-    from service.exr import list_sequence, read_frame
+    from service.exr import list_sequence, read_header
 
     options = parse_options(args.option)
-    first = read_frame(list_sequence(args.in_dir)[0])
+    name = resolve_pipeline(args.pipeline, args.in_dir)
+    first = read_header(list_sequence(args.in_dir)[0])
     try:
         with Client(args.url, args.api_key) as client, client.session(
-            args.pipeline, first.width, first.height, options=options, online=args.online
+            name, first.width, first.height, options=options, online=args.online
         ) as session:
             start = time.perf_counter()
             results = session.stream_folder(args.in_dir, args.out_dir, window=args.window)
@@ -103,7 +99,7 @@ def run_stream(args: argparse.Namespace) -> int:
     for r in results:
         print(f"{r.name:<24} {'ok' if r.error is None else f'error {r.error.code}: {r.error.message}'}")
     failed = sum(r.error is not None for r in results)
-    print(f"{args.pipeline}: {len(results) - failed}/{len(results)} frames in {seconds:.2f} s "
+    print(f"{name}: {len(results) - failed}/{len(results)} frames in {seconds:.2f} s "
           f"({len(results) / seconds:.1f} frames/s), step mean {status['mean_ms']} ms, p95 {status['p95_ms']} ms")
     print(f"outputs in {args.out_dir}")
     return 2 if failed else 0

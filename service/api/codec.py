@@ -7,14 +7,10 @@ gigabytes), then builds the Frame through the frame contract (`service.frame.Fra
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 
-import numpy as np
-import OpenEXR
-
 from service.api.core.errors import ApiError, InvalidExrError
-from service.exr import encode_frame, group_layers, read_channels
+from service.exr import encode_frame, group_layers, read_channels, read_header
 from service.frame import Frame, FrameError
 from service.preview import encode_png, tonemap
 
@@ -58,11 +54,17 @@ def choose_output(accept: str | None, exposure: float = 1.0) -> Output:
 def exr_size(body: bytes) -> tuple[int, int]:
     """(width, height) from the EXR header of `body`. Raises InvalidExrError when there is no EXR header."""
     try:
-        with OpenEXR.File(io.BytesIO(body), header_only=True) as exr:
-            low, high = exr.header()["dataWindow"]
-    except Exception as err:  # the binding raises RuntimeError/TypeError/KeyError on bad data
-        raise InvalidExrError(f"body is not an OpenEXR image ({err})") from err
-    return int(high[0] - low[0] + 1), int(high[1] - low[1] + 1)
+        header = read_header(body)
+    except FrameError as err:
+        raise InvalidExrError(f"body is not an OpenEXR image ({err.__cause__ or err})") from err
+    return header.width, header.height
+
+
+def check_size(width: int, height: int, max_width: int, max_height: int) -> None:
+    """ApiError 413 when a frame of `width` x `height` pixels exceeds the service's limit (frames and sessions)."""
+    if width > max_width or height > max_height:
+        raise ApiError(413, "too_large", f"frame is {width}x{height}; this service takes at most "
+                                         f"{max_width}x{max_height} (width x height)")
 
 
 def decode(body: bytes, max_width: int, max_height: int) -> Frame:
@@ -71,10 +73,7 @@ def decode(body: bytes, max_width: int, max_height: int) -> Frame:
     Raises InvalidExrError (not EXR, truncated), ApiError 413 (larger than max_width x max_height) or
     FrameError naming the layer (missing or malformed layers, mismatched layer sizes).
     """
-    width, height = exr_size(body)
-    if width > max_width or height > max_height:
-        raise ApiError(413, "too_large", f"frame is {width}x{height}; this service takes at most "
-                                         f"{max_width}x{max_height} (width x height)")
+    check_size(*exr_size(body), max_width, max_height)
     try:
         channels, _ = read_channels(body)
     except FrameError as err:  # read_channels only raises on unreadable data
@@ -90,4 +89,4 @@ def encode(frame: Frame, output: Output) -> bytes:
     color = frame["color"]
     if output.media_type == PNG:
         return encode_png(tonemap(color, output.exposure))
-    return encode_frame({"color": np.asarray(color, np.float32)})
+    return encode_frame({"color": color})  # encode_frame writes float32 channels

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from service import pipelines
 from service.api import codec
-from service.api.core.errors import ApiError, UnknownSessionError, to_api_error
+from service.api.core.errors import UnknownSessionError, to_api_error
 from service.api.sessions import Session, SessionSpec, build_session, close_state
 from service.api.state import Services
 from service.api.telemetry import UNKNOWN_PIPELINE
@@ -68,10 +68,7 @@ async def denoise_once(services: Services, name: str, body: bytes, output: codec
 
 async def open_session(services: Services, spec: SessionSpec, owner: str | None) -> Session:
     """Create a session (429 when the store is full; pipeline construction runs in the pool)."""
-    limits = services.settings
-    if spec.width > limits.max_width or spec.height > limits.max_height:
-        raise ApiError(413, "too_large", f"sessions take frames of at most {limits.max_width}x{limits.max_height} "
-                                         f"(width x height), asked {spec.width}x{spec.height}")
+    codec.check_size(spec.width, spec.height, services.settings.max_width, services.settings.max_height)
     with services.sessions.reserve():
         session = await services.pool.run(build_session, spec, owner)
         services.sessions.add(session)

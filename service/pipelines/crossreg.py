@@ -18,14 +18,14 @@ from __future__ import annotations
 
 import logging
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from service.frame import Frame
-from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, stack_channels
+from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, stack_channels, total_channels
 from service.online.trainer import OnlineConfig, OnlineTrainer, require_torch
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
@@ -60,8 +60,7 @@ class CrossregOptions:
 class History:
     """What frame t keeps for frame t + 1; all (H, W, C) float32."""
 
-    output: np.ndarray  # (H, W, 3) filter output f(x), log1p radiance
-    pilots: np.ndarray  # (H, W, 6) pilots A then B, log1p radiance
+    colors: np.ndarray  # (H, W, 9) filter output f(x), pilot A, pilot B: log1p radiance, reprojected in one pass
     normal: np.ndarray  # (H, W, 3) for the reprojection's normal test
     depth: np.ndarray | None  # (H, W, 1) for the depth test, when the frames carry depth
 
@@ -83,9 +82,9 @@ class Prepared:
         extra = np.concatenate(
             [self.valid[..., None].astype(np.float32), self.previous_pilot_a, self.previous_pilot_b], axis=-1
         )
-        out = np.concatenate([self.features, extra], axis=-1)
-        assert out.shape[-1] == sum(g.channels for g in CROSSREG_SAMPLE)
-        return np.ascontiguousarray(out, dtype=np.float32)
+        out = np.concatenate([self.features, extra], axis=-1, dtype=np.float32)
+        assert out.shape[-1] == total_channels(CROSSREG_SAMPLE)
+        return out
 
 
 def prepare_frame(
@@ -108,9 +107,8 @@ def prepare_frame(
         valid = np.zeros(mean.shape[:2], bool)
         previous, prev_a, prev_b = mean, pilot_a, pilot_b
     else:
-        stacked = np.concatenate([history.output, history.pilots], axis=-1)
         warped, valid = reproject(
-            stacked, frame["motion"], depth=frame.get("depth"), prev_depth=history.depth,
+            history.colors, frame["motion"], depth=frame.get("depth"), prev_depth=history.depth,
             normal=normal, prev_normal=history.normal, params=REPROJECTION,
         )  # fmt: skip
         valid_a = valid_b = valid
@@ -123,7 +121,7 @@ def prepare_frame(
         prev_b = np.where(valid_b[..., None], warped[..., 6:9], pilot_b)
     groups = {"pilotA": pilot_a, "pilotB": pilot_b, "previous": previous, "albedo": albedo, "normal": normal}
     features = stack_channels(CROSSREG_INPUTS, groups)
-    return Prepared(pilot_a, pilot_b, previous.astype(np.float32), valid, prev_a, prev_b, features)
+    return Prepared(pilot_a, pilot_b, previous.astype(np.float32, copy=False), valid, prev_a, prev_b, features)
 
 
 def filter_frame(prepared: Prepared, params: np.ndarray, frame: Frame) -> FilterOutput:
@@ -134,9 +132,10 @@ def filter_frame(prepared: Prepared, params: np.ndarray, frame: Frame) -> Filter
     )  # fmt: skip
 
 
-def next_history(frame: Frame, prepared: Prepared, output: FilterOutput) -> History:
-    pilots = np.concatenate([prepared.pilot_a, prepared.pilot_b], axis=-1)
-    return History(output.color, pilots, frame["normal"], frame.get("depth"))
+def next_history(frame: Frame, prepared: Prepared, color: np.ndarray) -> History:
+    """What frame t + 1 needs from frame t; color: (H, W, 3) float32 filter output f(x), log1p radiance."""
+    colors = np.concatenate([color, prepared.pilot_a, prepared.pilot_b], axis=-1, dtype=np.float32)
+    return History(colors, frame["normal"], frame.get("depth"))
 
 
 @dataclass
@@ -149,7 +148,6 @@ class CrossregState(SequenceState):
     refused: int = 0  # weight sets refused (non-finite or not fitting the graph)
     last_refusal: str | None = None
     init: str = "warm start"  # where the running weights started: "warm start" or "random"
-    extras: dict[str, Any] = field(default_factory=dict)
 
     @property
     def online_status(self) -> dict[str, Any]:
@@ -220,7 +218,7 @@ class CrossregPipeline(Pipeline):
             state.model.swap_weights(initial)
             state.init = "random"
         if opt.online:
-            config = OnlineConfig(**{**self._online_config.__dict__, "alignment": state.model.info.alignment})
+            config = replace(self._online_config, alignment=state.model.info.alignment)
             state.trainer = OnlineTrainer(state.model.model_bytes, initial, config)
             weakref.finalize(state, state.trainer.close)
         return state
@@ -234,7 +232,7 @@ class CrossregPipeline(Pipeline):
         output = filter_frame(prepared, params, frame)
         if state.trainer is not None:
             state.trainer.submit(prepared.sample(), state.frame_index)
-        state.history = next_history(frame, prepared, output)
+        state.history = next_history(frame, prepared, output.color)
         color = np.maximum(log_to_linear(output.color), np.float32(0.0))
         return {"color": color}, state
 

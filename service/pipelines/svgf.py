@@ -113,12 +113,11 @@ class SvgfPipeline(Pipeline):
             prev_color, prev_moments = clamp_history(
                 prev_color, prev_moments, color, self.temporal_params.clamp_radius, self.temporal_params.clamp_spread
             )
-        current = color
-        color, moments_acc, history = accumulate(
+        accumulated, moments_acc, history = accumulate(
             color, moments, prev_color, prev_moments, prev[..., 5], valid, self.temporal_params
         )
-        variance = estimate_variance(moments_acc, moments, history, current, guides, self.temporal_params)
-        filtered, _, first = atrous(color, variance, guides, self.atrous_params)
+        variance = estimate_variance(moments_acc, moments, history, color, guides, self.temporal_params)
+        filtered, _, first = atrous(accumulated, variance, guides, self.atrous_params)
         state.history = np.concatenate([first, moments_acc, history[..., None]], axis=-1)
         state.depth, state.normal, state.scale = depth, normal, scale
         filtered = filtered * np.float32(scale)

@@ -28,13 +28,13 @@ import numpy as np
 from numba import njit, prange
 
 from service.stages.bilateral import neg_exp
+from service.stages.reprojection import NORMAL_HIT  # squared normal length of a surface hit
 from service.stages.window import overlap
 
 B3_SPLINE = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)  # Dammertz 2010 / Schied 2017 sec. 4.3: 1D B3-spline taps
 GAUSS_3X3 = (1 / 4, 1 / 2, 1 / 4)  # Schied 2017 sec. 4.3: 1D taps of the 3x3 variance prefilter
 DEPTH_GRADIENT_FLOOR = 1e-8  # scene units per pixel; Falcor SVGF's floor of fwidth(z)
 VARIANCE_EPS = 1e-10  # luminance^2; Falcor SVGF's epsilon under the square root of phi_l
-NORMAL_HIT = 0.25  # squared normal length above which a pixel is a surface hit
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # Rec. 709 / sRGB luminance of linear RGB
 MAX_EXPONENT = 40.0  # taps with w_z * w_l < e^-40 (~4e-18) are skipped by the compiled pass
 

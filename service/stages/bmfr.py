@@ -25,6 +25,7 @@ from service.stages.local_regression import (
     BlockParams,
     block_regression,
     box_regression,
+    check_firefly_k,
     clamp_fireflies,
     clamp_outlier_clusters,
     from_planes,
@@ -50,8 +51,7 @@ class BmfrParams:
     def __post_init__(self) -> None:
         if self.window < 1 or self.window % 2 == 0:
             raise ValueError(f"window must be a positive odd number of pixels, got {self.window}")
-        if self.firefly_k is not None and not self.firefly_k > 0:
-            raise ValueError(f"firefly_k must be > 0 or None, got {self.firefly_k}")
+        check_firefly_k(self.firefly_k)
         self.block()
 
     def block(self) -> BlockParams:

@@ -33,6 +33,7 @@ from service.stages.local_regression import (
     BlockParams,
     PairTerms,
     block_regression,
+    check_firefly_k,
     clamp_fireflies,
     from_planes,
     neighbour_mean,
@@ -53,8 +54,7 @@ class CrossRegressionParams:
     def __post_init__(self) -> None:
         if self.window < 1 or self.window % 2 == 0:
             raise ValueError(f"window must be a positive odd number of pixels, got {self.window}")
-        if self.firefly_k is not None and not self.firefly_k > 0:
-            raise ValueError(f"firefly_k must be > 0 or None, got {self.firefly_k}")
+        check_firefly_k(self.firefly_k)
         self.block()  # validates sparsity against the window
 
     def block(self) -> BlockParams:
@@ -67,7 +67,7 @@ def linear_to_log(color: np.ndarray) -> np.ndarray:
     color: any shape, linear radiance (any sign). Returns float32 of the same shape.
     """
     color = np.asarray(color, np.float32)
-    return (np.sign(color) * np.log1p(np.abs(color))).astype(np.float32)
+    return (np.sign(color) * np.log1p(np.abs(color))).astype(np.float32, copy=False)
 
 
 def log_to_linear(log_color: np.ndarray) -> np.ndarray:
@@ -76,7 +76,7 @@ def log_to_linear(log_color: np.ndarray) -> np.ndarray:
     Log values above 88 (radiance beyond float32) are clipped so the result stays finite.
     """
     y = np.clip(np.asarray(log_color, np.float32), -88.0, 88.0)
-    return (np.sign(y) * np.expm1(np.abs(y))).astype(np.float32)
+    return (np.sign(y) * np.expm1(np.abs(y))).astype(np.float32, copy=False)
 
 
 def pixel_variance(log_planes: np.ndarray) -> np.ndarray:

@@ -28,6 +28,7 @@ from service.stages.bilateral import DEPTH_FLOOR
 from service.stages.local_regression import (
     FIREFLY_K,
     RIDGE_RELATIVE,
+    check_firefly_k,
     cholesky_ridge_solve,
     clamp_fireflies,
     clamp_outlier_clusters,
@@ -60,8 +61,7 @@ class FlrParams:
             raise ValueError("sigma and truncate must be > 0")
         if not (self.ridge_relative >= 0 and self.ridge_absolute > 0):
             raise ValueError("ridge_relative must be >= 0 and ridge_absolute > 0")
-        if self.firefly_k is not None and not self.firefly_k > 0:
-            raise ValueError(f"firefly_k must be > 0 or None, got {self.firefly_k}")
+        check_firefly_k(self.firefly_k)
 
     @property
     def window(self) -> int:
@@ -253,14 +253,14 @@ def _blur_rows_kernel(src, taps, out):
                         row[i, e] += t * other[i, e]
 
 
-def _moment_index(q: int, c: int) -> tuple[int, int, int, dict[tuple[int, int], int], int]:
-    """(index of sum x, of sum y, -, {(i, j): index of sum x_i x_j}, index of first sum x y)."""
+def _moment_index(q: int, c: int) -> tuple[int, int, dict[tuple[int, int], int], int]:
+    """(index of sum x, of sum y, {(i, j): index of sum x_i x_j}, index of first sum x y); sum 1 is at 0."""
     xx, e = {}, 1 + q + c
     for i in range(q):
         for j in range(i, q):
             xx[(i, j)] = xx[(j, i)] = e
             e += 1
-    return 1, 1 + q, 0, xx, e
+    return 1, 1 + q, xx, e
 
 
 def solve_cells(sums: np.ndarray, q: int, c: int, params: FlrParams) -> tuple[np.ndarray, np.ndarray]:
@@ -271,7 +271,7 @@ def solve_cells(sums: np.ndarray, q: int, c: int, params: FlrParams) -> tuple[np
     Cholesky, offsets); `solve_cells_reference` is the plain-numpy twin.
     """
     h, w = sums.shape[:2]
-    _, _, _, ixx, _ = _moment_index(q, c)
+    ixx = _moment_index(q, c)[2]
     pick = np.array([[ixx[(i, j)] for j in range(q)] for i in range(q)], np.int64).reshape(q, q)
     slopes = np.empty((h, w, q, c), np.float32)
     offsets = np.empty((h, w, c), np.float32)
@@ -282,7 +282,7 @@ def solve_cells(sums: np.ndarray, q: int, c: int, params: FlrParams) -> tuple[np
 
 def solve_cells_reference(sums: np.ndarray, q: int, c: int, params: FlrParams) -> tuple[np.ndarray, np.ndarray]:
     """Plain-numpy twin of `solve_cells` (float64 covariances, `solve_ridge_reference`)."""
-    ix, iy, _, ixx, ixy = _moment_index(q, c)
+    ix, iy, ixx, ixy = _moment_index(q, c)
     sums = np.asarray(sums, np.float64)
     s0 = np.maximum(sums[..., 0], 1e-30)[..., None]
     mean_x, mean_y = sums[..., ix : ix + q] / s0, sums[..., iy : iy + c] / s0

@@ -273,6 +273,12 @@ def neighbour_mean(planes: np.ndarray) -> np.ndarray:
     return total / np.maximum(count, 1.0)
 
 
+def check_firefly_k(k: float | None) -> None:
+    """The one check of a stage option `firefly_k`: > 0, or None (clamp off)."""
+    if k is not None and not k > 0:
+        raise ValueError(f"firefly_k must be > 0 or None, got {k}")
+
+
 def clamp_fireflies(planes: np.ndarray, k: float = FIREFLY_K) -> np.ndarray:
     """Clip every value to [lo - k (hi - lo), hi + k (hi - lo)], lo and hi the smallest and largest of its
     up-to-8 neighbours in the 3x3 window (the pixel itself excluded; frame border: those that exist).
@@ -991,7 +997,8 @@ ROBUST_MARGIN = 1.0  # ... plus this margin, in compressed units (a factor e = 2
 
 def radiance_scale(planes: np.ndarray) -> float:
     """Typical magnitude of a frame: the median of |value| over a 4x4-strided subsample (cheap at 720p),
-    floored at 1e-6. planes: (C, H, W) float32 radiance. Below this scale `compress` is linear."""
+    floored at 1e-6. planes: (C, H, W) float32 radiance. Below this scale the log transform of
+    `clamp_outlier_clusters` is about linear."""
     sample = np.abs(planes[:, ::4, ::4])
     return max(float(np.median(sample)) if sample.size else 0.0, 1e-6)
 

@@ -74,8 +74,9 @@ def clamp_to_local_range(output: np.ndarray, image: np.ndarray, radius: int) -> 
     """
     _check_radius(radius)
     image = np.ascontiguousarray(image, dtype=np.float32)
-    out = np.ascontiguousarray(output, dtype=np.float32).copy()
-    _range_kernel(image, out, int(radius), True, out, out)
+    output = np.ascontiguousarray(output, dtype=np.float32)
+    out = np.empty_like(output)
+    _range_kernel(image, output, int(radius), True, out, out)
     return out
 
 
@@ -96,7 +97,7 @@ def _fold(lo, hi, src_lo, src_hi, n):
 
 @numba.njit(parallel=True, cache=True)
 def _range_kernel(image, output, radius, clamp, lo_out, hi_out):
-    """clamp: lo_out[y] = clip(output[y], lo, hi) (lo_out may be output); else lo_out, hi_out = lo, hi."""
+    """clamp: lo_out[y] = clip(output[y], lo, hi); else lo_out, hi_out = lo, hi."""
     height, width, channels = image.shape
     n = width * channels
     flat = image.reshape(height, n)

@@ -44,7 +44,6 @@ ALPHA = 0.005  # Sakai 2024 sec. 4.2: significance level of the Welch test
 PAPER_BASE = BilateralParams(
     radius=20, sigma2_position=10.0, sigma2_albedo=0.02, sigma2_normal=0.1, sigma2_log_depth=None
 )
-FAST_RADIUS = 6  # Sakai 2024 Fig. 6d: ~2.5x faster, a little more noise
 UNTESTABLE_CRIT2 = np.float32(1e30)  # stands for t_crit^2 = inf (nu <= 0) without producing inf * 0
 MAX_COUNT = 1 << 24  # sample counts are clamped here (float32 holds integers exactly up to 2^24)
 

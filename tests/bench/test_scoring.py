@@ -41,8 +41,3 @@ def test_static_camera_has_no_disocclusion(tiny_layers) -> None:
     mask = disoccluded_mask(static, prev)
     assert mask is not None and mask.shape == (frame.height, frame.width) and not mask.any()
     assert disoccluded_mask(Frame.from_buffers({"color": frame["color"]}), prev) is None  # no motion layer
-
-
-def test_missing_metric_is_reported_not_fatal() -> None:
-    assert scoring._lookup("service.metrics", "no_such_metric") is None
-    assert "service.metrics.no_such_metric" in scoring.unavailable()

@@ -2,7 +2,15 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from service.exr import encode_frame, list_sequence, read_channels, read_frame, read_metadata, write_frame
+from service.exr import (
+    encode_frame,
+    list_sequence,
+    read_channels,
+    read_frame,
+    read_header,
+    read_metadata,
+    write_frame,
+)
 from service.frame import Frame, FrameError
 from tests.tolerances import HALF_RTOL
 
@@ -139,3 +147,20 @@ def test_frame_object_can_be_written(tmp_path, tiny_frame: Frame):
     write_frame(tmp_path / "t.exr", tiny_frame)
     again = read_frame(tmp_path / "t.exr")
     np.testing.assert_array_equal(again["bcM3"], tiny_frame["bcM3"])
+
+
+def test_header_gives_size_and_layers_of_the_decoded_frame(tmp_path):
+    one = np.ones((2, 2), np.float32)
+    channels = {"R": one, "G": one, "B": one, "colorA.R": one, "colorA.G": one, "colorA.B": one,
+                "colorB.R": one, "colorB.G": one, "colorB.B": one, "depth.Z": one, "cryptomatte.R": one}
+    _write_raw(tmp_path / "l.exr", channels)
+    header = read_header(tmp_path / "l.exr")
+    assert header.layers == set(read_frame(tmp_path / "l.exr").buffers) == {"color", "colorA", "colorB", "depth"}
+    assert (header.width, header.height) == (2, 2)
+    data = encode_frame({"colorA": np.ones((3, 5, 3)), "colorB": np.ones((3, 5, 3))})
+    assert read_header(data) == read_header(data) and read_header(data).layers == {"color", "colorA", "colorB"}
+    assert (read_header(data).width, read_header(data).height) == (5, 3)
+    with pytest.raises(FrameError, match="not a readable OpenEXR image"):
+        read_header(tmp_path / "absent.exr")
+    with pytest.raises(FrameError, match="not a readable OpenEXR image"):
+        read_header(data[:20])

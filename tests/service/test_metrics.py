@@ -1,7 +1,17 @@
 import numpy as np
 import pytest
 
-from service.metrics import SSIM_K1, SSIM_K2, dssim, flip_error, rel_l2, rel_l2_map, ssim_map, temporal_rel_l2
+from service.metrics import (
+    SSIM_K1,
+    SSIM_K2,
+    dssim,
+    flip_error,
+    rel_l2,
+    rel_l2_map,
+    ssim_map,
+    temporal_rel_l2,
+    trimmed_mean,
+)
 from service.preview import tonemap
 
 
@@ -22,6 +32,15 @@ def test_trim_drops_the_worst_pixels():
     assert rel_l2(img, ref, trim=0.001) == 0.0
     with pytest.raises(ValueError):
         rel_l2(img, ref, trim=1.0)
+
+
+def test_trimmed_mean_by_hand():
+    errors = np.array([[1.0, 2.0], [3.0, 1000.0]])
+    assert trimmed_mean(errors, 0.25) == pytest.approx(2.0)  # the worst quarter (one value) dropped
+    assert trimmed_mean(errors, 0.0) == pytest.approx(1006.0 / 4)
+    assert np.isnan(trimmed_mean(np.zeros(0), 0.001))
+    with pytest.raises(ValueError, match="trim must be in"):
+        trimmed_mean(errors, -0.1)
 
 
 # --- 1-SSIM -------------------------------------------------------------------------------------------

@@ -72,7 +72,7 @@ def test_session_survives_bad_frames_and_goes_on(server, sequence_exr, cli_outpu
      "ask for online training with the session's 'online' field, not an option"),
     ({"width": 0}, 422, "invalid_request", "width: Input should be greater than 0"),
     ({"color": "red"}, 422, "invalid_request", "color: Extra inputs are not permitted"),
-    ({"width": 65}, 413, "too_large", "sessions take frames of at most 64x64 (width x height), asked 65x32"),
+    ({"width": 65}, 413, "too_large", "frame is 65x32; this service takes at most 64x64 (width x height)"),
 ])
 def test_bad_session_requests(server, spec, status, code, message):
     body = json.dumps({"pipeline": "bilateral", "width": WIDTH, "height": HEIGHT, **spec}).encode()

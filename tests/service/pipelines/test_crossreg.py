@@ -48,7 +48,7 @@ def test_odd_size_sequence_keeps_explicit_history(odd_frames):
     outs, state = _run(pipeline, odd_frames)
     assert isinstance(state, CrossregState) and state.frame_index == 3
     assert all(o.shape == (13, 17, 3) and np.isfinite(o).all() and (o >= 0).all() for o in outs)
-    assert state.history.output.shape == (13, 17, 3) and state.history.pilots.shape == (13, 17, 6)
+    assert state.history.colors.shape == (13, 17, 9)
     status = state.online_status
     assert status["state"] == "off" and status["weights_version"] == 0 and status["init"] == "warm start"
 

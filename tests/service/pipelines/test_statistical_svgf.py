@@ -53,13 +53,11 @@ def test_cli_denoises_a_sequence(name, tiny_sequence_dir, tmp_path, capsys):
 
 def test_svgf_history_survives_radiance_scale_jumps(tiny_layers):
     """Frames at 1, 1e20 and 1 times the radiance: the history is rescaled, nothing overflows."""
-    from service import pipelines
-    from service.frame import Frame
-
     pipeline = pipelines.get("svgf")
     state = pipeline.start(24, 40)
     for layers, gain in zip(tiny_layers, (1.0, 1e20, 1.0), strict=True):
         scaled = {k: (v * gain if k in ("color", "colorA", "colorB", "emission") else v) for k, v in layers.items()}
         out, state = pipeline.step(Frame.from_buffers(scaled), state)
         assert np.isfinite(out["color"]).all()
+        assert np.isfinite(state.history).all()  # the output clamp would hide an overflowed history
         assert out["color"].max() <= scaled["color"].max() * 1.01  # the 1e20 history does not leak back

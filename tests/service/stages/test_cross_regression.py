@@ -39,6 +39,8 @@ def test_params_are_validated():
         CrossRegressionParams(window=16)
     with pytest.raises(ValueError, match="centre"):
         CrossRegressionParams(window=3, sparsity=4)
+    with pytest.raises(ValueError, match="firefly_k must be > 0 or None, got 0.0"):
+        CrossRegressionParams(firefly_k=0.0)
 
 
 def test_pilot_a_is_fitted_to_buffer_b_and_pilot_b_to_buffer_a():
