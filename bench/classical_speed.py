@@ -1,15 +1,18 @@
-"""Milliseconds per frame of registered pipelines beside Intel Open Image Denoise, in one run.
+"""Milliseconds per frame of registered pipelines beside Intel Open Image Denoise, in one run, and
+optionally their relL2 on a sequence folder in the same run.
 
     python -m bench.classical_speed                                # crossregression, bmfr, flr; 256x256, 1280x720
     python -m bench.classical_speed --pipelines flr bilateral --sizes 640x360 --repeats 7
-    python -m bench.classical_speed --pipelines statistical:radius=6 svgf crossreg
+    python -m bench.classical_speed --pipelines statistical:radius=6 svgf crossreg --sample models/data/samples/shadows
 
 Every method denoises the same synthetic frame (bench.synthetic, all layers) through `Pipeline.step`
 (layer check, emission split and guard included), each on one sequence state, so a temporal pipeline is
-timed with its history after the first step; OIDN gets pyoidn.denoise(color, albedo, normal,
-hdr=True, quality=...) on the same frame. One untimed call each first (numba compilation or cache load,
-OIDN device creation), then the methods take turns for `--repeats` rounds so that load from other
-processes falls on all of them alike; the median and the minimum of the wall times are reported.
+timed with its history after the first step. OIDN is the benchmark's anchor (bench.methods: HDR, clean
+albedo and normal, emission split), run through the same `step`. One untimed step each first (numba
+compilation or cache load, OIDN device creation), then the methods take turns for `--repeats` rounds so
+that load from other processes falls on all of them alike; the median and the minimum are reported.
+With `--sample DIR`, each method then denoises that sequence in order on a fresh state and the mean
+0.1%-trimmed relL2 against its `reference` is reported.
 """
 
 from __future__ import annotations
@@ -18,63 +21,62 @@ import argparse
 import os
 import statistics
 import time
-from collections.abc import Callable
 
 import numpy as np
 
+from bench.methods import OidnFastAnchor, OidnHighAnchor
 from bench.synthetic import synthetic_frame
 from service import pipelines
 from service.cli import parse_options
+from service.exr import list_sequence, read_frame
 from service.frame import Frame
+from service.metrics import TRIM_FRACTION, rel_l2
+from service.pipelines import Pipeline
 
 DEFAULT_PIPELINES = ("crossregression", "bmfr", "flr")
+OIDN = {"high": OidnHighAnchor, "fast": OidnFastAnchor}
 
 
-def _pipeline_runner(spec: str, frame: Frame) -> Callable[[], None]:
-    """A runner stepping one sequence state, so temporal pipelines are timed in steady state (with
-    history) after the warm-up step. spec: NAME or NAME:KEY=VALUE,KEY=VALUE (pipeline options)."""
-    name, _, option_text = spec.partition(":")
-    pipeline = pipelines.get(name, **parse_options(option_text.split(",") if option_text else []))
-    state = pipeline.start(frame.height, frame.width)
-
-    def run() -> None:
-        nonlocal state
-        _, state = pipeline.step(frame, state)
-
-    return run
-
-
-def _oidn_runner(layers: dict[str, np.ndarray], quality: str) -> Callable[[], None]:
-    import pyoidn
-
-    color = np.ascontiguousarray(np.maximum(layers["color"], 0.0))
-    albedo = np.ascontiguousarray(np.clip(layers["albedo"], 0.0, 1.0))
-    normal = np.ascontiguousarray(np.clip(layers["normal"], -1.0, 1.0))
-
-    def run() -> None:
-        pyoidn.denoise(color, albedo, normal, hdr=True, quality=quality)
-
-    return run
-
-
-def time_methods(
-    names: list[str], height: int, width: int, repeats: int, oidn_quality: str | None = "high"
-) -> dict[str, list[float]]:
-    """Wall times in ms of each method on one synthetic frame of height x width, `repeats` each."""
-    layers = synthetic_frame(height, width, 1, rng=np.random.default_rng(0))
-    frame = Frame.from_buffers(layers)
-    runners = {name: _pipeline_runner(name, frame) for name in names}
+def make_methods(specs: list[str], oidn_quality: str | None) -> dict[str, Pipeline]:
+    """Label -> pipeline object. specs: NAME or NAME:KEY=VALUE,KEY=VALUE (pipeline options)."""
+    methods: dict[str, Pipeline] = {}
+    for spec in specs:
+        name, _, option_text = spec.partition(":")
+        methods[spec] = pipelines.get(name, **parse_options(option_text.split(",") if option_text else []))
     if oidn_quality is not None:
-        runners[f"oidn-{oidn_quality}"] = _oidn_runner(layers, oidn_quality)
-    for run in runners.values():
-        run()  # warm-up: compilation, caches, device creation
-    times: dict[str, list[float]] = {name: [] for name in runners}
+        anchor = OIDN[oidn_quality]()
+        methods[anchor.name] = anchor
+    return methods
+
+
+def time_methods(methods: dict[str, Pipeline], height: int, width: int, repeats: int) -> dict[str, list[float]]:
+    """Wall times in ms of each method's `step` on one synthetic frame of height x width, `repeats` each."""
+    frame = Frame.from_buffers(synthetic_frame(height, width, 1, rng=np.random.default_rng(0)))
+    states = {label: method.start(height, width) for label, method in methods.items()}
+    for label, method in methods.items():
+        _, states[label] = method.step(frame, states[label])  # warm-up: compilation, caches, device creation
+    times: dict[str, list[float]] = {label: [] for label in methods}
     for _ in range(repeats):
-        for name, run in runners.items():
+        for label, method in methods.items():
             start = time.perf_counter()
-            run()
-            times[name].append(1000.0 * (time.perf_counter() - start))
+            _, states[label] = method.step(frame, states[label])
+            times[label].append(1000.0 * (time.perf_counter() - start))
     return times
+
+
+def sample_rel_l2(methods: dict[str, Pipeline], folder: str) -> tuple[dict[str, float], float, tuple[int, int]]:
+    """(label -> mean trimmed relL2 over the sequence's frames, the noisy input's, (width, height))."""
+    frames = [read_frame(path) for path in list_sequence(folder)]
+    noisy = float(np.mean([rel_l2(f["color"], f["reference"], trim=TRIM_FRACTION) for f in frames]))
+    errors = {}
+    for label, method in methods.items():
+        state = method.start(frames[0].height, frames[0].width)
+        values = []
+        for frame in frames:
+            out, state = method.step(frame, state)
+            values.append(rel_l2(out["color"], frame["reference"], trim=TRIM_FRACTION))
+        errors[label] = float(np.mean(values))
+    return errors, noisy, (frames[0].width, frames[0].height)
 
 
 def main() -> int:
@@ -83,22 +85,30 @@ def main() -> int:
                         help="registered pipeline names, or NAME:KEY=VALUE,... with options")
     parser.add_argument("--sizes", nargs="+", default=["256x256", "1280x720"], help="WxH frame sizes")
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--oidn", default="high", choices=["high", "balanced", "fast", "none"])
+    parser.add_argument("--oidn", default="high", choices=[*OIDN, "none"])
+    parser.add_argument("--sample", help="also report relL2 on this sequence folder (frames with `reference`)")
     args = parser.parse_args()
     unknown = sorted({spec.partition(":")[0] for spec in args.pipelines} - set(pipelines.names()))
     if unknown:
         parser.error(f"unknown pipeline(s) {', '.join(unknown)}; available: {', '.join(pipelines.names())}")
+    oidn_label = None if args.oidn == "none" else f"oidn-{args.oidn}"
     print(f"cpus: {os.cpu_count()}, load average: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     for size in args.sizes:
         width, height = (int(v) for v in size.lower().split("x"))
-        times = time_methods(args.pipelines, height, width, args.repeats, None if args.oidn == "none" else args.oidn)
-        oidn = times.get(f"oidn-{args.oidn}")
+        times = time_methods(make_methods(args.pipelines, args.oidn if oidn_label else None), height, width,
+                             args.repeats)
         print(f"\n{width}x{height}, {args.repeats} repeats (ms per frame)")
-        print(f"{'method':<18}{'median':>10}{'min':>10}{'x faster than OIDN':>22}")
-        for name, values in times.items():
+        print(f"{'method':<22}{'median':>10}{'min':>10}{'x faster than OIDN':>22}")
+        for label, values in times.items():
             median = statistics.median(values)
-            ratio = f"{statistics.median(oidn) / median:.1f}" if oidn else "-"
-            print(f"{name:<18}{median:>10.1f}{min(values):>10.1f}{ratio:>22}")
+            ratio = f"{statistics.median(times[oidn_label]) / median:.1f}" if oidn_label else "-"
+            print(f"{label:<22}{median:>10.1f}{min(values):>10.1f}{ratio:>22}")
+    if args.sample:
+        errors, noisy, (width, height) = sample_rel_l2(make_methods(args.pipelines, args.oidn if oidn_label else None),
+                                                       args.sample)
+        print(f"\n{args.sample} ({width}x{height}), mean relL2 (0.1% trimmed); noisy input {noisy:.4f}")
+        for label, value in errors.items():
+            print(f"{label:<22}{value:>10.4f}")
     return 0
 
 
