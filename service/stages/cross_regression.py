@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from service.stages.local_regression import (
@@ -80,12 +81,51 @@ def log_to_linear(log_color: np.ndarray) -> np.ndarray:
 
 
 def pixel_variance(log_planes: np.ndarray) -> np.ndarray:
-    """Choi sec. 4.1 variance estimate: |y - mean of the 8 neighbours|^2, summed over channels.
+    """Choi sec. 4.1 variance estimate: |y - mean of the 8 neighbours|^2, summed over channels, numba kernel.
 
-    log_planes: (3, H, W) float32 log colour. Returns (H, W) float32, >= 0 (0 for a 1x1 frame).
+    log_planes: (C, H, W) float32 log colour. Neighbours outside the frame are left out of the mean.
+    Returns (H, W) float32, >= 0 (0 for a 1x1 frame). `pixel_variance_reference` is the numpy twin.
     """
+    planes = np.ascontiguousarray(log_planes, dtype=np.float32)
+    out = np.empty(planes.shape[1:], np.float32)
+    _variance_kernel(planes, out)
+    return out
+
+
+def pixel_variance_reference(log_planes: np.ndarray) -> np.ndarray:
+    """Plain-numpy twin of `pixel_variance` (same argument and result)."""
     diff = log_planes - neighbour_mean(log_planes)
     return np.einsum("chw,chw->hw", diff, diff).astype(np.float32)
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _variance_kernel(planes, out):  # pragma: no cover - jitted
+    """planes (C, H, W) -> out (H, W): 3-pixel row sums of the valid rows, minus the pixel, per channel."""
+    channels, height, width = planes.shape
+    for y in numba.prange(height):
+        y0, y1 = max(0, y - 1), min(height, y + 2)
+        rows = y1 - y0
+        total = np.zeros(width, np.float32)
+        acc = np.empty(width, np.float32)
+        for c in range(channels):
+            acc[:] = 0.0
+            for yy in range(y0, y1):
+                row = planes[c, yy]
+                for x in range(1, width - 1):
+                    acc[x] += row[x - 1] + row[x] + row[x + 1]
+                acc[0] += row[0] + (row[1] if width > 1 else np.float32(0.0))
+                if width > 1:
+                    acc[width - 1] += row[width - 2] + row[width - 1]
+            own = planes[c, y]
+            inner = np.float32(1.0) / np.float32(3 * rows - 1)
+            for x in range(1, width - 1):
+                d = own[x] - (acc[x] - own[x]) * inner
+                total[x] += d * d
+            count = (2 if width > 1 else 1) * rows - 1  # at the first and last column
+            for x in range(0, width, max(width - 1, 1)):
+                d = own[x] - (acc[x] - own[x]) / count if count > 0 else np.float32(0.0)
+                total[x] += d * d
+        out[y] = total
 
 
 def buffer_terms(log_planes: np.ndarray, variance: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> PairTerms:

@@ -4,7 +4,7 @@ Three pieces, each a pure function on arrays:
 
 - `solve_ridge`: many small normal equations (X^T W X + R) beta = X^T W Y at once, Tikhonov-regularised
   so that singular systems (constant G-buffers, black frames) give finite, zero-slope solutions.
-- `block_regression` (= `block_moments` -> `solve_ridge` -> `block_reconstruct`): block-wise regression
+- `block_regression` (= `block_solve` -> `block_reconstruct`): block-wise regression
   of Choi et al. 2024 (sec. 3, eqs. 3-5, after Koskela et al. 2019 and Moon et al. 2015). Normal equations
   are solved only at centre pixels on every `sparsity`-th row and column; each centre fits a linear
   function of pair features x_i - x_c over its (2r+1)^2 window, and every pixel averages the predictions
@@ -367,15 +367,15 @@ def _exp_neg(x):
 # ------------------------------------------------------------------------------------ block moments
 
 
-def block_moments(
+def block_solve(
     terms: PairTerms, target: np.ndarray, params: BlockParams, *, packed: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """X^T W X and X^T W Y of every centre's window (Choi eq. 4), numba kernel.
+) -> np.ndarray:
+    """Every centre's regression coefficients (Choi eqs. 3-4): the moments X^T W X, X^T W Y of its window
+    (numba kernel) solved with `solve_ridge`'s Tikhonov term, in one pass over the centres' moments.
 
     terms: PairTerms of the frame. target: (C, H, W) float32 planes of y, C = G * M (group g owns
-    channels g*M ... g*M+M-1). Returns gram (Hc, Wc, G, K1, K1) and rhs (Hc, Wc, G, K1, M), float32, with
-    Hc, Wc = `centre_count` of H, W; feature order [1, shared..., grouped...].
-    packed: `pack_planes(terms, target, params)` when the caller already has it.
+    channels g*M ... g*M+M-1). Returns beta (Hc, Wc, G, K1, M) float32, Hc, Wc = `centre_count` of H, W;
+    feature order [1, shared..., grouped...]. packed: `pack_planes(terms, target, params)`, if at hand.
     """
     hc, wc, g, k1, m = _moment_shape(terms, target, params)
     layout = _Layout(terms, target.shape[0])
@@ -384,26 +384,46 @@ def block_moments(
     _block_moments_kernel(
         pack_planes(terms, target, params) if packed is None else packed, layout.counts(),
         np.asarray(terms.scaled, np.bool_),
-        spatial_weights(params), params.radius, params.sparsity, _constants(), fa, fb, acc,
+        spatial_weights(params), params.radius, params.sparsity, _constants(), fa, fb, is_cross_layout(layout), acc,
     )  # fmt: skip
-    gram_src, gram_dst, rhs_src, rhs_dst = [], [], [], []
+    gram_entry = np.zeros((g, k1, k1), np.int64)  # which accumulator holds each gram / rhs element
+    rhs_entry = np.zeros((g, k1, m), np.int64)
     for e, (kind, gi, p, q) in enumerate(dest):
         if kind == 2:
-            rhs_src.append(e), rhs_dst.append((gi * k1 + p) * m + q)
-            continue
-        for gg in range(g) if kind == 0 else (gi,):  # kind 0: the shared block, in every group
-            for i, j in {(p, q), (q, p)}:
-                gram_src.append(e), gram_dst.append((gg * k1 + i) * k1 + j)
-    entries = acc.transpose(0, 2, 1)  # (Hc, Wc, entries): one gather per output, no strided loop
-    gram = np.empty((hc, wc, g * k1 * k1), np.float32)
-    gram[:, :, gram_dst] = entries[:, :, gram_src]
-    rhs = np.empty((hc, wc, g * k1 * m), np.float32)
-    rhs[:, :, rhs_dst] = entries[:, :, rhs_src]
-    return gram.reshape(hc, wc, g, k1, k1), rhs.reshape(hc, wc, g, k1, m)
+            rhs_entry[gi, p, q] = e
+        else:
+            for gg in range(g) if kind == 0 else (gi,):  # kind 0: the shared block, in every group
+                gram_entry[gg, p, q] = gram_entry[gg, q, p] = e
+    beta = np.empty((hc, wc, g, k1, m), np.float32)
+    _moments_solve_kernel(acc, gram_entry, rhs_entry, float(params.ridge_relative), float(params.ridge_absolute), beta)
+    return beta
+
+
+@numba.njit(parallel=True, cache=True)
+def _moments_solve_kernel(acc, gram_entry, rhs_entry, ridge_relative, ridge_absolute, beta):
+    """acc (Hc, entries, Wc) float32 moments -> beta (Hc, Wc, G, K1, M): `cholesky_ridge_solve` per group."""
+    hc, _, wc = acc.shape
+    g, k1, m = rhs_entry.shape
+    for a in numba.prange(hc):
+        x = np.empty((k1, k1))
+        y = np.empty((k1, m))
+        for b in range(wc):
+            for gi in range(g):
+                for i in range(k1):
+                    for j in range(k1):
+                        x[i, j] = acc[a, gram_entry[gi, i, j], b]
+                    for c in range(m):
+                        y[i, c] = acc[a, rhs_entry[gi, i, c], b]
+                cholesky_ridge_solve(x, y, k1, m, ridge_relative, ridge_absolute, True, 0.0)
+                for i in range(k1):
+                    for c in range(m):
+                        beta[a, b, gi, i, c] = y[i, c]
 
 
 def block_moments_reference(terms: PairTerms, target: np.ndarray, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
-    """Plain-numpy twin of `block_moments` (same arguments and result), vectorised over centres."""
+    """Plain-numpy moments of every centre's window (Choi eq. 4), vectorised over centres: gram X^T W X
+    (Hc, Wc, G, K1, K1) and rhs X^T W Y (Hc, Wc, G, K1, M), float32 (arguments as `block_solve`).
+    `solve_ridge_reference` of them is the twin of `block_solve`."""
     hc, wc, g, k1, m = _moment_shape(terms, target, params)
     _, height, width = target.shape
     s, r = params.sparsity, params.radius
@@ -469,7 +489,7 @@ def _pair_features(terms: PairTerms, centre: tuple[slice, slice], pixel: tuple[s
 
 # ---------------------------------------------------------------------------- numba kernels' layout
 
-LANE_CHUNK = 128  # centres processed together by the kernels: their accumulators fit the L1 cache
+LANE_CHUNK = 512  # centres processed together: a whole centre row up to 2048 px wide (fewer, longer loops)
 #
 # The kernels vectorise over the centres of one centre row ("lanes"). For a window offset (dy, dx) the
 # pixels of consecutive centres are `sparsity` apart, so every input plane is split into `sparsity` phase
@@ -637,7 +657,10 @@ def _pair_rows(planes, counts, scaled, consts, sw, phase, y, cy, lo, pad, rows, 
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True)
-def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, fa, fb, acc):
+def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, fa, fb, cross, acc):
+    """Moments of every centre row's lanes into acc (Hc, entries, Wc). cross: the terms have the
+    cross-regression layout (`is_cross_layout`), whose 61 entries `_accumulate_cross` sums in fused passes;
+    otherwise entry e is sum w * F[fa[e]] * F[fb[e]], one pass per entry."""
     height = planes.shape[2]
     hc, entries, lanes = acc.shape
     nrows = 1 + counts[1] + counts[2] * counts[3] + counts[4]
@@ -650,7 +673,7 @@ def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, con
         part = np.empty((entries, LANE_CHUNK), np.float32)
         rows[0, :] = 1.0
         cy = a * sparsity
-        for j0 in range(0, lanes, LANE_CHUNK):  # chunks whose accumulators stay in L1
+        for j0 in range(0, lanes, LANE_CHUNK):
             n = min(LANE_CHUNK, lanes - j0)
             part[:, :] = 0.0
             for dy in range(-radius, radius + 1):
@@ -662,6 +685,9 @@ def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, con
                     lo = pad + dx // sparsity + j0
                     _pair_rows(planes, counts, scaled, consts, spatial[dy + radius, dx + radius], phase, y, cy, lo,
                                pad + j0, rows, w, s, n)  # fmt: skip
+                    if cross:
+                        _accumulate_cross(part, rows, w, n)
+                        continue
                     last = -1
                     for e in range(entries):
                         if fa[e] != last:
@@ -672,6 +698,58 @@ def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, con
                         for j in range(n):
                             part[e, j] += wf[j] * rows[b, j]
             acc[a, :, j0 : j0 + n] = part[:, :n]
+
+
+CROSS_COUNTS = (3, 2, 3)  # shared features, grouped features per group, groups (one target channel each)
+
+
+def is_cross_layout(layout: _Layout) -> bool:
+    """Whether `_accumulate_cross` applies: the pair features of Choi eq. 6 (3 shared, 2 grouped per
+    colour channel) with one target channel per group; any number of weight guides."""
+    return (layout.ks, layout.kg, layout.g) == CROSS_COUNTS and layout.m == 1
+
+
+@numba.njit(inline="always", fastmath=True)
+def _accumulate_cross(part, rows, w, n):
+    """The 61 moments of the cross layout, in `_Layout.moment_entries` order, in 11 fused passes over the
+    n lanes (a pass per entry is slower: every pass reloads w and its factor). Rows: 0 the
+    constant, 1-3 shared, 4 + 2g and 5 + 2g group g's two grouped features, 10 + g its target."""
+    for j in range(n):  # entries 0-4: 1 x (1, s0, s1, s2), s0 x s0
+        wj = w[j]
+        s0 = wj * rows[1, j]
+        part[0, j] += wj
+        part[1, j] += s0
+        part[2, j] += wj * rows[2, j]
+        part[3, j] += wj * rows[3, j]
+        part[4, j] += s0 * rows[1, j]
+    for j in range(n):  # entries 5-9: s0 x (s1, s2), s1 x (s1, s2), s2 x s2
+        s0, s1, s2 = rows[1, j], rows[2, j], rows[3, j]
+        w1, w2 = w[j] * s1, w[j] * s2
+        part[5, j] += w1 * s0
+        part[6, j] += w2 * s0
+        part[7, j] += w1 * s1
+        part[8, j] += w2 * s1
+        part[9, j] += w2 * s2
+    for g in range(3):  # per group: the scaled feature's column, the plain one's, the target's
+        e, u, v = 10 + 17 * g, 4 + 2 * g, 5 + 2 * g
+        _accumulate(part, rows, w, n, e, u, u, v, False)
+        _accumulate(part, rows, w, n, e + 5, v, u, v, True)
+        _accumulate(part, rows, w, n, e + 11, 10 + g, u, v, True)
+
+
+@numba.njit(inline="always", fastmath=True)
+def _accumulate(part, rows, w, n, e, fa, u, v, with_v):
+    """part[e + k] += w * rows[fa] * rows[f_k] for f = (0, 1, 2, 3, u) and, when with_v, v: one pass.
+    with_v is a literal at every call, so the branch folds away once inlined."""
+    for j in range(n):
+        wf = w[j] * rows[fa, j]
+        part[e, j] += wf
+        part[e + 1, j] += wf * rows[1, j]
+        part[e + 2, j] += wf * rows[2, j]
+        part[e + 3, j] += wf * rows[3, j]
+        part[e + 4, j] += wf * rows[u, j]
+        if with_v:
+            part[e + 5, j] += wf * rows[v, j]
 
 
 # ------------------------------------------------------------------------------ block reconstruction
@@ -729,6 +807,7 @@ def block_reconstruct_reference(terms: PairTerms, beta: np.ndarray, params: Bloc
 @numba.njit(parallel=True, cache=True, fastmath=True)
 def _block_reconstruct_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, coefs, ch, frow, col,
                               num, den):  # fmt: skip
+    """Weighted predictions of every centre into num (S, C, H, lanes) and weights into den (S, H, lanes)."""
     height = planes.shape[2]
     hc, _, lanes = coefs.shape
     channels = num.shape[1]
@@ -756,14 +835,14 @@ def _block_reconstruct_kernel(planes, counts, scaled, spatial, radius, sparsity,
                         lo = pad + dx // sparsity + j0
                         _pair_rows(planes, counts, scaled, consts, spatial[dy + radius, dx + radius], phase, y, cy,
                                    lo, pad + j0, rows, w, s, n)  # fmt: skip
-                        pred[:, :] = 0.0
+                        out = den[phase, y, lo : lo + n]
+                        for j in range(n):
+                            out[j] += w[j]
+                        pred[:, :n] = 0.0
                         for e in range(ch.shape[0]):
                             c, r, coef = ch[e], frow[e], coefs[a, col[e], j0 : j0 + n]
                             for j in range(n):
                                 pred[c, j] += coef[j] * rows[r, j]
-                        out = den[phase, y, lo : lo + n]
-                        for j in range(n):
-                            out[j] += w[j]
                         for c in range(channels):
                             out = num[phase, c, y, lo : lo + n]
                             for j in range(n):
@@ -786,9 +865,7 @@ def block_regression(
         beta = solve_ridge_reference(gram, rhs, params.ridge_relative, params.ridge_absolute)
         return block_reconstruct_reference(terms, beta, params)
     packed = pack_planes(terms, target, params)
-    gram, rhs = block_moments(terms, target, params, packed=packed)
-    beta = solve_ridge(gram, rhs, params.ridge_relative, params.ridge_absolute)
-    return block_reconstruct(terms, beta, params, packed=packed)
+    return block_reconstruct(terms, block_solve(terms, target, params, packed=packed), params, packed=packed)
 
 
 def to_planes(image: np.ndarray) -> np.ndarray:

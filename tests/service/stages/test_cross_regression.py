@@ -7,6 +7,7 @@ from service.stages.cross_regression import (
     linear_to_log,
     log_to_linear,
     pixel_variance,
+    pixel_variance_reference,
 )
 
 PARITY_ATOL = 1e-3  # log units: numba (fast exp, other summation order) vs numpy, float32
@@ -32,6 +33,12 @@ def test_pixel_variance_is_squared_distance_to_the_neighbour_mean():
     var = pixel_variance(planes)
     assert var[1, 1] == pytest.approx(3.0)  # 1^2 per channel, neighbours all 0
     assert var[0, 0] == pytest.approx(3 * (1 / 3) ** 2)
+
+
+@pytest.mark.parametrize("shape", [(3, 1, 1), (3, 1, 7), (3, 6, 1), (3, 2, 2), (3, 31, 47)])
+def test_pixel_variance_matches_the_numpy_reference(shape):
+    planes = np.random.default_rng(4).standard_normal(shape).astype(np.float32)
+    np.testing.assert_allclose(pixel_variance(planes), pixel_variance_reference(planes), rtol=1e-5, atol=1e-6)
 
 
 def test_params_are_validated():

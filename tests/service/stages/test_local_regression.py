@@ -5,11 +5,11 @@ from service.stages.local_regression import (
     BlockParams,
     PairTerms,
     _log_fast,
-    block_moments,
     block_moments_reference,
     block_reconstruct,
     block_reconstruct_reference,
     block_regression,
+    block_solve,
     clamp_fireflies,
     clamp_fireflies_reference,
     clamp_outlier_clusters,
@@ -113,19 +113,38 @@ def test_standardise_matches_the_numpy_reference():
     assert standardise(np.zeros((0, 3, 4), np.float32)).shape == (0, 3, 4)
 
 
-@pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22), (7, 400)])  # 400: more centres than LANE_CHUNK
+@pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22), (4, 1600)])  # 1600: more centres than LANE_CHUNK
 def test_block_kernels_match_the_numpy_reference(size):
+    from service.stages.local_regression import _Layout, is_cross_layout
+
     rng = np.random.default_rng(2)
     terms, target = _random_terms(rng, *size)
     params = BlockParams(radius=5, sparsity=3, sigma_position=4.0)
-    gram, rhs = block_moments(terms, target, params)
-    gram_ref, rhs_ref = block_moments_reference(terms, target, params)
-    np.testing.assert_allclose(gram, gram_ref, rtol=PARITY_RTOL, atol=PARITY_RTOL * np.abs(gram_ref).max())
-    np.testing.assert_allclose(rhs, rhs_ref, rtol=PARITY_RTOL, atol=PARITY_RTOL * np.abs(rhs_ref).max())
-    beta = solve_ridge(gram_ref, rhs_ref)
+    assert is_cross_layout(_Layout(terms, 3))  # the kernel's fused path
+    beta_ref = solve_ridge_reference(*block_moments_reference(terms, target, params))
+    beta = block_solve(terms, target, params)
+    assert beta.shape == beta_ref.shape and beta.dtype == np.float32
+    np.testing.assert_allclose(beta, beta_ref, rtol=PARITY_RTOL, atol=PARITY_RTOL * np.abs(beta_ref).max())
+    beta = beta_ref
     out, out_ref = block_reconstruct(terms, beta, params), block_reconstruct_reference(terms, beta, params)
     assert out.shape == (3, *size) and out.dtype == np.float32
     np.testing.assert_allclose(out, out_ref, rtol=1e-3, atol=1e-3 * np.abs(out_ref).max())
+
+
+@pytest.mark.parametrize("size", [(1, 1), (17, 31)])
+def test_block_solve_matches_the_reference_on_a_non_cross_layout(size):
+    """BMFR-style terms (shared features only) take the kernel's generic one-pass-per-moment path."""
+    from service.stages.local_regression import _Layout, is_cross_layout
+
+    rng = np.random.default_rng(8)
+    terms = plain_terms(rng.standard_normal((5, *size), dtype=np.float32), groups=3)
+    target = rng.standard_normal((3, *size), dtype=np.float32)
+    assert not is_cross_layout(_Layout(terms, 3))
+    params = BlockParams(radius=4, sparsity=2, sigma_position=3.0)
+    beta_ref = solve_ridge_reference(*block_moments_reference(terms, target, params))
+    np.testing.assert_allclose(
+        block_solve(terms, target, params), beta_ref, rtol=PARITY_RTOL, atol=PARITY_RTOL * np.abs(beta_ref).max()
+    )
 
 
 @pytest.mark.parametrize("size", [(1, 1), (3, 5), (29, 22)])
