@@ -777,10 +777,24 @@ def block_reconstruct(
     coefs = np.ascontiguousarray(beta.reshape(hc, wc, -1).transpose(0, 2, 1))  # (Hc, G*K1*M, Wc)
     _block_reconstruct_kernel(planes, layout.counts(), np.asarray(terms.scaled, np.bool_), spatial_weights(params),
                               params.radius, s, _constants(), coefs, ch, rows, cols, num, den)  # fmt: skip
-    pad = _pad_lanes(params)
-    num, den = num[..., pad : pad + wc], den[..., pad : pad + wc]  # (S, C, H, Wc), (S, H, Wc)
-    out = (num / np.where(den > 0, den, 1.0)[:, None]).transpose(1, 2, 3, 0).reshape(g * m, height, wc * s)
-    return np.ascontiguousarray(out[:, :, :width])
+    out = np.empty((g * m, height, width), np.float32)
+    _normalise_kernel(num, den, _pad_lanes(params), out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _normalise_kernel(num, den, pad, out):
+    """Back from the phase planes, eq. 5's division: out[c, y, x] = num[p, c, y, q] / den[p, y, q] with
+    p = x % S, q = pad + x // S (0 where no weight arrived). num (S, C, H, L), den (S, H, L), out (C, H, W)."""
+    s = num.shape[0]
+    channels, height, width = out.shape
+    for y in numba.prange(height):
+        for x in range(width):
+            p, q = x % s, pad + x // s
+            d = den[p, y, q]
+            inv = np.float32(1.0) / d if d > 0 else np.float32(1.0)
+            for c in range(channels):
+                out[c, y, x] = num[p, c, y, q] * inv
 
 
 def block_reconstruct_reference(terms: PairTerms, beta: np.ndarray, params: BlockParams) -> np.ndarray:
