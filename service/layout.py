@@ -1,9 +1,11 @@
 """The one source of truth for how arrays meet networks: channel order, padding alignment, layout.
 
-numpy stages work in (H, W, C); networks in (N, C, H, W). Every network input is a stack of named
-channel groups in a fixed order, each with the transform applied before stacking. `models/` (training),
-`export/` (ONNX export, which writes this contract into the file's metadata) and `service/` (inference,
-which reads it back) all import these names; nothing else hard-codes an order or an alignment.
+numpy stages work in (H, W, C); networks in (N, C, H, W), and a stage that reads a network's input or
+output as they are (the crossreg spatiotemporal filter) in its channel planes (C, H, W). Every network
+input is a stack of named channel groups in a fixed order, each with the transform applied before
+stacking. `models/` (training), `export/` (ONNX export, which writes this contract into the file's
+metadata) and `service/` (inference, which reads it back) all import these names; nothing else
+hard-codes an order or an alignment.
 
 Pure numpy: no torch here (service/ must import without it). Torch callers convert with
 `torch.from_numpy(hwc_to_nchw(...))`, or apply `pad_amounts` with `torch.nn.functional.pad`.
@@ -80,8 +82,9 @@ def channel_slices(groups: Sequence[ChannelGroup]) -> dict[str, slice]:
     return out
 
 
-def stack_channels(groups: Sequence[ChannelGroup], arrays: Mapping[str, np.ndarray]) -> np.ndarray:
-    """Stack the (H, W, c) float32 arrays named by `groups`, in their order, into (H, W, C) float32.
+def stack_planes(groups: Sequence[ChannelGroup], arrays: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Stack the (H, W, c) float32 arrays named by `groups`, in their order, into contiguous planes
+    (C, H, W) float32: the network's input without its batch axis.
 
     Raises ValueError naming a missing group or a wrong channel count.
     """
@@ -93,7 +96,10 @@ def stack_channels(groups: Sequence[ChannelGroup], arrays: Mapping[str, np.ndarr
         if arr.ndim != 3 or arr.shape[2] != group.channels:
             raise ValueError(f"network input '{group.name}' has shape {arr.shape}; expected (H, W, {group.channels})")
         parts.append(arr)
-    return np.ascontiguousarray(np.concatenate(parts, axis=-1), dtype=np.float32)
+    out = np.empty((total_channels(groups), *parts[0].shape[:2]), np.float32)
+    for part, where in zip(parts, channel_slices(groups).values(), strict=True):
+        out[where] = part.transpose(2, 0, 1)  # plane copies, no per-pixel interleaving
+    return out
 
 
 def groups_to_json(groups: Sequence[ChannelGroup]) -> list[dict[str, object]]:
@@ -123,6 +129,14 @@ def pad_hwc(arr: np.ndarray, alignment: int) -> np.ndarray:
     if rows == 0 and cols == 0:
         return arr
     return np.pad(arr, ((0, rows), (0, cols), (0, 0)), mode="edge")
+
+
+def pad_planes(arr: np.ndarray, alignment: int) -> np.ndarray:
+    """`pad_hwc` for planes (C, H, W): edge replication at the bottom and right. Undo by `out[:, :H, :W]`."""
+    rows, cols = pad_amounts(arr.shape[1], arr.shape[2], alignment)
+    if rows == 0 and cols == 0:
+        return arr
+    return np.pad(arr, ((0, 0), (0, rows), (0, cols)), mode="edge")
 
 
 def hwc_to_nchw(arr: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from service.layout import ChannelGroup, groups_from_json, hwc_to_nchw, nchw_to_hwc, pad_hwc, total_channels
+from service.layout import ChannelGroup, groups_from_json, pad_planes, total_channels
 
 METADATA_KEY = "mcdenoise"  # ONNX metadata_props key of the JSON contract
 THREADS_ENV = "MCDENOISE_ORT_THREADS"  # intra-op threads when no argument says otherwise (0: ORT default)
@@ -81,8 +81,8 @@ class ModelInfo:
     @classmethod
     def from_json(cls, text: str) -> ModelInfo:
         meta = json.loads(text)
-        (input_name, inputs), = meta["inputs"].items()
-        (output_name, outputs), = meta["outputs"].items()
+        ((input_name, inputs),) = meta["inputs"].items()
+        ((output_name, outputs),) = meta["outputs"].items()
         return cls(
             network=str(meta["network"]),
             alignment=int(meta["alignment"]),
@@ -135,15 +135,24 @@ class OnnxModel:
         """x: (N, C_in, H, W) float32, H and W multiples of the alignment -> (N, C_out, H, W) float32."""
         return self._session_obj.run(None, {self.info.input_name: x})[0]
 
+    def run_planes(self, planes: np.ndarray) -> np.ndarray:
+        """planes: (C_in, H, W) float32 in info.input_groups order, any H and W (padded here by edge
+        replication to the alignment, cropped back) -> (C_out, H, W) float32 in info.output_groups order,
+        contiguous. No copy of the input or the output when H and W are multiples of the alignment."""
+        expected = total_channels(self.info.input_groups)
+        if planes.ndim != 3 or planes.shape[0] != expected:
+            raise ValueError(f"network input has shape {planes.shape}; expected ({expected}, H, W)")
+        height, width = planes.shape[1:]
+        padded = np.ascontiguousarray(pad_planes(planes, self.info.alignment), dtype=np.float32)
+        out = self.run_nchw(padded[None])[0]
+        return np.ascontiguousarray(out[:, :height, :width])
+
     def run_hwc(self, features: np.ndarray) -> np.ndarray:
-        """features: (H, W, C_in) float32 in info.input_groups order, any H and W (padded here by edge
-        replication to the alignment, cropped back) -> (H, W, C_out) float32 in info.output_groups order."""
+        """`run_planes` for (H, W, C_in) features -> (H, W, C_out) float32, contiguous."""
         expected = total_channels(self.info.input_groups)
         if features.ndim != 3 or features.shape[2] != expected:
             raise ValueError(f"network input has shape {features.shape}; expected (H, W, {expected})")
-        height, width = features.shape[:2]
-        out = self.run_nchw(hwc_to_nchw(pad_hwc(features, self.info.alignment)))
-        return nchw_to_hwc(out[..., :height, :width])  # crop, then one contiguous copy
+        return np.ascontiguousarray(self.run_planes(features.transpose(2, 0, 1)).transpose(1, 2, 0))
 
     def check_weights(self, weights: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Validated float32 copies of `weights`; raises WeightError / NonFiniteWeightsError naming the first

@@ -169,7 +169,7 @@ def _time_size(width: int, height: int, repeats: int) -> dict[str, float]:
         pipeline.step(frames[1], state)
 
     prepared = prepare_frame(frames[1], history)
-    params = state.model.run_hwc(prepared.features)
+    params = state.model.run_planes(prepared.planes)
     sample = prepared.sample()
     net = make_unet(seed=0)
     opt = make_optimizer(net)
@@ -180,8 +180,8 @@ def _time_size(width: int, height: int, repeats: int) -> dict[str, float]:
         "crossreg inference (whole step)": crossreg_ms,
         "OIDN high (pyoidn, albedo + normal)": oidn_ms,
         "  cross-regression + reprojection + screening": _median_ms(lambda: prepare_frame(frames[1], history), repeats),
-        "  U-Net (ONNX Runtime)": _median_ms(lambda: state.model.run_hwc(prepared.features), repeats),
-        "  spatiotemporal filter (numba)": _median_ms(lambda: filter_frame(prepared, params, frames[1]), repeats),
+        "  U-Net (ONNX Runtime)": _median_ms(lambda: state.model.run_planes(prepared.planes), repeats),
+        "  spatiotemporal filter (numba)": _median_ms(lambda: filter_frame(prepared, params), repeats),
         "training step, 128x128 crop (torch, 1 thread)": _median_ms(lambda: train_step(net, opt, crop128), repeats),
     }
     if width * height <= 256 * 256:

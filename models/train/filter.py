@@ -27,9 +27,7 @@ class FilterResult:
     weight_b: torch.Tensor
 
 
-def _sq_dist(
-    padded: torch.Tensor, centre: torch.Tensor, dy: int, dx: int, r: int
-) -> tuple[torch.Tensor, torch.Tensor]:
+def _sq_dist(padded: torch.Tensor, centre: torch.Tensor, dy: int, dx: int, r: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(squared distance summed over channels (N, 1, H, W), the shifted neighbours (N, C, H, W))."""
     height, width = centre.shape[-2:]
     nb = padded[..., r + dy : r + dy + height, r + dx : r + dx + width]
@@ -44,7 +42,8 @@ def cross_bilateral_sums(
     precisions: torch.Tensor,
     radius: int = FILTER_RADIUS,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Eq. 8-9 weighted sums; see service.stages.spatiotemporal_filter.cross_bilateral_sums.
+    """Eq. 8-9 weighted sums over the window (the numpy side forms them inside its kernel, see
+    service.stages.spatiotemporal_filter._filter_reference).
 
     pilot_a, pilot_b: (N, 3, H, W) log1p radiance; albedo, normal: (N, 3, H, W);
     precisions: (N, 5, H, W) > 0 (kA, kB, kAlbedo, kNormal, kPosition).

@@ -8,6 +8,8 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
   4. spatiotemporal filter: 11x11 cross-bilateral means, temporal blend, A/B combination (eqs. 8-10)
   5. optional: the frame's training sample goes to the online worker (sec. 4.3); weights it publishes are
      swapped into ONNX Runtime at the start of a later frame
+Between the stages arrays are channel planes (C, H, W), the network's layout: the U-Net's input planes are
+stacked once, and the filter reads them and the network's output as they are.
 State kept explicitly in CrossregState: previous output and pilots (log1p), previous depth and normal, the
 ONNX model of the sequence, the online trainer. Without `online` the shipped warm-start weights
 (models/weights/crossreg_unet.onnx) serve; with it they are the starting point, or random weights with
@@ -25,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from service.frame import Frame
-from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, stack_channels, total_channels
+from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, channel_slices, stack_planes, total_channels
 from service.online.trainer import OnlineConfig, OnlineTrainer, require_torch
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
@@ -58,33 +60,52 @@ class CrossregOptions:
 
 @dataclass
 class History:
-    """What frame t keeps for frame t + 1; all (H, W, C) float32."""
+    """What frame t keeps for frame t + 1."""
 
-    colors: np.ndarray  # (H, W, 9) filter output f(x), pilot A, pilot B: log1p radiance, reprojected in one pass
-    normal: np.ndarray  # (H, W, 3) for the reprojection's normal test
-    depth: np.ndarray | None  # (H, W, 1) for the depth test, when the frames carry depth
+    colors: np.ndarray  # (9, H, W) float32 planes: pilot A, pilot B, filter output f(x), log1p; reprojected in one pass
+    normal: np.ndarray  # (H, W, 3) float32, for the reprojection's normal test
+    depth: np.ndarray | None  # (H, W, 1) float32, for the depth test, when the frames carry depth
+
+
+_INPUT = channel_slices(CROSSREG_INPUTS)
 
 
 @dataclass
 class Prepared:
-    """One frame ready for the network and the filter; (H, W, C) float32 log1p radiance unless stated."""
+    """One frame ready for the network and the filter; log1p radiance unless stated."""
 
-    pilot_a: np.ndarray
-    pilot_b: np.ndarray
-    previous: np.ndarray  # reprojected previous output where `valid`, the pilots' mean elsewhere
+    planes: np.ndarray  # (15, H, W) float32 network input in layout.CROSSREG_INPUTS order; `previous` is the
+    # reprojected previous output where `valid`, the pilots' mean elsewhere. The filter reads its planes.
     valid: np.ndarray  # (H, W) bool: history usable (reprojected, consistent, screened)
-    previous_pilot_a: np.ndarray  # temporal label of output B (eq. 13), current pilot A where invalid
-    previous_pilot_b: np.ndarray  # temporal label of output A
-    features: np.ndarray  # (H, W, 15) network input, layout.CROSSREG_INPUTS order
+    previous_pilots: np.ndarray  # (6, H, W) float32: the previous pilots A, B reprojected where each passed
+    # its screening, the current ones elsewhere: temporal labels of outputs B and A (eq. 13)
+
+    def plane_group(self, name: str) -> np.ndarray:
+        """(c, H, W) float32 view of the input group `name` (layout.CROSSREG_INPUTS)."""
+        return self.planes[_INPUT[name]]
+
+    @property
+    def pilot_a(self) -> np.ndarray:
+        """(H, W, 3) float32 view."""
+        return self.plane_group("pilotA").transpose(1, 2, 0)
+
+    @property
+    def pilot_b(self) -> np.ndarray:
+        """(H, W, 3) float32 view."""
+        return self.plane_group("pilotB").transpose(1, 2, 0)
+
+    @property
+    def features(self) -> np.ndarray:
+        """(H, W, 15) float32 view of the network input."""
+        return self.planes.transpose(1, 2, 0)
 
     def sample(self) -> np.ndarray:
-        """(H, W, 22) training sample in layout.CROSSREG_SAMPLE order."""
-        extra = np.concatenate(
-            [self.valid[..., None].astype(np.float32), self.previous_pilot_a, self.previous_pilot_b], axis=-1
-        )
-        out = np.concatenate([self.features, extra], axis=-1, dtype=np.float32)
-        assert out.shape[-1] == total_channels(CROSSREG_SAMPLE)
-        return out
+        """(H, W, 22) float32 training sample in layout.CROSSREG_SAMPLE order: a view of channel planes
+        (crop it, then copy)."""
+        valid = self.valid[None].astype(np.float32)
+        out = np.concatenate([self.planes, valid, self.previous_pilots], axis=0)
+        assert out.shape[0] == total_channels(CROSSREG_SAMPLE)
+        return out.transpose(1, 2, 0)
 
 
 def prepare_frame(
@@ -97,44 +118,43 @@ def prepare_frame(
 ) -> Prepared:
     """Stages 1-2 and the network input. frame: emission-free Frame with colorA, colorB, albedo, normal,
     motion (depth optional). history: the previous frame's, or None at the start of a sequence.
-    pilots: the frame's (pilot_a, pilot_b) when already computed (offline training caches them)."""
+    pilots: the frame's (pilot_a, pilot_b), (H, W, 3) float32 log1p, when already computed (offline
+    training caches them)."""
     albedo, normal = frame["albedo"], frame["normal"]
     if pilots is None:
         pilots = cross_regression(frame["colorA"], frame["colorB"], albedo, normal, params)
     pilot_a, pilot_b = pilots
     mean = 0.5 * (pilot_a + pilot_b)
+    groups = {"pilotA": pilot_a, "pilotB": pilot_b, "previous": mean, "albedo": albedo, "normal": normal}
+    planes = stack_planes(CROSSREG_INPUTS, groups)
     if history is None:
-        valid = np.zeros(mean.shape[:2], bool)
-        previous, prev_a, prev_b = mean, pilot_a, pilot_b
-    else:
-        warped, valid = reproject(
-            history.colors, frame["motion"], depth=frame.get("depth"), prev_depth=history.depth,
-            normal=normal, prev_normal=history.normal, params=REPROJECTION,
-        )  # fmt: skip
-        valid_a = valid_b = valid
-        if screen:  # output against the pilots' mean, each previous pilot against its current pilot
-            current = np.concatenate([mean, pilot_a, pilot_b], axis=-1)
-            masks = screen_history(current, warped, valid, groups=3)
-            valid, valid_a, valid_b = masks[..., 0], masks[..., 1], masks[..., 2]
-        previous = np.where(valid[..., None], warped[..., 0:3], mean)
-        prev_a = np.where(valid_a[..., None], warped[..., 3:6], pilot_a)
-        prev_b = np.where(valid_b[..., None], warped[..., 6:9], pilot_b)
-    groups = {"pilotA": pilot_a, "pilotB": pilot_b, "previous": previous, "albedo": albedo, "normal": normal}
-    features = stack_channels(CROSSREG_INPUTS, groups)
-    return Prepared(pilot_a, pilot_b, previous.astype(np.float32, copy=False), valid, prev_a, prev_b, features)
-
-
-def filter_frame(prepared: Prepared, params: np.ndarray, frame: Frame) -> FilterOutput:
-    """Stage 4: eqs. 8-10 with the network's params (H, W, 6), in log1p space."""
-    return spatiotemporal_filter(
-        prepared.pilot_a, prepared.pilot_b, frame["albedo"], frame["normal"], params,
-        prepared.previous, prepared.valid,
+        return Prepared(planes, np.zeros(mean.shape[:2], bool), planes[:6])
+    warped, valid = reproject(
+        history.colors.transpose(1, 2, 0), frame["motion"], depth=frame.get("depth"), prev_depth=history.depth,
+        normal=normal, prev_normal=history.normal, params=REPROJECTION,
     )  # fmt: skip
+    warped = warped.transpose(2, 0, 1)  # (9, H, W): the planes of History.colors, warped
+    current = planes[:9]  # pilot A, pilot B, their mean: what each history plane is screened against
+    if screen:  # each previous pilot against its current pilot, the output against the pilots' mean
+        masks, screened = screen_history(current, warped, valid, groups=3)
+    else:
+        masks = np.broadcast_to(valid, (3, *valid.shape))
+        screened = np.where(np.repeat(masks, 3, axis=0), warped, current)
+    planes[_INPUT["previous"]] = screened[6:9]
+    return Prepared(planes, masks[2], screened[:6])
+
+
+def filter_frame(prepared: Prepared, params: np.ndarray) -> FilterOutput:
+    """Stage 4: eqs. 8-10 with the network's output params (6, H, W), in log1p space, on the input planes."""
+    p = prepared.plane_group
+    return spatiotemporal_filter(
+        p("pilotA"), p("pilotB"), p("albedo"), p("normal"), params, p("previous"), prepared.valid
+    )
 
 
 def next_history(frame: Frame, prepared: Prepared, color: np.ndarray) -> History:
     """What frame t + 1 needs from frame t; color: (H, W, 3) float32 filter output f(x), log1p radiance."""
-    colors = np.concatenate([color, prepared.pilot_a, prepared.pilot_b], axis=-1, dtype=np.float32)
+    colors = np.concatenate([prepared.planes[:6], color.transpose(2, 0, 1)], axis=0, dtype=np.float32)
     return History(colors, frame["normal"], frame.get("depth"))
 
 
@@ -228,13 +248,13 @@ class CrossregPipeline(Pipeline):
         if state.trainer is not None:
             self._take_published_weights(state)
         prepared = prepare_frame(frame, state.history, screen=self.options.screen)
-        params = state.model.run_hwc(prepared.features)
-        output = filter_frame(prepared, params, frame)
+        params = state.model.run_planes(prepared.planes)
+        output = filter_frame(prepared, params)
         if state.trainer is not None:
             state.trainer.submit(prepared.sample(), state.frame_index)
-        state.history = next_history(frame, prepared, output.color)
-        color = np.maximum(log_to_linear(output.color), np.float32(0.0))
-        return {"color": color}, state
+        color = np.ascontiguousarray(output.color.transpose(1, 2, 0))  # (H, W, 3) log1p
+        state.history = next_history(frame, prepared, color)
+        return {"color": np.maximum(log_to_linear(color), np.float32(0.0))}, state
 
     @staticmethod
     def _take_published_weights(state: CrossregState) -> None:

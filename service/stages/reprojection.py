@@ -114,49 +114,58 @@ def _tap_consistent(ty, tx, z, n0, n1, n2, hit, prev_depth, prev_normal, use_dep
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _reproject_kernel(buffer, motion, depth, prev_depth, normal, prev_normal, use_depth, use_normal, tolerance,
-                      cos_min, min_weight):
-    """`reproject_numpy` pixel by pixel, rows in parallel: the same float64 sample positions and float32 weights."""
+def _reproject_kernel(
+    buffer,
+    motion,
+    depth,
+    prev_depth,
+    normal,
+    prev_normal,
+    use_depth,
+    use_normal,
+    tolerance,
+    cos_min,
+    min_weight,
+    warped,
+):
+    """`reproject_numpy` pixel by pixel, rows in parallel: the same float64 sample positions and float32 weights.
+    Writes warped (H, W, C) float32 (any strides); returns valid (H, W) bool."""
     height, width, channels = buffer.shape
-    warped = np.empty((height, width, channels), np.float32)
     valid = np.empty((height, width), np.bool_)
     one = np.float32(1.0)
     for yy in prange(height):
         y = np.int64(yy)
         acc = np.empty(channels, np.float32)
         for x in range(width):
-            valid[y, x] = False
-            for c in range(channels):
-                warped[y, x, c] = 0.0
-            ys = y + np.float64(motion[y, x, 1])
-            xs = x + np.float64(motion[y, x, 0])
-            if not (ys >= -0.5 and ys < height - 0.5 and xs >= -0.5 and xs < width - 0.5):
-                continue  # off screen (NaN motion lands here too)
-            y0, x0 = np.floor(ys), np.floor(xs)
-            fy, fx = np.float32(ys - y0), np.float32(xs - x0)
-            iy, ix = np.int64(y0), np.int64(x0)
-            z = depth[y, x] if use_depth else np.float32(0.0)
-            n0, n1, n2 = (normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]) if use_normal else (one, one, one)
-            hit = n0 * n0 + n1 * n1 + n2 * n2 > np.float32(NORMAL_HIT)
             for c in range(channels):
                 acc[c] = 0.0
             total = np.float32(0.0)
-            for tap in range(4):
-                ty, tx = iy + tap // 2, ix + tap % 2
-                weight = (fy if tap // 2 else one - fy) * (fx if tap % 2 else one - fx)
-                if ty < 0 or ty >= height or tx < 0 or tx >= width or not weight > 0:
-                    continue
-                if not _tap_consistent(ty, tx, z, n0, n1, n2, hit, prev_depth, prev_normal, use_depth, use_normal,
-                                       tolerance, cos_min):
-                    continue
-                for c in range(channels):
-                    acc[c] += weight * buffer[ty, tx, c]
-                total += weight
-            if total >= min_weight:
-                valid[y, x] = True
-                for c in range(channels):
-                    warped[y, x, c] = acc[c] / total
-    return warped, valid
+            ys = y + np.float64(motion[y, x, 1])
+            xs = x + np.float64(motion[y, x, 0])
+            if ys >= -0.5 and ys < height - 0.5 and xs >= -0.5 and xs < width - 0.5:  # on screen (NaN is not)
+                y0, x0 = np.floor(ys), np.floor(xs)
+                fy, fx = np.float32(ys - y0), np.float32(xs - x0)
+                iy, ix = np.int64(y0), np.int64(x0)
+                z = depth[y, x] if use_depth else np.float32(0.0)
+                n0, n1, n2 = (normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]) if use_normal else (one, one, one)
+                hit = n0 * n0 + n1 * n1 + n2 * n2 > np.float32(NORMAL_HIT)
+                for tap in range(4):
+                    ty, tx = iy + tap // 2, ix + tap % 2
+                    weight = (fy if tap // 2 else one - fy) * (fx if tap % 2 else one - fx)
+                    if ty < 0 or ty >= height or tx < 0 or tx >= width or not weight > 0:
+                        continue
+                    if not _tap_consistent(
+                        ty, tx, z, n0, n1, n2, hit, prev_depth, prev_normal, use_depth, use_normal, tolerance, cos_min
+                    ):
+                        continue
+                    for c in range(channels):
+                        acc[c] += weight * buffer[ty, tx, c]
+                    total += weight
+            ok = total >= min_weight  # min_weight > 0: off screen is never valid
+            valid[y, x] = ok
+            for c in range(channels):
+                warped[y, x, c] = acc[c] / total if ok else np.float32(0.0)
+    return valid
 
 
 def reproject(
@@ -180,13 +189,17 @@ def reproject(
         and previous frame; both or neither. A tap is inconsistent when dot(n, n_prev) < normal_cos_min
         or exactly one of the two is a hit.
     Returns (warped, valid): warped (H, W, C) float32, the bilinear sample renormalised over consistent
-    taps, zero where invalid; valid (H, W) bool, see the module docstring (eroded if `params.erode`).
+    taps, zero where invalid, laid out in memory as `buffer` is (a channel-planar buffer, an (H, W, C) view
+    of (C, H, W) planes, gives a channel-planar result); valid (H, W) bool, see the module docstring
+    (eroded if `params.erode`).
     """
     params = _checked(depth, prev_depth, normal, prev_normal, params)
     height, width = buffer.shape[:2]
     no_depth, no_normal = np.zeros((1, 1), np.float32), np.zeros((1, 1, 3), np.float32)
-    warped, valid = _reproject_kernel(
-        np.ascontiguousarray(buffer, np.float32),
+    buffer = np.asarray(buffer, np.float32)
+    warped = np.empty_like(buffer)  # same memory order as the buffer
+    valid = _reproject_kernel(
+        buffer,
         np.ascontiguousarray(motion, np.float32),
         no_depth if depth is None else np.ascontiguousarray(depth.reshape(height, width), np.float32),
         no_depth if prev_depth is None else np.ascontiguousarray(prev_depth.reshape(height, width), np.float32),
@@ -197,6 +210,7 @@ def reproject(
         np.float32(params.depth_tolerance),
         np.float32(params.normal_cos_min),
         np.float32(params.min_weight),
+        warped,
     )
     if params.erode:
         valid = erode(valid)

@@ -12,22 +12,23 @@ PARITY_ATOL = 2e-5  # polynomial exp (rel. error < 5e-6) against torch.exp, valu
 
 
 def _case(height, width, seed):
+    """Planes (C, H, W) as the numpy filter takes them; valid (H, W) bool."""
     rng = np.random.default_rng(seed)
-    pa = rng.random((height, width, 3), np.float32) * 3
-    pb = pa + 0.3 * rng.standard_normal((height, width, 3)).astype(np.float32)
-    albedo = rng.random((height, width, 3), np.float32)
-    normal = rng.standard_normal((height, width, 3)).astype(np.float32)
-    precisions = np.exp(rng.uniform(-3, 5, (height, width, 5))).astype(np.float32)
-    alpha = rng.random((height, width, 1), np.float32)
-    params = np.concatenate([precisions, alpha], -1)
-    previous = rng.random((height, width, 3), np.float32) * 3
+    pa = rng.random((3, height, width), np.float32) * 3
+    pb = pa + 0.3 * rng.standard_normal((3, height, width)).astype(np.float32)
+    albedo = rng.random((3, height, width), np.float32)
+    normal = rng.standard_normal((3, height, width)).astype(np.float32)
+    precisions = np.exp(rng.uniform(-3, 5, (5, height, width))).astype(np.float32)
+    alpha = rng.random((1, height, width), np.float32)
+    params = np.concatenate([precisions, alpha])
+    previous = rng.random((3, height, width), np.float32) * 3
     valid = rng.random((height, width)) > 0.4
     return pa, pb, albedo, normal, params, previous, valid
 
 
 def _t(a):
-    a = a[..., None] if a.ndim == 2 else a
-    return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)[None], dtype=np.float32))
+    """Planes (C, H, W) or a mask (H, W) -> (1, C, H, W) float32 tensor."""
+    return torch.from_numpy(np.ascontiguousarray(a.reshape(-1, *a.shape[-2:])[None], dtype=np.float32))
 
 
 @pytest.mark.parametrize("size", [(13, 17), (5, 3), (1, 1), (16, 12)])
@@ -36,8 +37,7 @@ def test_numpy_and_torch_filters_agree(size):
     ref = filter_numpy(pa, pb, albedo, normal, params, previous, valid)
     out = filter_torch(_t(pa), _t(pb), _t(albedo), _t(normal), _t(params), _t(previous), _t(valid))
     for name in ("color", "color_a", "color_b"):
-        got = getattr(out, name)[0].numpy().transpose(1, 2, 0)
-        np.testing.assert_allclose(got, getattr(ref, name), atol=PARITY_ATOL, err_msg=name)
+        np.testing.assert_allclose(getattr(out, name)[0].numpy(), getattr(ref, name), atol=PARITY_ATOL, err_msg=name)
     np.testing.assert_allclose(out.weight_a[0, 0].numpy(), ref.weight_a, rtol=1e-5)
     np.testing.assert_allclose(out.weight_b[0, 0].numpy(), ref.weight_b, rtol=1e-5)
 
@@ -46,7 +46,7 @@ def test_without_history_torch_matches_numpy():
     pa, pb, albedo, normal, params, _, _ = _case(7, 9, seed=5)
     ref = filter_numpy(pa, pb, albedo, normal, params)
     out = filter_torch(_t(pa), _t(pb), _t(albedo), _t(normal), _t(params))
-    np.testing.assert_allclose(out.color[0].numpy().transpose(1, 2, 0), ref.color, atol=PARITY_ATOL)
+    np.testing.assert_allclose(out.color[0].numpy(), ref.color, atol=PARITY_ATOL)
 
 
 def test_gradient_reaches_every_parameter_channel():

@@ -41,6 +41,18 @@ def test_swap_changes_the_output_to_the_new_weights(model_bytes):
     np.testing.assert_allclose(after, _torch_out(other, features), rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize("size", [(13, 17), (8, 12)])
+def test_planes_and_hwc_entries_agree_and_crop_the_padding(model_bytes, size):
+    model = OnnxModel(model_bytes, threads=1)
+    features = np.random.default_rng(3).standard_normal((*size, 15)).astype(np.float32)
+    planes = model.run_planes(np.ascontiguousarray(features.transpose(2, 0, 1)))
+    assert planes.shape == (6, *size) and planes.flags.c_contiguous
+    np.testing.assert_array_equal(planes, model.run_hwc(features).transpose(2, 0, 1))
+    np.testing.assert_allclose(planes.transpose(1, 2, 0), _torch_out(make_unet(seed=0), features), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match=r"network input has shape \(14, 8, 12\); expected \(15, H, W\)"):
+        model.run_planes(np.zeros((14, 8, 12), np.float32))
+
+
 def test_partial_swap_keeps_earlier_overrides(model_bytes):
     model = OnnxModel(model_bytes, threads=1)
     zero_head = {"head.weight": np.zeros((6, 8, 1, 1), np.float32), "head.bias": np.full(6, 2.0, np.float32)}

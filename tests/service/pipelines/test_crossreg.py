@@ -13,10 +13,11 @@ from bench.synthetic import synthetic_sequence
 from service import pipelines
 from service.cli import main as cli_main
 from service.frame import Frame
-from service.layout import CROSSREG_INPUTS, channel_slices
+from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, channel_slices, total_channels
 from service.metrics import rel_l2
 from service.online import trainer as trainer_module
-from service.pipelines.crossreg import CrossregState, prepare_frame
+from service.pipelines.crossreg import REPROJECTION, CrossregState, prepare_frame
+from service.stages.reprojection import reproject
 
 WORKER_START_S = 90  # spawning a process that imports torch, on 2 busy cores
 
@@ -48,7 +49,7 @@ def test_odd_size_sequence_keeps_explicit_history(odd_frames):
     outs, state = _run(pipeline, odd_frames)
     assert isinstance(state, CrossregState) and state.frame_index == 3
     assert all(o.shape == (13, 17, 3) and np.isfinite(o).all() and (o >= 0).all() for o in outs)
-    assert state.history.colors.shape == (13, 17, 9)
+    assert state.history.colors.shape == (9, 13, 17)
     status = state.online_status
     assert status["state"] == "off" and status["weights_version"] == 0 and status["init"] == "warm start"
 
@@ -64,6 +65,36 @@ def test_network_input_follows_the_layout_and_history_is_used(odd_frames):
     second = prepare_frame(odd_frames[1], state.history)
     assert second.valid.any()  # static floor reprojects
     assert second.sample().shape == (13, 17, 22)
+
+
+@pytest.mark.parametrize("screen", [True, False])
+def test_previous_is_the_screened_history_or_the_pilots_mean(odd_frames, screen):
+    _, state = _run(pipelines.get("crossreg"), odd_frames[:1])
+    prepared = prepare_frame(odd_frames[1], state.history, screen=screen)
+    frame, history = odd_frames[1], state.history
+    warped, reprojected = reproject(
+        history.colors.transpose(1, 2, 0), frame["motion"], depth=frame["depth"], prev_depth=history.depth,
+        normal=frame["normal"], prev_normal=history.normal, params=REPROJECTION,
+    )  # fmt: skip
+    valid = prepared.valid
+    assert valid.any() and not valid.all() and not (valid & ~reprojected).any()
+    if not screen:
+        np.testing.assert_array_equal(valid, reprojected)
+    previous = prepared.plane_group("previous").transpose(1, 2, 0)
+    np.testing.assert_array_equal(previous[valid], warped[valid][:, 6:9])
+    mean = 0.5 * (prepared.pilot_a + prepared.pilot_b)
+    np.testing.assert_allclose(previous[~valid], mean[~valid], rtol=1e-6)
+    sample = prepared.sample()
+    s = channel_slices(CROSSREG_SAMPLE)
+    np.testing.assert_array_equal(sample[..., s["valid"]][..., 0], valid.astype(np.float32))
+    np.testing.assert_array_equal(sample[..., : total_channels(CROSSREG_INPUTS)], prepared.features)
+    for name, current, planes in (
+        ("previousPilotA", prepared.pilot_a, slice(0, 3)),
+        ("previousPilotB", prepared.pilot_b, slice(3, 6)),
+    ):
+        label = sample[..., s[name]]
+        kept = (label == warped[..., planes]).all(-1) & reprojected
+        assert np.all(kept | (label == current).all(-1))  # each pixel: its reprojected or its current pilot
 
 
 def test_warm_start_denoises_better_than_the_pilots_alone():

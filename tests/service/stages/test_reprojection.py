@@ -114,10 +114,28 @@ def test_compiled_reproject_matches_numpy_reference(shape, guided, erode_mask):
         prev_normal = normal.copy()
         prev_normal[::3] = np.float32([0, 0.6, 0.8])  # cos 0.8 < 0.9: inconsistent
         prev_normal[1::4] = 0  # nothing hit
-        kwargs.update(depth=depth, prev_depth=depth * rng.uniform(0.85, 1.15, (h, w, 1)).astype(np.float32),
-                      normal=normal, prev_normal=prev_normal)
+        kwargs.update(
+            depth=depth,
+            prev_depth=depth * rng.uniform(0.85, 1.15, (h, w, 1)).astype(np.float32),
+            normal=normal,
+            prev_normal=prev_normal,
+        )
     warped, valid = reproject(prev, motion, **kwargs)
     with np.errstate(invalid="ignore"):  # the reference casts the NaN position before discarding it
         expected, expected_valid = reproject_numpy(prev, motion, **kwargs)
     np.testing.assert_array_equal(valid, expected_valid)
     np.testing.assert_allclose(warped, expected, rtol=1e-6, atol=1e-7)
+
+
+def test_channel_planar_buffer_gives_a_channel_planar_result_with_the_same_values():
+    """crossreg keeps its history as planes (C, H, W) and reprojects the (H, W, C) view of them."""
+    rng = np.random.default_rng(6)
+    planes = rng.normal(size=(9, 11, 14)).astype(np.float32)
+    motion = rng.normal(0, 1.5, (11, 14, 2)).astype(np.float32)
+    params = ReprojectionParams(erode=True)
+    warped, valid = reproject(planes.transpose(1, 2, 0), motion, params=params)
+    expected, expected_valid = reproject(np.ascontiguousarray(planes.transpose(1, 2, 0)), motion, params=params)
+    assert warped.transpose(2, 0, 1).flags.c_contiguous and expected.flags.c_contiguous
+    np.testing.assert_array_equal(valid, expected_valid)
+    np.testing.assert_array_equal(warped, expected)
+    assert 0 < valid.mean() < 1 and not warped[~valid].any()

@@ -1,44 +1,41 @@
 """The numpy/numba spatiotemporal filter of crossreg (Choi 2024 eqs. 8-10): hand-computed values, edge
-cases, and the history screening. The torch twin is held to it in tests/models/train/test_filter_parity.py."""
+cases, the numba kernels against their plain-numpy twins, and the history screening. Planes (C, H, W).
+The torch twin is held to it in tests/models/train/test_filter_parity.py."""
 
 import numpy as np
 import pytest
 
-from service.stages.spatiotemporal_filter import (
-    _window_extrema,
-    cross_bilateral_sums,
-    screen_history,
-    spatiotemporal_filter,
-)
+from service.stages.spatiotemporal_filter import MAX_RADIUS, screen_history, spatiotemporal_filter
 
 EXP_RTOL = 1e-5  # the kernel's polynomial exp: relative error < 5e-6
+KERNEL_ATOL = 1e-5  # numba kernel against its numpy twin, O(1) log1p values (polynomial exp, fastmath)
 
 
 def _inputs(height, width, seed=0):
     rng = np.random.default_rng(seed)
-    pa = rng.random((height, width, 3), np.float32)
-    pb = pa + 0.2 * rng.random((height, width, 3), np.float32)
-    albedo = rng.random((height, width, 3), np.float32)
-    normal = rng.standard_normal((height, width, 3)).astype(np.float32)
-    params = np.concatenate([5 * rng.random((height, width, 5)), rng.random((height, width, 1))], -1)
+    pa = rng.random((3, height, width), np.float32)
+    pb = pa + 0.2 * rng.random((3, height, width), np.float32)
+    albedo = rng.random((3, height, width), np.float32)
+    normal = rng.standard_normal((3, height, width)).astype(np.float32)
+    params = np.concatenate([5 * rng.random((5, height, width)), rng.random((1, height, width))])
     return pa, pb, albedo, normal, params.astype(np.float32)
 
 
 def test_two_pixels_by_hand():
     """1x2 frame: each pixel sees itself (weight 1) and its neighbour with the eq. 9 weight."""
-    pa = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]], np.float32)
-    pb = np.array([[[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]], np.float32)
-    albedo = np.array([[[0.2, 0.2, 0.2], [0.2, 0.2, 0.4]]], np.float32)
-    normal = np.zeros((1, 2, 3), np.float32)
-    prec = np.array([[[2.0, 3.0, 10.0, 1.0, 4.0], [1.0, 1.0, 1.0, 1.0, 1.0]]], np.float32)
-    sum_a, w_a, sum_b, w_b = cross_bilateral_sums(pa, pb, albedo, normal, prec)
+    pa = np.array([[[0.0, 1.0]], [[0.0, 0.0]], [[0.0, 0.0]]], np.float32)
+    pb = np.full((3, 1, 2), 0.5, np.float32)
+    albedo = np.array([[[0.2, 0.2]], [[0.2, 0.2]], [[0.2, 0.4]]], np.float32)
+    normal = np.zeros((3, 1, 2), np.float32)
+    params = np.array([[[2.0, 1.0]], [[3.0, 1.0]], [[10.0, 1.0]], [[1.0, 1.0]], [[4.0, 1.0]], [[0.5, 0.5]]], np.float32)
+    out = spatiotemporal_filter(pa, pb, albedo, normal, params)
     # centre (0, 0): |dA|^2 = 1, |d albedo|^2 = 0.04, |dp|^2 / 5^2 = 1/25
     shared = 10.0 * 0.04 + 4.0 / 25.0
     wa, wb = np.exp(-(2.0 * 1.0 + shared)), np.exp(-(3.0 * 0.0 + shared))
-    np.testing.assert_allclose(w_a[0, 0], 1 + wa, rtol=EXP_RTOL)
-    np.testing.assert_allclose(w_b[0, 0], 1 + wb, rtol=EXP_RTOL)
-    np.testing.assert_allclose(sum_a[0, 0], [wa * 1.0, 0, 0], rtol=EXP_RTOL, atol=1e-7)
-    np.testing.assert_allclose(sum_b[0, 0], (1 + wb) * 0.5 * np.ones(3), rtol=EXP_RTOL)
+    np.testing.assert_allclose(out.weight_a[0, 0], 1 + wa, rtol=EXP_RTOL)
+    np.testing.assert_allclose(out.weight_b[0, 0], 1 + wb, rtol=EXP_RTOL)
+    np.testing.assert_allclose(out.color_a[:, 0, 0], [wa / (1 + wa), 0, 0], rtol=EXP_RTOL, atol=1e-7)
+    np.testing.assert_allclose(out.color_b[:, 0, 0], 0.5, rtol=EXP_RTOL)  # no history: alpha is 1
 
 
 def test_constant_image_is_returned_and_history_blends_by_alpha():
@@ -50,16 +47,16 @@ def test_constant_image_is_returned_and_history_blends_by_alpha():
     valid = np.zeros((13, 17), bool)
     valid[:, :8] = True
     out = spatiotemporal_filter(const, const, albedo, normal, params, previous, valid)
-    alpha = params[..., 5:6]
-    expected = np.broadcast_to(alpha[:, :8] * 0.7 + (1 - alpha[:, :8]) * 0.1, (13, 8, 3))
-    np.testing.assert_allclose(out.color[:, :8], expected, atol=1e-6)
-    np.testing.assert_allclose(out.color[:, 8:], 0.7, atol=1e-6)  # no history: alpha is 1
+    alpha = params[5:6]
+    expected = np.broadcast_to(alpha[:, :, :8] * 0.7 + (1 - alpha[:, :, :8]) * 0.1, (3, 13, 8))
+    np.testing.assert_allclose(out.color[:, :, :8], expected, atol=1e-6)
+    np.testing.assert_allclose(out.color[:, :, 8:], 0.7, atol=1e-6)  # no history: alpha is 1
 
 
 def test_combination_is_weighted_by_weight_sums():
     pa, pb, albedo, normal, params = _inputs(9, 11, seed=1)
     out = spatiotemporal_filter(pa, pb, albedo, normal, params)
-    wa, wb = out.weight_a[..., None], out.weight_b[..., None]
+    wa, wb = out.weight_a, out.weight_b
     np.testing.assert_allclose(out.color, (out.color_a * wa + out.color_b * wb) / (wa + wb), rtol=1e-6)
     assert (out.weight_a >= 1).all() and (out.weight_b >= 1).all()
 
@@ -69,44 +66,85 @@ def test_huge_precisions_and_one_pixel_frames_stay_finite():
     out = spatiotemporal_filter(pa, pb, albedo, normal, params)
     np.testing.assert_allclose(out.color, (pa + pb) / 2, rtol=1e-6)  # alone: equal weights 1
     pa, pb, albedo, normal, params = _inputs(6, 5)
-    params[..., :5] = 1e4  # 1 / eps: every neighbour weight underflows, the centre keeps 1
+    params[:5] = 1e4  # 1 / eps: every neighbour weight underflows, the centre keeps 1
     out = spatiotemporal_filter(pa, pb, albedo, normal, params)
     assert np.isfinite(out.color).all()
     np.testing.assert_allclose(out.color_a, pa, atol=1e-4)
 
 
-@pytest.mark.parametrize("radius", [0, 1, 3])
-def test_window_extrema_match_a_brute_force(radius):
-    from numpy.lib.stride_tricks import sliding_window_view
+# Widths around the kernel's tile (288 - 2 radius = 278 pixels at radius 5), odd heights, frames smaller
+# than the window, radius 0 (the centre alone) and a wide radius.
+@pytest.mark.parametrize(
+    "size, radius", [((7, 9), 5), ((3, 2), 5), ((11, 278), 5), ((5, 301), 5), ((4, 6), 0), ((9, 40), 17)]
+)
+def test_kernel_matches_its_numpy_twin(size, radius):
+    pa, pb, albedo, normal, params = _inputs(*size, seed=sum(size))
+    pa, pb = 3 * pa, 3 * pb + 0.1
+    params[:5] = np.exp(np.random.default_rng(3).uniform(-3, 5, (5, *size)))
+    previous = np.random.default_rng(4).random((3, *size), np.float32)
+    valid = np.random.default_rng(5).random(size) > 0.4
+    got = spatiotemporal_filter(pa, pb, albedo, normal, params, previous, valid, radius)
+    ref = spatiotemporal_filter(pa, pb, albedo, normal, params, previous, valid, radius, reference=True)
+    for name in ("color", "color_a", "color_b"):
+        np.testing.assert_allclose(getattr(got, name), getattr(ref, name), atol=KERNEL_ATOL, err_msg=name)
+    np.testing.assert_allclose(got.weight_a, ref.weight_a, rtol=EXP_RTOL)
+    np.testing.assert_allclose(got.weight_b, ref.weight_b, rtol=EXP_RTOL)
 
-    x = np.random.default_rng(2).random((7, 10, 3)).astype(np.float32)
-    lo, hi = _window_extrema(x, radius)
-    padded = np.pad(x, ((radius, radius), (radius, radius), (0, 0)), mode="edge")  # edge copies: same extrema
-    view = sliding_window_view(padded, (2 * radius + 1, 2 * radius + 1), axis=(0, 1))
-    np.testing.assert_array_equal(lo, view.min(axis=(-2, -1)))
-    np.testing.assert_array_equal(hi, view.max(axis=(-2, -1)))
+
+def test_views_of_network_planes_give_the_same_result():
+    """The pipeline passes views into the (15, H, W) network input; non-contiguous inputs are copied."""
+    pa, pb, albedo, normal, params = _inputs(8, 10, seed=6)
+    stacked = np.concatenate([pa, pb, albedo, normal])
+    views = spatiotemporal_filter(stacked[0:3], stacked[3:6], stacked[6:9], stacked[9:12], params)
+    strided = spatiotemporal_filter(*(np.asfortranarray(a) for a in (pa, pb, albedo, normal, params)))
+    np.testing.assert_array_equal(views.color, spatiotemporal_filter(pa, pb, albedo, normal, params).color)
+    np.testing.assert_array_equal(strided.color, views.color)
+
+
+def test_radius_beyond_the_scratch_is_refused():
+    pa, pb, albedo, normal, params = _inputs(2, 2)
+    with pytest.raises(ValueError, match=rf"filter radius must be in \[0, {MAX_RADIUS}\], got {MAX_RADIUS + 1}"):
+        spatiotemporal_filter(pa, pb, albedo, normal, params, radius=MAX_RADIUS + 1)
 
 
 def test_screening_rejects_history_outside_the_current_range():
-    current = np.zeros((8, 8, 3), np.float32)
-    current[:, 4:] = 1.0
+    current = np.zeros((3, 8, 8), np.float32)
+    current[:, :, 4:] = 1.0
     history = current.copy()
-    history[1, 1] = 2.0  # brighter than anything around: a moving shadow's old value
+    history[:, 1, 1] = 2.0  # brighter than anything around: a moving shadow's old value
     valid = np.ones((8, 8), bool)
     valid[7, 7] = False
-    out = screen_history(current, history, valid)
-    assert not out[1, 1] and not out[7, 7]
-    assert out.sum() == 62  # flat regions keep their history (<=, not <)
+    masks, screened = screen_history(current, history, valid)
+    assert masks.shape == (1, 8, 8) and not masks[0, 1, 1] and not masks[0, 7, 7]
+    assert masks.sum() == 62  # flat regions keep their history (<=, not <)
+    np.testing.assert_array_equal(screened[:, 1, 1], current[:, 1, 1])  # rejected: the current value
+    np.testing.assert_array_equal(screened[:, 0, 0], history[:, 0, 0])
 
 
 def test_grouped_screening_equals_one_call_per_group():
     rng = np.random.default_rng(4)
-    current = rng.random((9, 11, 9), np.float32)
+    current = rng.random((9, 9, 11), np.float32)
     history = current + rng.normal(0, 0.3, current.shape).astype(np.float32)
     valid = rng.random((9, 11)) > 0.2
-    masks = screen_history(current, history, valid, groups=3)
+    masks, screened = screen_history(current, history, valid, groups=3)
     for g in range(3):
         part = slice(3 * g, 3 * g + 3)
-        np.testing.assert_array_equal(masks[..., g], screen_history(current[..., part], history[..., part], valid))
+        mask, alone = screen_history(current[part], history[part], valid)
+        np.testing.assert_array_equal(masks[g], mask[0])
+        np.testing.assert_array_equal(screened[part], alone)
     with pytest.raises(ValueError, match="9 channels do not split into 2 groups"):
         screen_history(current, history, valid, groups=2)
+
+
+@pytest.mark.parametrize("size, radius", [((7, 10), 0), ((7, 10), 1), ((9, 31), 3), ((2, 3), 3), ((20, 5), 6)])
+def test_screening_kernel_matches_its_numpy_twin(size, radius):
+    rng = np.random.default_rng(sum(size) + radius)
+    current = rng.random((6, *size), np.float32)
+    history = current + rng.normal(0, 0.2, current.shape).astype(np.float32)
+    history[:, 0, 0] = current[:, 0, 0]  # exactly on a bound counts as inside
+    valid = rng.random(size) > 0.1
+    masks, screened = screen_history(current, history, valid, radius, groups=2)
+    ref_masks, ref_screened = screen_history(current, history, valid, radius, groups=2, reference=True)
+    np.testing.assert_array_equal(masks, ref_masks)
+    np.testing.assert_array_equal(screened, ref_screened)
+    assert 0 < masks.mean() < 1
