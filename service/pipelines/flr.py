@@ -1,9 +1,9 @@
 """`flr`: fast local regression (Salmi et al.): per-pixel Gaussian-weighted least squares of radiance on
 G-buffer guides, from downsampled and blurred outer-product tensors.
 
-Stages: (optional) albedo demodulation -> guides: normal, log depth, ao, those present
-(service/stages/flr.py) -> local linear regression -> remodulation. A FLNR pipeline feeds learned
-guides to the same `local_linear_regression`.
+Stages: guides: normal, log depth, ao, those present (service/stages/flr.py) -> local linear regression
+(of radiance demodulated by albedo when present, remodulated after) -> clamp to the local range of the
+noisy input. A FLNR pipeline feeds learned guides to the same `local_linear_regression`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
-from service.stages.albedo import demodulate, remodulate
 from service.stages.flr import FlrParams, gbuffer_guides, local_linear_regression
 from service.stages.local_regression import FIREFLY_K
 from service.stages.range_clamp import clamp_to_local_range
@@ -41,11 +40,8 @@ class FlrPipeline(Pipeline):
         opt = self.options
         params = FlrParams(scale=opt.scale, sigma=opt.sigma, firefly_k=opt.firefly_k)
         albedo = frame.get("albedo") if opt.demodulate else None
-        color = frame["color"] if albedo is None else demodulate(frame["color"], albedo)
         guides = gbuffer_guides(frame["normal"], frame.get("depth"), frame.get("ao"))
-        color = local_linear_regression(color, guides, params)
-        if albedo is not None:
-            color = remodulate(color, albedo)
+        color = local_linear_regression(frame["color"], guides, params, albedo=albedo)
         # No extrapolated energy: the fit's support is about two cells of `scale` pixels each way.
         color = clamp_to_local_range(color, frame["color"], 2 * opt.scale)
         return {"color": color}, state

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.stages.albedo import demodulate, remodulate
+from service.stages.albedo import remodulate
 from service.stages.bilateral import DEPTH_FLOOR
 from service.stages.local_regression import (
     FIREFLY_K,
@@ -25,12 +25,15 @@ from service.stages.local_regression import (
     BlockParams,
     block_regression,
     box_regression,
+    channel_planes,
+    channel_planes_reference,
     check_firefly_k,
     clamp_fireflies,
     clamp_outlier_clusters,
     from_planes,
     plain_terms,
     standardise,
+    standardise_reference,
     to_planes,
 )
 
@@ -65,8 +68,23 @@ def gbuffer_features(albedo: np.ndarray, normal: np.ndarray, depth: np.ndarray |
 
     albedo: (H, W, 3) float32 in [0, 1]; normal: (H, W, 3) float32 unit (or zero) normal; depth: (H, W, 1)
     float32 camera distance, scene units, or None. Returns (K, H, W) float32, K = 8 or 9: albedo RGB,
-    normal XYZ, log depth (when given), pixel x and y; each plane standardised over the frame.
+    normal XYZ, log depth (when given), pixel x and y; each plane standardised over the frame. Built in
+    place (`channel_planes`, in-place `standardise`); `gbuffer_features_reference` is the numpy twin.
     """
+    height, width = albedo.shape[:2]
+    planes = np.empty((8 if depth is None else 9, height, width), np.float32)
+    channel_planes(albedo, out=planes[0:3])
+    channel_planes(normal, out=planes[3:6])
+    if depth is not None:
+        np.maximum(depth[..., 0], DEPTH_FLOOR, out=planes[6])
+        np.log(planes[6], out=planes[6])
+    planes[-2] = np.arange(width, dtype=np.float32)
+    planes[-1] = np.arange(height, dtype=np.float32)[:, None]
+    return standardise(planes, out=planes)
+
+
+def gbuffer_features_reference(albedo: np.ndarray, normal: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
+    """Plain-numpy twin of `gbuffer_features`."""
     height, width = albedo.shape[:2]
     x = np.broadcast_to(np.arange(width, dtype=np.float32), (1, height, width))
     y = np.broadcast_to(np.arange(height, dtype=np.float32)[:, None], (1, height, width))
@@ -74,7 +92,7 @@ def gbuffer_features(albedo: np.ndarray, normal: np.ndarray, depth: np.ndarray |
     if depth is not None:
         parts.append(np.log(np.maximum(to_planes(depth), DEPTH_FLOOR)))
     parts += [x, y]
-    return standardise(np.concatenate(parts, axis=0))
+    return standardise_reference(np.concatenate(parts, axis=0))
 
 
 def bmfr(
@@ -92,15 +110,15 @@ def bmfr(
     `gbuffer_features`. Returns (H, W, 3) float32 linear radiance. reference: plain-numpy kernels (tests).
     """
     params = params or BmfrParams()
-    signal = demodulate(color, albedo) if params.demodulate else color
-    planes = to_planes(signal)
+    factor = albedo if params.demodulate else None  # demodulated here, remodulated in the last pass
+    planes = (channel_planes_reference if reference else channel_planes)(color, factor)
     if params.firefly_k is not None:
         planes = clamp_fireflies(planes, params.firefly_k)
     if params.robust_clamp:  # clusters of outliers, which the 3x3 clamp cannot see
         planes = clamp_outlier_clusters(planes)
-    features, block = gbuffer_features(albedo, normal, depth), params.block()
-    if block.sigma_position is None:  # flat weights: exact box sums, same result
-        out = from_planes(box_regression(features, planes, block, reference=reference))
-    else:
-        out = from_planes(block_regression(plain_terms(features), planes, block, reference=reference))
-    return remodulate(out, albedo) if params.demodulate else out
+    features = (gbuffer_features_reference if reference else gbuffer_features)(albedo, normal, depth)
+    block = params.block()
+    if block.sigma_position is None:  # flat weights: exact box sums, same result; remodulation fused
+        return from_planes(box_regression(features, planes, block, albedo=factor, reference=reference))
+    out = from_planes(block_regression(plain_terms(features), planes, block, reference=reference))
+    return out if factor is None else remodulate(out, factor)

@@ -6,11 +6,12 @@ from non-negative input, overshoot above a firefly's neighbourhood). Clipping ea
 minimum and maximum of the noisy input over the (2r+1)^2 window around it removes that energy the input
 cannot explain, leaves any output inside the data range untouched, and keeps a constant image constant.
 
-The numba kernel works row by row (parallel over output rows): the min/max over the 2r+1 rows of the
-window into a row buffer, then over the 2r+1 columns, where in the interleaved (W, C) row a column
-offset d is the constant index shift C d, so both passes are contiguous and vectorise. O(r) per value,
-no temporaries of the frame's size. `local_range_reference` is the plain-numpy twin (separable doubling:
-O(log r) whole-array operations per axis).
+The numba kernel works on bands of output rows (one per thread): the min/max over the 2r+1 rows of
+each window by van Herk / Gil-Werman (running min/max forward and backward over blocks of 2r+1 rows:
+3 operations per value, whatever r), then over its 2r+1 columns by doubling on the padded row, where in
+the interleaved (W, C) row a column offset d is the constant index shift C d (O(log r) passes). Every
+pass is contiguous and vectorises; no temporaries of the frame's size. `local_range_reference` is the
+plain-numpy twin (separable doubling: O(log r) whole-array operations per axis).
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ def local_range(image: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]
     _check_radius(radius)
     image = np.ascontiguousarray(image, dtype=np.float32)
     lo, hi = np.empty_like(image), np.empty_like(image)
-    _range_kernel(image, image, int(radius), False, lo, hi)
+    _range_kernel(image, image, int(radius), False, _rows_per_task(image), lo, hi)
     return lo, hi
 
 
@@ -76,7 +77,7 @@ def clamp_to_local_range(output: np.ndarray, image: np.ndarray, radius: int) -> 
     image = np.ascontiguousarray(image, dtype=np.float32)
     output = np.ascontiguousarray(output, dtype=np.float32)
     out = np.empty_like(output)
-    _range_kernel(image, output, int(radius), True, out, out)
+    _range_kernel(image, output, int(radius), True, _rows_per_task(image), out, out)
     return out
 
 
@@ -86,37 +87,125 @@ def clamp_to_local_range_reference(output: np.ndarray, image: np.ndarray, radius
     return np.clip(output, lo, hi).astype(np.float32)
 
 
+def _rows_per_task(image: np.ndarray) -> int:
+    """Output rows per task of `_range_kernel`: one band per thread (each band reads 2r rows of halo)."""
+    return -(-image.shape[0] // numba.get_num_threads())
+
+
 @numba.njit(inline="always")
-def _fold(lo, hi, src_lo, src_hi, n):
-    """lo = min(lo, src_lo), hi = max(hi, src_hi) over the first n values."""
+def _block_scan(flat, first, g, backward, lo, hi):
+    """Running min (lo) and max (hi) over the g frame rows first .. first + g - 1, forward (lo[i]: rows
+    first .. first + i) or backward (rows first + i .. first + g - 1); rows outside the frame count as
+    +inf / -inf."""
+    height, n = flat.shape
+    for step in range(g):
+        i = g - 1 - step if backward else step
+        y = first + i
+        dst_lo, dst_hi = lo[i], hi[i]
+        if 0 <= y < height:
+            src = flat[y]
+            if step == 0:
+                dst_lo[:] = src
+                dst_hi[:] = src
+            else:
+                prev_lo, prev_hi = lo[i + 1 if backward else i - 1], hi[i + 1 if backward else i - 1]
+                for j in range(n):
+                    v = src[j]
+                    dst_lo[j] = v if v < prev_lo[j] else prev_lo[j]
+                    dst_hi[j] = v if v > prev_hi[j] else prev_hi[j]
+        elif step == 0:
+            dst_lo[:] = np.inf
+            dst_hi[:] = -np.inf
+        else:
+            dst_lo[:] = lo[i + 1 if backward else i - 1]
+            dst_hi[:] = hi[i + 1 if backward else i - 1]
+
+
+@numba.njit(inline="always")
+def _min_max_pass(lo, hi, step, out_lo, out_hi, n):
+    """out_lo[i] = min(lo[i], lo[i + step]), out_hi[i] = max(hi[i], hi[i + step]), i < n."""
+    ahead_lo, ahead_hi = lo[step:], hi[step:]
     for i in range(n):
-        a, b = src_lo[i], src_hi[i]
-        lo[i] = a if a < lo[i] else lo[i]
-        hi[i] = b if b > hi[i] else hi[i]
+        a, b = ahead_lo[i], lo[i]
+        out_lo[i] = a if a < b else b
+        a, b = ahead_hi[i], hi[i]
+        out_hi[i] = a if a > b else b
+
+
+@numba.njit(inline="always")
+def _row_range(lo, hi, spare_lo, spare_hi, g, shift):
+    """Padded rows lo, hi -> min (max) of lo (hi) at i + d shift, d = 0 .. g - 1, for i < len(lo) - (g - 1)
+    shift, by doubling: spans 1, 2, 4, .. up to the largest power of two p <= g, then two overlapping spans
+    of p. Passes alternate between the rows and the spare rows (no in-place pass: it would read ahead of
+    what it writes, which keeps LLVM from vectorising it; so does swapping the names of the buffers).
+    Returns True when the result is in the spare rows."""
+    span, spare, length = 1, False, lo.shape[0]
+    while span < g:
+        step = min(span, g - span)  # doubling, or the final overlap
+        n = length - (span + step - 1) * shift
+        if spare:
+            _min_max_pass(spare_lo, spare_hi, step * shift, lo, hi, n)
+        else:
+            _min_max_pass(lo, hi, step * shift, spare_lo, spare_hi, n)
+        spare = not spare
+        span += step
+    return spare
+
+
+@numba.njit(inline="always")
+def _emit(lo, hi, output, clamp, lo_out, hi_out):
+    """One row, (W, C): lo_out = clip(output, lo, hi) when `clamp`, else lo_out, hi_out = lo, hi."""
+    n = lo_out.size
+    dst = lo_out.reshape(n)
+    if clamp:
+        src = output.reshape(n)
+        for j in range(n):
+            v = src[j]
+            v = lo[j] if v < lo[j] else v
+            dst[j] = hi[j] if v > hi[j] else v
+    else:
+        dst[:] = lo[:n]
+        hi_out.reshape(n)[:] = hi[:n]
 
 
 @numba.njit(parallel=True, cache=True)
-def _range_kernel(image, output, radius, clamp, lo_out, hi_out):
-    """clamp: lo_out[y] = clip(output[y], lo, hi); else lo_out, hi_out = lo, hi."""
+def _range_kernel(image, output, radius, clamp, rows_per_task, lo_out, hi_out):
+    """clamp: lo_out[y] = clip(output[y], lo, hi); else lo_out, hi_out = lo, hi. Per band of output rows,
+    the window's rows by van Herk / Gil-Werman: frame rows in blocks of g = 2r+1 starting at the band's
+    first window; a window starting at row offset o of block k is the backward scan of block k at o and
+    the forward scan of block k+1 at o - 1 (3 min/max per value). Then along the row (`_row_range`)."""
     height, width, channels = image.shape
-    n = width * channels
+    n, g = width * channels, 2 * radius + 1
     flat = image.reshape(height, n)
-    for y in numba.prange(height):
-        vlo = flat[max(0, y - radius)].copy()  # min / max over the window's rows
-        vhi = vlo.copy()
-        for yy in range(max(0, y - radius) + 1, min(height, y + radius + 1)):
-            _fold(vlo, vhi, flat[yy], flat[yy], n)
-        lo, hi = vlo.copy(), vhi.copy()  # then over its columns: offset d is the index shift C d
-        for d in range(1, min(radius, width - 1) + 1):
-            m = n - d * channels  # loops index 1-D views by the counter only, so LLVM vectorises them
-            _fold(lo[:m], hi[:m], vlo[n - m :], vhi[n - m :], m)
-            _fold(lo[n - m :], hi[n - m :], vlo[:m], vhi[:m], m)
-        if clamp:
-            src, dst = output[y].reshape(n), lo_out[y].reshape(n)
-            for i in range(n):
-                v = src[i]
-                v = lo[i] if v < lo[i] else v
-                dst[i] = hi[i] if v > hi[i] else v
-        else:
-            lo_out[y].reshape(n)[:] = lo
-            hi_out[y].reshape(n)[:] = hi
+    pad = radius * channels  # +inf / -inf columns each side of a padded row
+    for task in numba.prange(-(-height // rows_per_task)):
+        y0 = task * rows_per_task
+        y1 = min(height, y0 + rows_per_task)
+        back_lo, back_hi = np.empty((g, n), np.float32), np.empty((g, n), np.float32)
+        fore_lo, fore_hi = np.empty((g, n), np.float32), np.empty((g, n), np.float32)
+        row_lo, row_hi = np.empty(n + 2 * pad, np.float32), np.empty(n + 2 * pad, np.float32)
+        spare_lo, spare_hi = np.empty(n + 2 * pad, np.float32), np.empty(n + 2 * pad, np.float32)
+        for k in range(-(-(y1 - y0) // g)):
+            first = y0 - radius + k * g
+            _block_scan(flat, first, g, True, back_lo, back_hi)
+            _block_scan(flat, first + g, g, False, fore_lo, fore_hi)
+            for o in range(min(g, y1 - y0 - k * g)):
+                y = y0 + k * g + o
+                mid_lo, mid_hi = row_lo[pad : pad + n], row_hi[pad : pad + n]
+                a_lo, a_hi = back_lo[o], back_hi[o]
+                if o == 0:
+                    mid_lo[:] = a_lo
+                    mid_hi[:] = a_hi
+                else:
+                    b_lo, b_hi = fore_lo[o - 1], fore_hi[o - 1]
+                    for j in range(n):
+                        mid_lo[j] = a_lo[j] if a_lo[j] < b_lo[j] else b_lo[j]
+                        mid_hi[j] = a_hi[j] if a_hi[j] > b_hi[j] else b_hi[j]
+                row_lo[:pad] = np.inf  # the padding, which the last row's passes overwrote
+                row_lo[pad + n :] = np.inf
+                row_hi[:pad] = -np.inf
+                row_hi[pad + n :] = -np.inf
+                if _row_range(row_lo, row_hi, spare_lo, spare_hi, g, channels):  # branches, not a chosen
+                    _emit(spare_lo, spare_hi, output[y], clamp, lo_out[y], hi_out[y])  # name: vectorises
+                else:
+                    _emit(row_lo, row_hi, output[y], clamp, lo_out[y], hi_out[y])

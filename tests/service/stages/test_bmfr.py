@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from service.stages.bmfr import BmfrParams, bmfr, gbuffer_features
+from service.stages.bmfr import BmfrParams, bmfr, gbuffer_features, gbuffer_features_reference
 
 
 def _scene(height, width, rng):
@@ -19,6 +19,8 @@ def test_features_are_standardised_planes():
     assert features.shape == (9, 12, 15) and features.dtype == np.float32
     assert gbuffer_features(albedo, normal).shape == (8, 12, 15)
     np.testing.assert_allclose(features.reshape(9, -1).mean(axis=1), 0.0, atol=1e-5)
+    for layers in ((albedo, normal, depth), (albedo, normal)):
+        np.testing.assert_allclose(gbuffer_features(*layers), gbuffer_features_reference(*layers), rtol=1e-5, atol=1e-5)
 
 
 def test_params_are_validated():

@@ -157,18 +157,22 @@ def test_pack_planes_matches_the_numpy_phase_split(size):
     np.testing.assert_array_equal(pack_planes(terms, target, params), expected)
 
 
-@pytest.mark.parametrize("size", [(1, 1), (3, 5), (29, 22), (7, 300)])
-def test_box_regression_matches_the_pair_by_pair_reference(size):
+@pytest.mark.parametrize("size", [(1, 1), (3, 5), (29, 22), (7, 300), (13, 1400)])  # 1400: two column tiles
+@pytest.mark.parametrize("radius, sparsity", [(5, 3), (6, 6), (4, 3), (5, 2)])  # (2r+1) mod s head rows: 2, 1, 0, 1
+def test_box_regression_matches_the_pair_by_pair_reference(size, radius, sparsity):
     from service.stages.local_regression import box_regression
 
     rng = np.random.default_rng(7)
     y, x = np.mgrid[0 : size[0], 0 : size[1]].astype(np.float32)
     features = standardise(np.concatenate([rng.standard_normal((3, *size), dtype=np.float32), x[None], y[None]]))
     target = rng.standard_normal((3, *size), dtype=np.float32)
-    params = BlockParams(radius=5, sparsity=3)
-    out, ref = box_regression(features, target, params), box_regression(features, target, params, reference=True)
-    assert out.shape == (3, *size) and out.dtype == np.float32
-    np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-4 * np.abs(ref).max())
+    albedo = rng.random((*size, 3), dtype=np.float32)
+    params = BlockParams(radius=radius, sparsity=sparsity)
+    for factor in (None, albedo):  # remodulated in the last pass, or not
+        out = box_regression(features, target, params, albedo=factor)
+        ref = box_regression(features, target, params, albedo=factor, reference=True)
+        assert out.shape == (3, *size) and out.dtype == np.float32
+        np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-4 * np.abs(ref).max())
     with pytest.raises(ValueError, match="flat weights"):
         box_regression(features, target, BlockParams(radius=5, sparsity=3, sigma_position=2.0))
 
@@ -238,3 +242,55 @@ def test_clamp_outlier_clusters_rejects_a_cluster_the_3x3_clamp_keeps():
     outside[18:21, 20:23] = False
     changed = (out != noisy)[:, outside].mean()
     assert changed < 0.01  # the background noise is left almost untouched
+
+
+@pytest.mark.parametrize("constant", [True, False])
+def test_cholesky_ridge_solve_lanes_matches_the_numpy_reference(constant):
+    from service.stages.local_regression import cholesky_ridge_solve_lanes
+
+    rng = np.random.default_rng(9)
+    lanes, k, m = 21, 5, 3
+    x = rng.standard_normal((lanes, 40, k))
+    x[..., 0] = 1.0 if constant else x[..., 0]
+    x[3, :, 2] = x[3, :, 1]  # a singular system
+    x[4, :, 1:] = 0.0  # features that never vary
+    gram, rhs = np.einsum("lik,lij->lkj", x, x), np.einsum("lik,lim->lkm", x, rng.standard_normal((lanes, 40, m)))
+    a, b = np.ascontiguousarray(gram.transpose(1, 2, 0)), np.ascontiguousarray(rhs.transpose(1, 2, 0))
+    cholesky_ridge_solve_lanes(a, b, k, m, 1e-3, 1e-6, constant, 1.0, lanes - 1)  # the last lane is left alone
+    weight_sum = None if constant else np.ones(lanes - 1)
+    ref = solve_ridge_reference(gram[:-1], rhs[:-1], 1e-3, 1e-6, weight_sum=weight_sum)
+    np.testing.assert_allclose(b[..., :-1].transpose(2, 0, 1), ref, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(b[..., -1], rhs[-1])
+    assert np.isfinite(b).all() and not b[1:, :, 4].any()  # no slope for features that never vary
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_channel_planes_match_the_numpy_reference(channels):
+    from service.stages.local_regression import channel_planes, channel_planes_reference
+
+    rng = np.random.default_rng(10)
+    image = rng.standard_normal((9, 14, channels), dtype=np.float32)
+    albedo = rng.random((9, 14, channels), dtype=np.float32) - 0.1  # negative albedo counts as 0
+    for factor in (None, albedo):
+        np.testing.assert_array_equal(channel_planes(image, factor), channel_planes_reference(image, factor))
+    stack = np.zeros((channels + 2, 9, 14), np.float32)
+    channel_planes(image, albedo, out=stack[1:-1])  # into a slice of a larger stack
+    np.testing.assert_array_equal(stack[1:-1], channel_planes_reference(image, albedo))
+    assert not stack[0].any() and not stack[-1].any()
+
+
+def test_standardise_in_place_matches_a_new_array():
+    planes = np.random.default_rng(11).standard_normal((3, 20, 70000 // 20)).astype(np.float32) * 3 + 7
+    expected = standardise(planes)  # more than one block per plane
+    assert standardise(planes, out=planes) is planes
+    np.testing.assert_array_equal(planes, expected)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1), (3, 5, 7), (3, 8, 8), (2, 9, 13)])  # odd and even sample sizes
+def test_radiance_scale_is_the_median_of_the_subsample(shape):
+    from service.stages.local_regression import radiance_scale
+
+    planes = np.random.default_rng(12).standard_normal(shape).astype(np.float32)
+    expected = max(float(np.median(np.abs(planes[:, ::4, ::4]).astype(np.float64))), 1e-6)
+    assert radiance_scale(planes) == pytest.approx(expected, rel=1e-7)
+    assert radiance_scale(np.zeros(shape, np.float32)) == 1e-6

@@ -14,7 +14,7 @@ def _brute(image, radius):
     lo, hi = np.empty_like(image), np.empty_like(image)
     for y in range(h):
         for x in range(w):
-            win = image[max(0, y - radius):y + radius + 1, max(0, x - radius):x + radius + 1]
+            win = image[max(0, y - radius) : y + radius + 1, max(0, x - radius) : x + radius + 1]
             lo[y, x], hi[y, x] = win.min(axis=(0, 1)), win.max(axis=(0, 1))
     return lo, hi
 
@@ -44,15 +44,18 @@ def test_constant_image_is_unchanged():
     np.testing.assert_array_equal(clamp_to_local_range(image, image, 4), image)
 
 
-@pytest.mark.parametrize("shape,radius", [((1, 1), 3), ((3, 5), 1), ((17, 31), 8), ((9, 4), 0), ((40, 3), 5)])
+# (90, 7) r 2: many blocks of 2r+1 rows per band; (33, 40) r 6: bands that end inside a block.
+@pytest.mark.parametrize("shape,radius", [((1, 1), 3), ((3, 5), 1), ((17, 31), 8), ((9, 4), 0), ((40, 3), 5),
+                                          ((90, 7), 2), ((33, 40), 6)])  # fmt: skip
 def test_numba_kernel_matches_the_numpy_reference(shape, radius):
     rng = np.random.default_rng(1)
     image = rng.normal(size=(*shape, 3)).astype(np.float32)
     output = (2 * rng.normal(size=image.shape)).astype(np.float32)
     for fast, slow in zip(local_range(image, radius), local_range_reference(image, radius), strict=True):
         np.testing.assert_array_equal(fast, slow)
-    np.testing.assert_array_equal(clamp_to_local_range(output, image, radius),
-                                  clamp_to_local_range_reference(output, image, radius))
+    np.testing.assert_array_equal(
+        clamp_to_local_range(output, image, radius), clamp_to_local_range_reference(output, image, radius)
+    )
 
 
 def test_negative_radius_is_refused():
