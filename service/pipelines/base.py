@@ -82,7 +82,8 @@ class Pipeline(ABC):
         self.check(frame, state)
         emission = frame.get("emission")
         if emission is not None:
-            frame = frame.replace(**{k: frame[k] - emission for k in RADIANCE_LAYERS if k in frame})
+            used = (k for k in RADIANCE_LAYERS if k in frame and (k in self.requires or k in self.optional))
+            frame = frame.replace(**{k: frame[k] - emission for k in used})
         buffers, state = self.denoise(frame, state)
         if emission is not None:
             buffers["color"] = buffers["color"] + emission
