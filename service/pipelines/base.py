@@ -82,8 +82,10 @@ class Pipeline(ABC):
         self.check(frame, state)
         emission = frame.get("emission")
         if emission is not None:
-            used = (k for k in RADIANCE_LAYERS if k in frame and (k in self.requires or k in self.optional))
-            frame = frame.replace(**{k: frame[k] - emission for k in used})
+            # `color` always (the frame contract fills it in, every pipeline may read it); the halves only
+            # where the pipeline declares them: each subtraction is a full-frame pass.
+            reads = ("color", *self.requires, *self.optional)
+            frame = frame.replace(**{k: frame[k] - emission for k in RADIANCE_LAYERS if k in frame and k in reads})
         buffers, state = self.denoise(frame, state)
         if emission is not None:
             buffers["color"] = buffers["color"] + emission

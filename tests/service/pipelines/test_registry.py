@@ -75,6 +75,43 @@ def test_emission_is_split_off_and_added_back_exactly():
     np.testing.assert_allclose(out["color"], emission, atol=1e-5)
 
 
+@pytest.mark.parametrize("name", [n for n in pipelines.names() if n != "statistical"])  # its statistics hold emission
+def test_emission_split_matches_denoising_the_emission_free_frame(name, tiny_layers):
+    """Every radiance layer a pipeline reads loses the emission before denoising: the output on
+    radiance + emission equals the output on radiance alone, plus the emission."""
+    layers = {k: v for k, v in tiny_layers[0].items() if k not in ("reference", "emission")}
+    height, width = layers["color"].shape[:2]
+    emission = np.zeros((height, width, 3), np.float32)
+    emission[5:9, 10:16] = 40.0  # an emitter seen directly
+    with_emission = {k: v + emission if k in ("color", "colorA", "colorB") else v for k, v in layers.items()}
+    pipeline = pipelines.get(name)
+    plain, _ = pipeline.step(Frame.from_buffers(layers), pipeline.start(height, width))
+    split, _ = pipeline.step(Frame.from_buffers({**with_emission, "emission": emission}), pipeline.start(height, width))
+    np.testing.assert_allclose(split["color"], plain["color"] + emission, rtol=1e-4, atol=1e-4)
+
+
+def test_denoise_sees_emission_free_colour_and_declared_halves():
+    """`color` always loses the emission (every pipeline may read it, e.g. for a range clamp); the half
+    buffers do where the pipeline declares them."""
+    from service.pipelines.base import Pipeline
+
+    seen = {}
+
+    class Probe(Pipeline):
+        name, summary, requires, optional = "probe", "records its input", ("colorA",), ("emission",)
+
+        def denoise(self, frame, state):
+            seen.update({k: frame[k] for k in ("color", "colorA", "colorB")})
+            return {"color": frame["color"]}, state
+
+    one = np.ones((4, 5, 3), np.float32)
+    frame = Frame.from_buffers({"color": 3 * one, "colorA": 3 * one, "colorB": 3 * one, "emission": 2 * one})
+    Probe().step(frame, Probe().start(4, 5))
+    np.testing.assert_array_equal(seen["color"], one)
+    np.testing.assert_array_equal(seen["colorA"], one)
+    np.testing.assert_array_equal(seen["colorB"], 3 * one)  # not declared: left as it is
+
+
 def test_input_repairs_are_reported_on_the_output():
     color = np.ones((5, 5, 3), np.float32)
     color[2, 2] = np.nan
