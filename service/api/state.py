@@ -12,6 +12,7 @@ from service.api.sessions import SessionStore, close_state
 from service.api.telemetry import Metrics
 from service.api.workers import WorkerPool
 from service.pipelines import Pipeline
+from service.warmup import warm_up
 
 log = logging.getLogger("mcdenoise.api")
 
@@ -23,9 +24,11 @@ class Services:
     sessions: SessionStore
     metrics: Metrics = field(default_factory=Metrics)
     ready: bool = False
+    warming: list[str] = field(default_factory=list)  # pipelines still warming up (not ready until empty)
     # One shared pipeline object per name for stateless REST frames (its state is per request).
     _stateless: dict[str, Pipeline] = field(default_factory=dict)
     _expiry: asyncio.Task | None = None
+    _warmup: asyncio.Task | None = None
 
     @classmethod
     def start(cls, settings: Settings) -> Services:
@@ -35,15 +38,38 @@ class Services:
             WorkerPool(settings.worker_threads, settings.max_inflight, settings.retry_after_s),
             SessionStore(settings.max_sessions, settings.session_idle_s),
         )
-        services._expiry = asyncio.get_running_loop().create_task(services._expire_forever())
-        services.ready = True
-        log.info("mcdenoise service ready: %s", settings.public())
+        loop = asyncio.get_running_loop()
+        services._expiry = loop.create_task(services._expire_forever())
+        services.warming = list(settings.warmup_pipelines)
+        if services.warming:
+            services._warmup = loop.create_task(services._warm_up())
+        else:
+            services._become_ready()
         return services
+
+    def _become_ready(self) -> None:
+        self.ready = True
+        log.info("mcdenoise service ready: %s", self.settings.public())
+
+    async def _warm_up(self) -> None:
+        """Warm the configured pipelines one after another in the default executor, then become ready.
+        A pipeline that fails to warm up is logged and skipped: its real frames will report the error."""
+        loop = asyncio.get_running_loop()
+        while self.warming:
+            name = self.warming[0]
+            try:
+                seconds = await loop.run_in_executor(None, warm_up, name)
+                log.info("warmed up pipeline %s in %.1f s", name, seconds)
+            except Exception:
+                log.exception("warm-up of pipeline %s failed", name)
+            self.warming.pop(0)
+        self._become_ready()
 
     async def stop(self) -> None:
         self.ready = False
-        if self._expiry is not None:
-            self._expiry.cancel()
+        for task in (self._expiry, self._warmup):
+            if task is not None:
+                task.cancel()
         for session in self.sessions.all():
             self.sessions.pop(session.id, session.owner)
             close_state(session)

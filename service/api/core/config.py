@@ -11,6 +11,8 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 
+from service import pipelines
+
 PREFIX = "MCDENOISE_"
 MIN_KEY_LENGTH = 16  # characters; shorter keys are guessable
 
@@ -41,6 +43,7 @@ class Settings:
     queue_wait_s: float = 30.0  # how long a streamed frame waits for a free slot before a `busy` error, s
     retry_after_s: int = 1  # Retry-After of a 503 `busy` answer, seconds
     api_key: str = ""  # empty: no auth; one key, or comma-separated keys (one per client)
+    warmup: str = ""  # comma-separated pipelines run on generated frames at start (not ready until done)
 
     def __post_init__(self) -> None:
         for name in ("max_body_mb", "max_width", "max_height", "max_sessions", "retry_after_s"):
@@ -63,6 +66,10 @@ class Settings:
                 )
         if self.api_key and not self.api_keys:
             raise SettingsError(f"{PREFIX}API_KEY holds no key")
+        unknown = [name for name in self.warmup_pipelines if name not in pipelines.names()]
+        if unknown:
+            available = ", ".join(pipelines.names())
+            raise SettingsError(f"{PREFIX}WARMUP: unknown pipeline(s) {', '.join(unknown)}; available: {available}")
         # Resolve the automatic values once, so every reader sees the same numbers.
         workers = self.worker_threads or _cpus()
         object.__setattr__(self, "worker_threads", workers)
@@ -76,6 +83,11 @@ class Settings:
     def api_keys(self) -> tuple[str, ...]:
         """The accepted keys; empty when auth is off."""
         return tuple(k.strip() for k in self.api_key.split(",") if k.strip())
+
+    @property
+    def warmup_pipelines(self) -> tuple[str, ...]:
+        """The pipelines to warm up at start, in order."""
+        return tuple(name.strip() for name in self.warmup.split(",") if name.strip())
 
     @property
     def max_body_bytes(self) -> int:

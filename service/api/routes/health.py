@@ -20,6 +20,7 @@ async def healthz() -> dict[str, str]:
 async def readyz(services: ServicesDep) -> JSONResponse:
     body = {
         "ready": services.ready,
+        "warming_up": list(services.warming),
         "pipelines": len(pipelines.names()),
         "sessions": len(services.sessions),
         "inflight": services.pool.inflight,

@@ -31,6 +31,7 @@ def test_values_from_the_environment():
     ({"MCDENOISE_WORKER_THREADS": "4", "MCDENOISE_MAX_INFLIGHT": "2"},
      "MCDENOISE_MAX_INFLIGHT (2) must be at least MCDENOISE_WORKER_THREADS (4)"),
     ({"MCDENOISE_MAX_BODY_MB": "5000"}, "MCDENOISE_MAX_BODY_MB must be at most 4096, got 5000"),
+    ({"MCDENOISE_WARMUP": "flr, nope"}, "MCDENOISE_WARMUP: unknown pipeline(s) nope; available: bilateral"),
 ])
 def test_unsafe_values_are_refused(env, message):
     with pytest.raises(SettingsError) as caught:
@@ -44,3 +45,9 @@ def test_serve_refuses_bad_settings_before_binding(monkeypatch, capsys):
     monkeypatch.setenv("MCDENOISE_MAX_SESSIONS", "-1")
     assert main(["serve", "--port", "1"]) == 2
     assert capsys.readouterr().err.strip() == "error: MCDENOISE_MAX_SESSIONS must be at least 1, got -1"
+
+
+def test_warmup_lists_pipelines_in_order():
+    settings = Settings.from_env({"MCDENOISE_WARMUP": " crossregression, flr ,"})
+    assert settings.warmup_pipelines == ("crossregression", "flr")
+    assert Settings().warmup_pipelines == ()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import time
 
 import pytest
 
@@ -15,6 +16,36 @@ def test_health_and_readiness(server):
     assert (call(server, "GET", "/healthz").status, call(server, "GET", "/healthz").json()) == (200, {"status": "ok"})
     ready = call(server, "GET", "/readyz")
     assert ready.status == 200 and ready.json()["ready"] is True and ready.json()["pipelines"] >= 1
+
+
+def test_not_ready_until_the_configured_pipelines_are_warm(make_server, monkeypatch):
+    import threading
+
+    import service.api.state
+
+    release, calls = threading.Event(), []
+
+    def slow_warm_up(name: str) -> float:
+        calls.append(name)
+        assert release.wait(10)
+        if name == "flr":
+            raise RuntimeError("a pipeline that fails to warm up is skipped, not fatal")
+        return 0.0
+
+    monkeypatch.setattr(service.api.state, "warm_up", slow_warm_up)
+    url = make_server(warmup="bilateral, flr")
+    deadline = time.monotonic() + 5
+    while not calls and time.monotonic() < deadline:
+        time.sleep(0.01)
+    ready = call(url, "GET", "/readyz")
+    assert ready.status == 503 and ready.json()["warming_up"] == ["bilateral", "flr"]
+    assert call(url, "GET", "/healthz").status == 200  # alive while warming
+    release.set()
+    deadline = time.monotonic() + 10
+    while call(url, "GET", "/readyz").status != 200:
+        assert time.monotonic() < deadline, "never became ready"
+        time.sleep(0.02)
+    assert call(url, "GET", "/readyz").json()["warming_up"] == [] and calls == ["bilateral", "flr"]
 
 
 def test_metrics_count_frames_errors_latency_and_sessions(make_server, sequence_exr):

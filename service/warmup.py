@@ -1,0 +1,47 @@
+"""Warm-up: run a pipeline on generated frames so its numba kernels compile (or load from the cache) and
+its ONNX model loads before the first real frame. A cold first frame costs tens of seconds (the first
+frame of `make demo` on a fresh machine: 31 s); the HTTP service warms `MCDENOISE_WARMUP` at start.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from service import pipelines
+from service.frame import LAYERS, Frame
+
+WARMUP_SIZE = (37, 70)  # H, W: small, and no multiple of any block size (edge paths compile too)
+
+
+def warmup_frame(height: int, width: int, seed: int = 0) -> Frame:
+    """A Frame with every layer of the format but `reference`, plausible values, float32 (H, W, C)."""
+    rng = np.random.default_rng(seed)
+    buffers = {
+        name: rng.uniform(0.05, 1.0, (height, width, len(spec.channels))).astype(np.float32)
+        for name, spec in LAYERS.items()
+        if name != "reference"
+    }
+    buffers["normal"] /= np.linalg.norm(buffers["normal"], axis=-1, keepdims=True)
+    buffers["motion"] = buffers["motionDual"] = rng.uniform(-2.0, 2.0, (height, width, 2)).astype(np.float32)
+    buffers["sampleCount"] = np.full((height, width, 1), 4.0, np.float32)
+    buffers["emission"] = np.zeros((height, width, 3), np.float32)
+    return Frame.from_buffers(buffers)
+
+
+def warm_up(name: str) -> float:
+    """Step pipeline `name` (default options) over two warm-up frames, so temporal pipelines reach their
+    history path too. Returns the wall time in seconds; raises what the pipeline raises."""
+    pipeline = pipelines.get(name)
+    height, width = WARMUP_SIZE
+    start = time.perf_counter()
+    state = pipeline.start(height, width)
+    try:
+        for seed in (0, 1):
+            _, state = pipeline.step(warmup_frame(height, width, seed), state)
+    finally:
+        close = getattr(state, "close", None)
+        if close is not None:
+            close()
+    return time.perf_counter() - start
