@@ -62,5 +62,5 @@ def denoise_folder(
                 getattr(state, "online_status", None),
             )
     finally:
-        if state is not None and hasattr(state, "close"):
+        if state is not None:
             state.close()

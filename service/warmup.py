@@ -41,7 +41,5 @@ def warm_up(name: str) -> float:
         for seed in (0, 1):
             _, state = pipeline.step(warmup_frame(height, width, seed), state)
     finally:
-        close = getattr(state, "close", None)
-        if close is not None:
-            close()
+        state.close()
     return time.perf_counter() - start

@@ -118,12 +118,10 @@ def build_session(spec: SessionSpec, owner: str | None) -> Session:
 
 def close_state(session: Session) -> None:
     """Let the state release what it holds (an online worker); errors are logged, never raised."""
-    close = getattr(session.state, "close", None)
-    if callable(close):
-        try:
-            close()
-        except Exception:
-            log.exception("closing the state of session %s failed", session.id[:8])
+    try:
+        session.state.close()
+    except Exception:
+        log.exception("closing the state of session %s failed", session.id[:8])
 
 
 class SessionStore:

@@ -29,6 +29,9 @@ class SequenceState:
     width: int
     frame_index: int = 0  # frames completed in this sequence
 
+    def close(self) -> None:
+        """Release what the state holds (an online worker); called once the sequence ends."""
+
 
 @dataclass(frozen=True)
 class NoOptions:
