@@ -76,8 +76,7 @@ def run_pipeline(name: str, frames: list[Frame], options: dict[str, Any], sync: 
         if getattr(state, "trainer", None) is not None:
             record = {"status": state.online_status, "loss_per_frame": state.trainer.losses}
     finally:
-        if hasattr(state, "close"):
-            state.close()
+        state.close()
     return outs, record
 
 
