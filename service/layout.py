@@ -1,14 +1,14 @@
 """The one source of truth for how arrays meet networks: channel order, padding alignment, layout.
 
-numpy stages work in (H, W, C); networks in (N, C, H, W), and a stage that reads a network's input or
-output as they are (the crossreg spatiotemporal filter) in its channel planes (C, H, W). Every network
+numpy stages work in (H, W, C); networks in (N, C, H, W), fed and read as channel planes (C, H, W), the
+layout the crossreg pipeline keeps between its stages. Every network
 input is a stack of named channel groups in a fixed order, each with the transform applied before
 stacking. `models/` (training), `export/` (ONNX export, which writes this contract into the file's
 metadata) and `service/` (inference, which reads it back) all import these names; nothing else
 hard-codes an order or an alignment.
 
-Pure numpy: no torch here (service/ must import without it). Torch callers convert with
-`torch.from_numpy(hwc_to_nchw(...))`, or apply `pad_amounts` with `torch.nn.functional.pad`.
+Pure numpy: no torch here (service/ must import without it). Torch callers take
+`torch.from_numpy(pad_planes(...)[None])`.
 """
 
 from __future__ import annotations
@@ -120,32 +120,12 @@ def pad_amounts(height: int, width: int, alignment: int) -> tuple[int, int]:
     return (-height) % alignment, (-width) % alignment
 
 
-def pad_hwc(arr: np.ndarray, alignment: int) -> np.ndarray:
-    """Pad (H, W, C) at the bottom and right by edge replication up to multiples of `alignment`.
-
-    Returns the input itself when no padding is needed. Undo by slicing `out[:H, :W]`.
-    """
-    rows, cols = pad_amounts(arr.shape[0], arr.shape[1], alignment)
-    if rows == 0 and cols == 0:
-        return arr
-    return np.pad(arr, ((0, rows), (0, cols), (0, 0)), mode="edge")
-
-
 def pad_planes(arr: np.ndarray, alignment: int) -> np.ndarray:
-    """`pad_hwc` for planes (C, H, W): edge replication at the bottom and right. Undo by `out[:, :H, :W]`."""
+    """Pad planes (C, H, W) at the bottom and right by edge replication up to multiples of `alignment`.
+
+    Returns the input itself when no padding is needed. Undo by slicing `out[:, :H, :W]`.
+    """
     rows, cols = pad_amounts(arr.shape[1], arr.shape[2], alignment)
     if rows == 0 and cols == 0:
         return arr
     return np.pad(arr, ((0, 0), (0, rows), (0, cols)), mode="edge")
-
-
-def hwc_to_nchw(arr: np.ndarray) -> np.ndarray:
-    """(H, W, C) -> contiguous (1, C, H, W) float32."""
-    return np.ascontiguousarray(arr.transpose(2, 0, 1)[None], dtype=np.float32)
-
-
-def nchw_to_hwc(arr: np.ndarray) -> np.ndarray:
-    """(1, C, H, W) -> contiguous (H, W, C) float32."""
-    if arr.ndim != 4 or arr.shape[0] != 1:
-        raise ValueError(f"expected (1, C, H, W), got {arr.shape}")
-    return np.ascontiguousarray(arr[0].transpose(1, 2, 0), dtype=np.float32)

@@ -147,13 +147,6 @@ class OnnxModel:
         out = self.run_nchw(padded[None])[0]
         return np.ascontiguousarray(out[:, :height, :width])
 
-    def run_hwc(self, features: np.ndarray) -> np.ndarray:
-        """`run_planes` for (H, W, C_in) features -> (H, W, C_out) float32, contiguous."""
-        expected = total_channels(self.info.input_groups)
-        if features.ndim != 3 or features.shape[2] != expected:
-            raise ValueError(f"network input has shape {features.shape}; expected (H, W, {expected})")
-        return np.ascontiguousarray(self.run_planes(features.transpose(2, 0, 1)).transpose(1, 2, 0))
-
     def check_weights(self, weights: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Validated float32 copies of `weights`; raises WeightError / NonFiniteWeightsError naming the first
         offender. Every name must be a weight of the graph with its shape; a subset is allowed."""

@@ -10,7 +10,7 @@ Upsampling is nearest-neighbour (the authors use a 1x1 transposed convolution wi
 leaves every other row and column at its bias); it exports to one ONNX Resize and costs no parameters.
 
 Input and output contract: service.layout.CROSSREG_INPUTS / CROSSREG_OUTPUTS; height and width must be
-multiples of `alignment` (the caller pads, see service.layout.pad_hwc).
+multiples of `alignment` (the caller pads, see service.layout.pad_planes).
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ pytest.importorskip("onnx")
 
 from export.crossreg_unet import export_bytes, initializers  # noqa: E402
 from models.nets.crossreg_unet import make_unet  # noqa: E402
-from service.layout import CROSSREG_INPUTS, CROSSREG_OUTPUTS, hwc_to_nchw, nchw_to_hwc, pad_hwc  # noqa: E402
+from service.layout import CROSSREG_INPUTS, CROSSREG_OUTPUTS, pad_planes  # noqa: E402
 from service.runtime import ModelInfo, OnnxModel  # noqa: E402
 
 ORT_RTOL = 1e-4  # float32 convolutions summed in a different order; precisions reach 1e4
@@ -26,12 +26,12 @@ def exported():
 @pytest.mark.parametrize("size", [(13, 17), (1, 1), (5, 31), (24, 40)])
 def test_torch_and_onnxruntime_agree_on_odd_sizes(exported, size):
     net, model_bytes = exported
-    features = np.random.default_rng(size[0]).standard_normal((*size, 15)).astype(np.float32)
-    got = OnnxModel(model_bytes, threads=1).run_hwc(features)
+    features = np.random.default_rng(size[0]).standard_normal((15, *size)).astype(np.float32)
+    got = OnnxModel(model_bytes, threads=1).run_planes(features)
     with torch.no_grad():
-        padded = torch.from_numpy(hwc_to_nchw(pad_hwc(features, net.alignment)))
-        ref = nchw_to_hwc(net(padded).numpy())[: size[0], : size[1]]
-    assert got.shape == (*size, 6)
+        padded = torch.from_numpy(pad_planes(features, net.alignment)[None].copy())
+        ref = net(padded).numpy()[0, :, : size[0], : size[1]]
+    assert got.shape == (6, *size)
     np.testing.assert_allclose(got, ref, rtol=ORT_RTOL, atol=ORT_ATOL)
 
 

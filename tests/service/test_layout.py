@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from service.layout import CROSSREG_INPUTS, channel_slices, pad_hwc, pad_planes, stack_planes
+from service.layout import CROSSREG_INPUTS, channel_slices, pad_planes, stack_planes
 
 
 def _groups(height, width):
@@ -30,10 +30,13 @@ def test_stack_planes_names_a_missing_or_misshapen_group():
 
 
 @pytest.mark.parametrize("size", [(8, 12), (5, 7), (1, 1)])
-def test_pad_planes_is_pad_hwc_in_planes(size):
-    image = np.random.default_rng(1).random((*size, 3), np.float32)
-    padded = pad_planes(image.transpose(2, 0, 1), 4)
-    assert padded.shape[1] % 4 == 0 and padded.shape[2] % 4 == 0
-    np.testing.assert_array_equal(padded, pad_hwc(image, 4).transpose(2, 0, 1))
+def test_pad_planes_replicates_the_last_row_and_column(size):
+    planes = np.random.default_rng(1).random((3, *size), np.float32)
+    padded = pad_planes(planes, 4)
+    height, width = size
+    assert padded.shape == (3, -(-height // 4) * 4, -(-width // 4) * 4)
+    np.testing.assert_array_equal(padded[:, :height, :width], planes)
+    assert (padded[:, height:, :width] == planes[:, -1:, :]).all()  # rows below: copies of the last row
+    assert (padded[:, :, width:] == padded[:, :, width - 1 : width]).all()  # columns right: of the last column
     if size == (8, 12):
-        assert np.shares_memory(padded, image)  # aligned already: no copy
+        assert np.shares_memory(padded, planes)  # aligned already: no copy

@@ -8,7 +8,7 @@ pytest.importorskip("onnx")
 
 from export.crossreg_unet import export_bytes  # noqa: E402
 from models.nets.crossreg_unet import make_unet  # noqa: E402
-from service.layout import hwc_to_nchw, nchw_to_hwc, pad_hwc  # noqa: E402
+from service.layout import pad_planes  # noqa: E402
 from service.runtime import (  # noqa: E402
     NonFiniteWeightsError,
     OnnxModel,
@@ -23,32 +23,32 @@ def model_bytes():
     return export_bytes(make_unet(seed=0))
 
 
-def _torch_out(net, features):
+def _torch_out(net, planes):
+    """The torch network on planes (C, H, W), padded to its alignment and cropped back."""
     with torch.no_grad():
-        out = net(torch.from_numpy(hwc_to_nchw(pad_hwc(features, 4))))
-    return nchw_to_hwc(out.numpy())[: features.shape[0], : features.shape[1]]
+        out = net(torch.from_numpy(pad_planes(planes, net.alignment)[None].copy()))
+    return out.numpy()[0, :, : planes.shape[1], : planes.shape[2]]
 
 
 def test_swap_changes_the_output_to_the_new_weights(model_bytes):
     model = OnnxModel(model_bytes, threads=1)
-    features = np.random.default_rng(1).standard_normal((13, 17, 15)).astype(np.float32)
-    before = model.run_hwc(features)
+    features = np.random.default_rng(1).standard_normal((15, 13, 17)).astype(np.float32)
+    before = model.run_planes(features)
     other = make_unet(seed=99)
     new = {k: v.detach().numpy() for k, v in other.named_parameters()}
     assert model.swap_weights(new) == 1 and model.version == 1
-    after = model.run_hwc(features)
+    after = model.run_planes(features)
     assert np.abs(after - before).max() > 1e-3
     np.testing.assert_allclose(after, _torch_out(other, features), rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("size", [(13, 17), (8, 12)])
-def test_planes_and_hwc_entries_agree_and_crop_the_padding(model_bytes, size):
+def test_run_planes_matches_torch_and_crops_the_padding(model_bytes, size):
     model = OnnxModel(model_bytes, threads=1)
-    features = np.random.default_rng(3).standard_normal((*size, 15)).astype(np.float32)
-    planes = model.run_planes(np.ascontiguousarray(features.transpose(2, 0, 1)))
+    features = np.random.default_rng(3).standard_normal((15, *size)).astype(np.float32)
+    planes = model.run_planes(features)
     assert planes.shape == (6, *size) and planes.flags.c_contiguous
-    np.testing.assert_array_equal(planes, model.run_hwc(features).transpose(2, 0, 1))
-    np.testing.assert_allclose(planes.transpose(1, 2, 0), _torch_out(make_unet(seed=0), features), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(planes, _torch_out(make_unet(seed=0), features), rtol=1e-4, atol=1e-4)
     with pytest.raises(ValueError, match=r"network input has shape \(14, 8, 12\); expected \(15, H, W\)"):
         model.run_planes(np.zeros((14, 8, 12), np.float32))
 
@@ -58,9 +58,9 @@ def test_partial_swap_keeps_earlier_overrides(model_bytes):
     zero_head = {"head.weight": np.zeros((6, 8, 1, 1), np.float32), "head.bias": np.full(6, 2.0, np.float32)}
     model.swap_weights(zero_head)
     model.swap_weights({"enc1.0.0.bias": np.zeros(8, np.float32)})
-    out = model.run_hwc(np.ones((4, 4, 15), np.float32))
-    np.testing.assert_allclose(out[..., :5], 1 / (4 + 1e-4), rtol=1e-5)  # head still zero, bias 2
-    np.testing.assert_allclose(out[..., 5], 1 / (1 + np.exp(-2.0)), rtol=1e-5)
+    out = model.run_planes(np.ones((15, 4, 4), np.float32))
+    np.testing.assert_allclose(out[:5], 1 / (4 + 1e-4), rtol=1e-5)  # head still zero, bias 2
+    np.testing.assert_allclose(out[5], 1 / (1 + np.exp(-2.0)), rtol=1e-5)
 
 
 @pytest.mark.parametrize(
@@ -76,12 +76,12 @@ def test_partial_swap_keeps_earlier_overrides(model_bytes):
 )
 def test_bad_weights_are_refused_and_the_session_keeps_running(model_bytes, bad, error, text):
     model = OnnxModel(model_bytes, threads=1)
-    features = np.random.default_rng(2).standard_normal((5, 7, 15)).astype(np.float32)
-    before = model.run_hwc(features)
+    features = np.random.default_rng(2).standard_normal((15, 5, 7)).astype(np.float32)
+    before = model.run_planes(features)
     with pytest.raises(error, match=text):
         model.swap_weights(bad)
     assert model.version == 0
-    np.testing.assert_array_equal(model.run_hwc(features), before)
+    np.testing.assert_array_equal(model.run_planes(features), before)
 
 
 def test_default_init_has_pytorch_bounds(model_bytes):
@@ -91,7 +91,7 @@ def test_default_init_has_pytorch_bounds(model_bytes):
     bound = 1 / np.sqrt(15 * 9)
     assert np.abs(weights["enc1.0.0.weight"]).max() <= bound and np.abs(weights["enc1.0.0.bias"]).max() <= bound
     model.swap_weights(weights)
-    assert np.isfinite(model.run_hwc(np.zeros((3, 3, 15), np.float32))).all()
+    assert np.isfinite(model.run_planes(np.zeros((15, 3, 3), np.float32))).all()
 
 
 def test_thread_setting_from_argument_and_environment(monkeypatch):
