@@ -32,7 +32,7 @@ from service.stages.local_regression import (
     channel_planes,
     channel_planes_reference,
     check_firefly_k,
-    cholesky_ridge_solve_lanes,
+    cholesky_ridge_solve,
     clamp_fireflies,
     clamp_outlier_clusters,
     from_planes,
@@ -361,7 +361,7 @@ def solve_cells_reference(sums: np.ndarray, q: int, c: int, params: FlrParams) -
 @numba.njit(parallel=True, cache=True, fastmath=True)
 def _solve_cells_kernel(sums, pick, ridge_relative, ridge_absolute, coefs):
     """Per cell row, its cells as the lanes, in float64: weighted means and covariances from the sums
-    (order of `_moment_index`), cov(x, x) a = cov(x, y) with the slope ridge (`cholesky_ridge_solve_lanes`,
+    (order of `_moment_index`), cov(x, x) a = cov(x, y) with the slope ridge (`cholesky_ridge_solve`,
     weight sum 1), b = mean(y) - a . mean(x)."""
     h, nf, c, w = coefs.shape
     q = nf - 1
@@ -373,6 +373,7 @@ def _solve_cells_kernel(sums, pick, ridge_relative, ridge_absolute, coefs):
         mean_y = np.empty((c, w))
         cov = np.empty((q, q, w))
         rhs = np.empty((q, c, w))
+        ones = np.ones(w)  # weight sum 1: covariances are already normalised
         for lane in range(w):
             inv[lane] = 1.0 / max(np.float64(cell[0, lane]), 1e-30)
         for i in range(q):
@@ -391,7 +392,7 @@ def _solve_cells_kernel(sums, pick, ridge_relative, ridge_absolute, coefs):
                 for lane in range(w):
                     rhs[i, k, lane] = src[lane] * inv[lane] - mean_x[i, lane] * mean_y[k, lane]
         if q > 0:
-            cholesky_ridge_solve_lanes(cov, rhs, q, c, ridge_relative, ridge_absolute, False, 1.0, w)
+            cholesky_ridge_solve(cov, rhs, q, c, ridge_relative, ridge_absolute, False, ones, w)
         for k in range(c):
             offset = coefs[a, 0, k]
             for lane in range(w):

@@ -125,7 +125,7 @@ def solve_ridge(
     (on all when weight_sum is given): relative to each feature's own scale, so it is the same ridge in
     any feature units, and never zero. A feature that does not vary in a window has gram_jj = 0 and
     rhs_j = 0, hence beta_j = 0. A pivot that rounding drives below the ridge floor is clamped to it.
-    Returns beta: (..., k, m) float32, finite. Cholesky in float64 per system (numba, parallel);
+    Returns beta: (..., k, m) float32, finite. Cholesky in float64, SOLVE_LANES systems at a time (numba, parallel);
     `solve_ridge_reference` is the plain-numpy twin.
     """
     lead, k, m = gram.shape[:-2], gram.shape[-1], rhs.shape[-1]
@@ -142,57 +142,73 @@ def solve_ridge(
 
 
 @numba.njit(inline="always")
-def cholesky_ridge_solve(a, b, k, m, ridge_relative, ridge_absolute, constant, weight_sum):
-    """numba-callable core of `solve_ridge` for one system, in place: a (k, k) float64 scratch holding
-    X^T W X (overwritten), b (k, m) float64 holding X^T W Y -> beta. constant / weight_sum: see
-    `solve_ridge` (weight_sum is ignored when `constant`). Scalar indexing only: no views in the loop."""
-    scale = max(a[0, 0] if constant else weight_sum, 1e-30)
-    if constant:
-        a[0, 0] = scale
+def cholesky_ridge_solve(a, b, k, m, ridge_relative, ridge_absolute, constant, weight_sum, n):
+    """numba-callable core of `solve_ridge`: n systems at once, the system index last so every step
+    vectorises across systems. In place: a (k, k, L) float64 scratch holding X^T W X of system l in
+    a[:, :, l] (overwritten); b (k, m, L) float64 holding X^T W Y -> beta; lanes l < n <= L are solved.
+    constant, weight_sum (L,) float64 (read only when not constant): see `solve_ridge`. The diagonal of
+    `a` ends up holding 1 / L_jj: one division per pivot. `solve_ridge_reference` is the numpy twin."""
+    scale = np.empty(n)
+    for lane in range(n):
+        scale[lane] = max(a[0, 0, lane] if constant else weight_sum[lane], 1e-30)
+        if constant:
+            a[0, 0, lane] = scale[lane]
     for j in range(1 if constant else 0, k):
-        a[j, j] += ridge_relative * max(a[j, j], 0.0) + ridge_absolute * scale
-    floor = ridge_absolute * scale
-    for j in range(k):  # the diagonal of `a` ends up holding 1 / L_jj: one division per pivot
-        d = a[j, j]
+        for lane in range(n):
+            a[j, j, lane] += ridge_relative * max(a[j, j, lane], 0.0) + ridge_absolute * scale[lane]
+    inv = np.empty(n)
+    for j in range(k):
+        for lane in range(n):
+            inv[lane] = a[j, j, lane]
         for p in range(j):
-            d -= a[j, p] * a[j, p]
-        inv = 1.0 / np.sqrt(max(d, floor))
-        a[j, j] = inv
+            for lane in range(n):
+                inv[lane] -= a[j, p, lane] * a[j, p, lane]
+        for lane in range(n):
+            inv[lane] = 1.0 / np.sqrt(max(inv[lane], ridge_absolute * scale[lane]))
+            a[j, j, lane] = inv[lane]
         for i in range(j + 1, k):
-            v = a[i, j]
             for p in range(j):
-                v -= a[i, p] * a[j, p]
-            a[i, j] = v * inv
+                for lane in range(n):
+                    a[i, j, lane] -= a[i, p, lane] * a[j, p, lane]
+            for lane in range(n):
+                a[i, j, lane] *= inv[lane]
     for c in range(m):
         for i in range(k):
-            v = b[i, c]
             for p in range(i):
-                v -= a[i, p] * b[p, c]
-            b[i, c] = v * a[i, i]
+                for lane in range(n):
+                    b[i, c, lane] -= a[i, p, lane] * b[p, c, lane]
+            for lane in range(n):
+                b[i, c, lane] *= a[i, i, lane]
         for i in range(k - 1, -1, -1):
-            v = b[i, c]
             for p in range(i + 1, k):
-                v -= a[p, i] * b[p, c]
-            b[i, c] = v * a[i, i]
+                for lane in range(n):
+                    b[i, c, lane] -= a[p, i, lane] * b[p, c, lane]
+            for lane in range(n):
+                b[i, c, lane] *= a[i, i, lane]
+
+
+SOLVE_LANES = 64  # systems `_solve_kernel` solves together
 
 
 @numba.njit(parallel=True, cache=True)
 def _solve_kernel(gram, rhs, ridge_relative, ridge_absolute, constant, sums, out):
     count, k, m = rhs.shape
-    chunk = 1024  # systems per task: scratch is allocated once per chunk, not per system
-    for first in numba.prange((count + chunk - 1) // chunk):
-        a = np.empty((k, k))
-        b = np.empty((k, m))
-        for n in range(first * chunk, min(count, first * chunk + chunk)):
+    for first in numba.prange((count + SOLVE_LANES - 1) // SOLVE_LANES):
+        n0 = first * SOLVE_LANES
+        n = min(SOLVE_LANES, count - n0)
+        a = np.empty((k, k, SOLVE_LANES))
+        b = np.empty((k, m, SOLVE_LANES))
+        for lane in range(n):
             for i in range(k):
                 for j in range(k):
-                    a[i, j] = gram[n, i, j]
+                    a[i, j, lane] = gram[n0 + lane, i, j]
                 for c in range(m):
-                    b[i, c] = rhs[n, i, c]
-            cholesky_ridge_solve(a, b, k, m, ridge_relative, ridge_absolute, constant, sums[n])
+                    b[i, c, lane] = rhs[n0 + lane, i, c]
+        cholesky_ridge_solve(a, b, k, m, ridge_relative, ridge_absolute, constant, sums[n0 : n0 + n], n)
+        for lane in range(n):
             for i in range(k):
                 for c in range(m):
-                    out[n, i, c] = b[i, c]
+                    out[n0 + lane, i, c] = b[i, c, lane]
 
 
 def solve_ridge_reference(
@@ -402,23 +418,29 @@ def block_solve(
 
 @numba.njit(parallel=True, cache=True)
 def _moments_solve_kernel(acc, gram_entry, rhs_entry, ridge_relative, ridge_absolute, beta):
-    """acc (Hc, entries, Wc) float32 moments -> beta (Hc, Wc, G, K1, M): `cholesky_ridge_solve` per group."""
+    """acc (Hc, entries, Wc) float32 moments -> beta (Hc, Wc, G, K1, M): per centre row and group, its
+    centres solved together as the lanes of `cholesky_ridge_solve`."""
     hc, _, wc = acc.shape
     g, k1, m = rhs_entry.shape
+    unused = np.empty(wc)  # weight sums: the constant column holds them
     for a in numba.prange(hc):
-        x = np.empty((k1, k1))
-        y = np.empty((k1, m))
-        for b in range(wc):
-            for gi in range(g):
+        x = np.empty((k1, k1, wc))
+        y = np.empty((k1, m, wc))
+        for gi in range(g):
+            for i in range(k1):
+                for j in range(k1):
+                    src = acc[a, gram_entry[gi, i, j]]
+                    for b in range(wc):
+                        x[i, j, b] = src[b]
+                for c in range(m):
+                    src = acc[a, rhs_entry[gi, i, c]]
+                    for b in range(wc):
+                        y[i, c, b] = src[b]
+            cholesky_ridge_solve(x, y, k1, m, ridge_relative, ridge_absolute, True, unused, wc)
+            for b in range(wc):
                 for i in range(k1):
-                    for j in range(k1):
-                        x[i, j] = acc[a, gram_entry[gi, i, j], b]
                     for c in range(m):
-                        y[i, c] = acc[a, rhs_entry[gi, i, c], b]
-                cholesky_ridge_solve(x, y, k1, m, ridge_relative, ridge_absolute, True, 0.0)
-                for i in range(k1):
-                    for c in range(m):
-                        beta[a, b, gi, i, c] = y[i, c]
+                        beta[a, b, gi, i, c] = y[i, c, b]
 
 
 def block_moments_reference(terms: PairTerms, target: np.ndarray, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
@@ -1090,7 +1112,7 @@ def box_regression(
     first (2r+1) mod s rows of the next band, and a band serves nb consecutive centre rows, so every
     pixel's products are summed once; columns likewise, each frame row split into its s phases (columns
     j s + t) so that a column band's sum is a sum of contiguous vectors. The systems are solved 8 or more
-    at a time (`cholesky_ridge_solve_lanes`), and eq. 5 becomes a box sum of the centres' coefficients:
+    at a time (`cholesky_ridge_solve`), and eq. 5 becomes a box sum of the centres' coefficients:
     out_i = mean over c of (alpha_c - beta_c . z_c) + x_i . mean of beta_c. The constant pair weight
     (1 + WEIGHT_FLOOR) cancels in both.
 
@@ -1118,54 +1140,6 @@ def box_regression(
     factor = out if albedo is None else np.ascontiguousarray(albedo, dtype=np.float32)
     _box_reconstruct_kernel(features, coefs, params.radius, s, factor, albedo is not None, out)
     return out.transpose(2, 0, 1)
-
-
-@numba.njit(inline="always")
-def cholesky_ridge_solve_lanes(a, b, k, m, ridge_relative, ridge_absolute, constant, weight_sum, n):
-    """`cholesky_ridge_solve` on n systems at once, the system index last so every step vectorises.
-
-    a: (k, k, L) float64 scratch holding X^T W X of system l in a[:, :, l] (overwritten); b: (k, m, L)
-    float64 holding X^T W Y -> beta; lanes l < n <= L are solved. constant, weight_sum (one value for all
-    lanes): see `solve_ridge`. The same operations in the same order as `cholesky_ridge_solve` per lane;
-    `solve_ridge_reference` is the plain-numpy twin.
-    """
-    scale = np.empty(n)
-    for lane in range(n):
-        scale[lane] = max(a[0, 0, lane] if constant else weight_sum, 1e-30)
-        if constant:
-            a[0, 0, lane] = scale[lane]
-    for j in range(1 if constant else 0, k):
-        for lane in range(n):
-            a[j, j, lane] += ridge_relative * max(a[j, j, lane], 0.0) + ridge_absolute * scale[lane]
-    inv = np.empty(n)  # the diagonal of `a` ends up holding 1 / L_jj
-    for j in range(k):
-        for lane in range(n):
-            inv[lane] = a[j, j, lane]
-        for p in range(j):
-            for lane in range(n):
-                inv[lane] -= a[j, p, lane] * a[j, p, lane]
-        for lane in range(n):
-            inv[lane] = 1.0 / np.sqrt(max(inv[lane], ridge_absolute * scale[lane]))
-            a[j, j, lane] = inv[lane]
-        for i in range(j + 1, k):
-            for p in range(j):
-                for lane in range(n):
-                    a[i, j, lane] -= a[i, p, lane] * a[j, p, lane]
-            for lane in range(n):
-                a[i, j, lane] *= inv[lane]
-    for c in range(m):
-        for i in range(k):
-            for p in range(i):
-                for lane in range(n):
-                    b[i, c, lane] -= a[i, p, lane] * b[p, c, lane]
-            for lane in range(n):
-                b[i, c, lane] *= a[i, i, lane]
-        for i in range(k - 1, -1, -1):
-            for p in range(i + 1, k):
-                for lane in range(n):
-                    b[i, c, lane] -= a[p, i, lane] * b[p, c, lane]
-            for lane in range(n):
-                b[i, c, lane] *= a[i, i, lane]
 
 
 BOX_TILE = 216  # centre columns per task of `_box_solve_kernel` (1296 pixels at sparsity 6): a 720p row
@@ -1298,6 +1272,7 @@ def _box_solve_kernel(x, y, radius, sparsity, ridge_relative, ridge_absolute, ro
         win = np.empty((2, ne, nx))
         sums = np.empty((ne, nl))
         z = np.zeros((k1, nl))
+        ones = np.ones(nl)  # weight sums, unread: the constant column holds them
         gram = np.empty((k1, k1, nl))
         rhs = np.empty((k1, c, nl))
         for j in range(a0, a1 + nb):
@@ -1319,7 +1294,7 @@ def _box_solve_kernel(x, y, radius, sparsity, ridge_relative, ridge_absolute, ro
                 for lane in range(nl):
                     z[1 + i, lane] = src[(b0 + lane) * s]
             _centre_systems(sums, z, index, nl, gram, rhs)
-            cholesky_ridge_solve_lanes(gram, rhs, k1, c, ridge_relative, ridge_absolute, True, 0.0, nl)
+            cholesky_ridge_solve(gram, rhs, k1, c, ridge_relative, ridge_absolute, True, ones, nl)
             for m in range(c):
                 for lane in range(nl):
                     gamma = rhs[0, m, lane]

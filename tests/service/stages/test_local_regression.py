@@ -245,8 +245,8 @@ def test_clamp_outlier_clusters_rejects_a_cluster_the_3x3_clamp_keeps():
 
 
 @pytest.mark.parametrize("constant", [True, False])
-def test_cholesky_ridge_solve_lanes_matches_the_numpy_reference(constant):
-    from service.stages.local_regression import cholesky_ridge_solve_lanes
+def test_cholesky_ridge_solve_matches_the_numpy_reference(constant):
+    from service.stages.local_regression import cholesky_ridge_solve
 
     rng = np.random.default_rng(9)
     lanes, k, m = 21, 5, 3
@@ -256,8 +256,9 @@ def test_cholesky_ridge_solve_lanes_matches_the_numpy_reference(constant):
     x[4, :, 1:] = 0.0  # features that never vary
     gram, rhs = np.einsum("lik,lij->lkj", x, x), np.einsum("lik,lim->lkm", x, rng.standard_normal((lanes, 40, m)))
     a, b = np.ascontiguousarray(gram.transpose(1, 2, 0)), np.ascontiguousarray(rhs.transpose(1, 2, 0))
-    cholesky_ridge_solve_lanes(a, b, k, m, 1e-3, 1e-6, constant, 1.0, lanes - 1)  # the last lane is left alone
-    weight_sum = None if constant else np.ones(lanes - 1)
+    sums = rng.uniform(0.5, 2.0, lanes)
+    cholesky_ridge_solve(a, b, k, m, 1e-3, 1e-6, constant, sums, lanes - 1)  # the last lane is left alone
+    weight_sum = None if constant else sums[:-1]
     ref = solve_ridge_reference(gram[:-1], rhs[:-1], 1e-3, 1e-6, weight_sum=weight_sum)
     np.testing.assert_allclose(b[..., :-1].transpose(2, 0, 1), ref, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(b[..., -1], rhs[-1])
