@@ -155,11 +155,25 @@ def cross_regression(
     *,
     reference: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The two pilot estimates of Choi 2024 sec. 4.1.
+    """`cross_regression_planes` with (H, W, 3) float32 pilots (same arguments, same values)."""
+    pilot_a, pilot_b = cross_regression_planes(color_a, color_b, albedo, normal, params, reference=reference)
+    return from_planes(pilot_a), from_planes(pilot_b)
+
+
+def cross_regression_planes(
+    color_a: np.ndarray,
+    color_b: np.ndarray,
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    params: CrossRegressionParams | None = None,
+    *,
+    reference: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two pilot estimates of Choi 2024 sec. 4.1, as channel planes.
 
     color_a, color_b: (H, W, 3) float32 linear HDR radiance of the two half-sample buffers (any sign).
     albedo: (H, W, 3) float32 in [0, 1]; normal: (H, W, 3) float32 unit (or zero) world-space normal.
-    Returns (pilot_a, pilot_b), each (H, W, 3) float32 in log space (see `linear_to_log`; back to
+    Returns (pilot_a, pilot_b), each (3, H, W) float32 in log space (see `linear_to_log`; back to
     radiance with `log_to_linear`): pilot_a = f~(x^A), buffer A's variables and weights fitted to y^B;
     pilot_b = f~(x^B), buffer B's variables and weights fitted to y^A.
     reference: run the plain-numpy kernels instead of numba (slow; for tests).
@@ -178,4 +192,4 @@ def cross_regression(
     terms_b = buffer_terms(log_b, pixel_variance(log_b), albedo_planes, normal_planes)
     pilot_a = block_regression(terms_a, log_b, block, reference=reference)
     pilot_b = block_regression(terms_b, log_a, block, reference=reference)
-    return from_planes(pilot_a), from_planes(pilot_b)
+    return pilot_a, pilot_b
