@@ -32,7 +32,7 @@ from service.online.trainer import OnlineConfig, OnlineTrainer, require_torch
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.runtime import OnnxModel, WeightError, default_init
-from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
+from service.stages.cross_regression import CrossRegressionParams, cross_regression_planes, log_to_linear
 from service.stages.reprojection import ReprojectionParams, reproject
 from service.stages.spatiotemporal_filter import FilterOutput, screen_history, spatiotemporal_filter
 
@@ -121,8 +121,9 @@ def prepare_frame(
     pilots: the frame's (pilot_a, pilot_b), (H, W, 3) float32 log1p, when already computed (offline
     training caches them)."""
     albedo, normal = frame["albedo"], frame["normal"]
-    if pilots is None:
-        pilots = cross_regression(frame["colorA"], frame["colorB"], albedo, normal, params)
+    if pilots is None:  # (H, W, 3) views of the planes, which stack_planes copies as planes
+        planes_a, planes_b = cross_regression_planes(frame["colorA"], frame["colorB"], albedo, normal, params)
+        pilots = planes_a.transpose(1, 2, 0), planes_b.transpose(1, 2, 0)
     pilot_a, pilot_b = pilots
     mean = 0.5 * (pilot_a + pilot_b)
     groups = {"pilotA": pilot_a, "pilotB": pilot_b, "previous": mean, "albedo": albedo, "normal": normal}

@@ -27,19 +27,25 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from service.stages.cross_block import cross_block
 from service.stages.local_regression import (
     FIREFLY_K,
     RIDGE_ABSOLUTE,
     RIDGE_RELATIVE,
     BlockParams,
     PairTerms,
+    _bits_to_float32,
+    _float32_to_bits,
     block_regression,
     check_firefly_k,
-    clamp_fireflies,
+    clamp_fireflies_reference,
     from_planes,
+    interleave_row,
     neighbour_mean,
     to_planes,
 )
+
+LOG_MAX = 88.0  # |log value| limit of `log_to_linear`: expm1(88) = 1.65e38, two of them still below float32 max
 
 
 @dataclass(frozen=True)
@@ -76,8 +82,168 @@ def log_to_linear(log_color: np.ndarray) -> np.ndarray:
 
     Log values above 88 (radiance beyond float32) are clipped so the result stays finite.
     """
-    y = np.clip(np.asarray(log_color, np.float32), -88.0, 88.0)
+    y = np.clip(np.asarray(log_color, np.float32), -LOG_MAX, LOG_MAX)
     return (np.sign(y) * np.expm1(np.abs(y))).astype(np.float32, copy=False)
+
+
+def log_planes(color: np.ndarray, firefly_k: float | None = FIREFLY_K) -> np.ndarray:
+    """One buffer into the regression's log space, as channel planes: `local_regression.clamp_fireflies`
+    with k = firefly_k (None: no clamp), then `linear_to_log`, in one numba pass over the pixels.
+
+    color: (H, W, 3) float32 linear HDR radiance (any sign, finite). Returns (3, H, W) float32 log colour.
+    The log is musl's log1pf (within 1 ulp of log1p; numpy's SIMD log1p is within ~2). `log_planes_reference`
+    is the plain-numpy twin.
+    """
+    color = np.ascontiguousarray(color, dtype=np.float32)
+    out = np.empty((3, *color.shape[:2]), np.float32)
+    clamp = firefly_k is not None
+    _log_planes_kernel(color, np.float32(firefly_k if clamp else 1.0), clamp, out)  # k: unused when off
+    return out
+
+
+def log_planes_reference(color: np.ndarray, firefly_k: float | None = FIREFLY_K) -> np.ndarray:
+    """Plain-numpy twin of `log_planes`."""
+    planes = to_planes(color)
+    if firefly_k is not None:
+        planes = clamp_fireflies_reference(planes, firefly_k)
+    return linear_to_log(planes)
+
+
+def pilots_to_radiance(pilot_a: np.ndarray, pilot_b: np.ndarray) -> np.ndarray:
+    """The mean of the two pilots back in linear radiance, as pixels: from_planes(0.5 (log_to_linear(pilot_a)
+    + log_to_linear(pilot_b))), in one numba pass.
+
+    pilot_a, pilot_b: (3, H, W) float32 log colour (`cross_regression_planes`). Returns (H, W, 3) float32
+    linear HDR radiance (any sign, finite: log values are clipped to +-LOG_MAX as in `log_to_linear`).
+    The exponential is a Cody-Waite reduction and a degree-7 polynomial (within 2 ulp of expm1).
+    `pilots_to_radiance_reference` is the plain-numpy twin.
+    """
+    pilot_a = np.ascontiguousarray(pilot_a, dtype=np.float32)
+    pilot_b = np.ascontiguousarray(pilot_b, dtype=np.float32)
+    out = np.empty((*pilot_a.shape[1:], pilot_a.shape[0]), np.float32)
+    _pilots_kernel(pilot_a, pilot_b, out)
+    return out
+
+
+def pilots_to_radiance_reference(pilot_a: np.ndarray, pilot_b: np.ndarray) -> np.ndarray:
+    """Plain-numpy twin of `pilots_to_radiance`."""
+    return from_planes(np.float32(0.5) * (log_to_linear(pilot_a) + log_to_linear(pilot_b)))
+
+
+@numba.njit(parallel=True, cache=True)
+def _log_planes_kernel(color, k, clamp, out):  # pragma: no cover - jitted
+    """color (H, W, 3) -> out (3, H, W), a task per row. The clamp of `local_regression._clamp_kernel` (the
+    same float32 operations, no fast-math) runs on the interleaved rows, where the neighbour in x of a value
+    lies a constant 3 values away, so every loop is contiguous and vectorises. Without `clamp` no neighbour
+    is read, and lo > hi leaves every value as it is (as for a 1x1 frame). Then the signed log1p, and the
+    row is split into the planes. (Allocating lo and hi under an `if clamp` halved the clamp's speed.)"""
+    height, width = color.shape[:2]
+    n = 3 * width
+    flat = color.reshape(height, n)
+    for y in numba.prange(height):
+        src = flat[y]
+        lo = np.full(n, np.inf, np.float32)
+        hi = np.full(n, -np.inf, np.float32)
+        for yy in range(max(0, y - 1), min(height, y + 2) if clamp else 0):
+            row = flat[yy]
+            for i in range(3, n):  # left neighbour
+                v = row[i - 3]
+                lo[i] = min(lo[i], v)
+                hi[i] = max(hi[i], v)
+            for i in range(n - 3):  # right neighbour
+                v = row[i + 3]
+                lo[i] = min(lo[i], v)
+                hi[i] = max(hi[i], v)
+            if yy != y:  # the neighbour above or below
+                for i in range(n):
+                    v = row[i]
+                    lo[i] = min(lo[i], v)
+                    hi[i] = max(hi[i], v)
+        line = np.empty(n, np.float32)
+        for i in range(n):
+            spread = k * (hi[i] - lo[i])
+            clamped = min(max(src[i], lo[i] - spread), hi[i] + spread)
+            line[i] = clamped if lo[i] <= hi[i] else src[i]
+        for i in range(n):
+            v = line[i]
+            log_abs = _log1p_nonneg(abs(v))
+            line[i] = -log_abs if v < 0 else log_abs
+        d0, d1, d2 = out[0, y], out[1, y], out[2, y]
+        for x in range(width):  # a constant stride: the strided loads vectorise together
+            d0[x] = line[3 * x]
+            d1[x] = line[3 * x + 1]
+            d2[x] = line[3 * x + 2]
+
+
+@numba.njit(parallel=True, cache=True)
+def _pilots_kernel(pilot_a, pilot_b, out):  # pragma: no cover - jitted
+    """pilot_a, pilot_b (C, H, W) -> out (H, W, C): 0.5 (e(a) + e(b)), e the signed expm1 of values clipped
+    to +-LOG_MAX, a task per row, the row interleaved by `interleave_row` (its albedo is unused)."""
+    channels, height, width = pilot_a.shape
+    limit, half = np.float32(LOG_MAX), np.float32(0.5)
+    for y in numba.prange(height):
+        line = np.empty((channels, width), np.float32)
+        for m in range(channels):
+            a, b, dst = pilot_a[m, y], pilot_b[m, y], line[m]
+            for x in range(width):
+                ea = _expm1_nonneg(min(abs(a[x]), limit))
+                eb = _expm1_nonneg(min(abs(b[x]), limit))
+                dst[x] = half * ((-ea if a[x] < 0 else ea) + (-eb if b[x] < 0 else eb))
+        interleave_row(line, out[y], False, out[y])
+
+
+# musl src/math/log1pf.c (from FreeBSD s_log1pf.c): ln 2 split in two, and the minimax polynomial
+# |(log(1+s) - log(1-s))/s - Lg(s)| < 2^-34.24 on the reduced range.
+_LN2_HI, _LN2_LO = float.fromhex("0x1.62e3p-1"), float.fromhex("0x1.2fefa2p-17")
+_LG1, _LG2 = float.fromhex("0xaaaaaa.0p-24"), float.fromhex("0xccce13.0p-25")
+_LG3, _LG4 = float.fromhex("0x91e9ee.0p-25"), float.fromhex("0xf89e26.0p-26")
+_SQRT2_M1 = float.fromhex("0x1.a827a0p-2")  # sqrt(2) - 1 rounded up (musl's 0x3ed413d0)
+
+
+@numba.njit(inline="always")
+def _log1p_nonneg(x):
+    """log1p(x) for finite float32 x >= 0, within 1 ulp: musl's log1pf with its branches as selects
+    (vectorisable, unlike a call to log1pf). 1 + x = 2^k u, u in [sqrt(2)/2, sqrt(2)); below sqrt(2) - 1,
+    k = 0 and f = x exactly; c corrects for the rounding of 1 + x."""
+    one = np.float32(1.0)
+    u = one + x
+    bits = _float32_to_bits(u) + (0x3F800000 - 0x3F3504F3)
+    k = (bits >> 23) - 0x7F
+    c = (one - (u - x) if k >= 2 else x - (u - one)) / u
+    reduced = _bits_to_float32((bits & 0x007FFFFF) + 0x3F3504F3) - one
+    small = x < np.float32(_SQRT2_M1)
+    f = x if small else reduced
+    c = np.float32(0.0) if small else c
+    dk = np.float32(0.0) if small else np.float32(k)
+    s = f / (np.float32(2.0) + f)
+    z = s * s
+    w = z * z
+    r = z * (np.float32(_LG1) + w * np.float32(_LG3)) + w * (np.float32(_LG2) + w * np.float32(_LG4))
+    hfsq = np.float32(0.5) * f * f
+    return s * (hfsq + r) + (dk * np.float32(_LN2_LO) + c) - hfsq + f + dk * np.float32(_LN2_HI)
+
+
+# Cody-Waite split of ln 2 for the exponential (musl src/math/expf.c, ln2hi/ln2lo): n ln2_hi is exact
+# for n < 2^9.
+_EXP_LN2_HI, _EXP_LN2_LO = float.fromhex("0x1.62e4p-1"), float.fromhex("0x1.7f7d1cp-20")
+
+
+@numba.njit(inline="always")
+def _expm1_nonneg(t):
+    """expm1(t) for float32 t in [0, LOG_MAX], within 2 ulp, vectorisable: t = n ln2 + r, |r| <= ln2 / 2,
+    expm1(r) by its Taylor series to r^7 (truncation < 2e-8 relative), then 2^n expm1(r) + (2^n - 1), which
+    keeps full relative precision near 0 (n = 0)."""
+    n = np.floor(t * np.float32(1.4426950408889634) + np.float32(0.5))  # log2(e)
+    r = (t - n * np.float32(_EXP_LN2_HI)) - n * np.float32(_EXP_LN2_LO)
+    p = np.float32(1.0 / 5040.0)
+    p = p * r + np.float32(1.0 / 720.0)
+    p = p * r + np.float32(1.0 / 120.0)
+    p = p * r + np.float32(1.0 / 24.0)
+    p = p * r + np.float32(1.0 / 6.0)
+    p = p * r + np.float32(0.5)
+    p = p * r * r + r
+    scale = _bits_to_float32((np.int32(n) + np.int32(127)) << np.int32(23))
+    return scale * p + (scale - np.float32(1.0))
 
 
 def pixel_variance(log_planes: np.ndarray) -> np.ndarray:
@@ -180,16 +346,13 @@ def cross_regression_planes(
     """
     params = params or CrossRegressionParams()
     block = params.block()
-    logs = []
-    for color in (color_a, color_b):
-        planes = to_planes(color)
-        if params.firefly_k is not None:
-            planes = clamp_fireflies(planes, params.firefly_k)
-        logs.append(linear_to_log(planes))
-    log_a, log_b = logs
+    to_log = log_planes_reference if reference else log_planes
+    log_a, log_b = (to_log(color, params.firefly_k) for color in (color_a, color_b))
     albedo_planes, normal_planes = to_planes(albedo), to_planes(normal)
-    terms_a = buffer_terms(log_a, pixel_variance(log_a), albedo_planes, normal_planes)
-    terms_b = buffer_terms(log_b, pixel_variance(log_b), albedo_planes, normal_planes)
-    pilot_a = block_regression(terms_a, log_b, block, reference=reference)
-    pilot_b = block_regression(terms_b, log_a, block, reference=reference)
-    return pilot_a, pilot_b
+    variance_a, variance_b = pixel_variance(log_a), pixel_variance(log_b)
+    if not reference:
+        return cross_block(log_a, variance_a, log_b, variance_b, albedo_planes, normal_planes, block)
+    terms_a = buffer_terms(log_a, variance_a, albedo_planes, normal_planes)
+    terms_b = buffer_terms(log_b, variance_b, albedo_planes, normal_planes)
+    pilot_a = block_regression(terms_a, log_b, block, reference=True)
+    return pilot_a, block_regression(terms_b, log_a, block, reference=True)

@@ -401,7 +401,7 @@ def block_solve(
     _block_moments_kernel(
         pack_planes(terms, target, params) if packed is None else packed, layout.counts(),
         np.asarray(terms.scaled, np.bool_),
-        spatial_weights(params), params.radius, params.sparsity, _constants(), fa, fb, is_cross_layout(layout), acc,
+        spatial_weights(params), params.radius, params.sparsity, _constants(), fa, fb, acc,
     )  # fmt: skip
     gram_entry = np.zeros((g, k1, k1), np.int64)  # which accumulator holds each gram / rhs element
     rhs_entry = np.zeros((g, k1, m), np.int64)
@@ -584,25 +584,25 @@ def _constants() -> np.ndarray:
     return np.array([EPS_SIGMA, EPS_VARIANCE, WEIGHT_FLOOR], np.float32)
 
 
-def _pad_lanes(params: BlockParams) -> int:
+def pad_lanes(params: BlockParams) -> int:
     return -(-params.radius // params.sparsity)
 
 
 def pack_planes(terms: PairTerms, target: np.ndarray | None, params: BlockParams) -> np.ndarray:
     """The kernels' input: every plane of `terms` (and `target`) packed and split into phase planes."""
     parts = _Layout(terms, 0 if target is None else target.shape[0]).parts(terms, target)
-    s, pad = params.sparsity, _pad_lanes(params)
+    s, pad = params.sparsity, pad_lanes(params)
     height, width = terms.sigma.shape
     out = np.empty((s, sum(part.shape[0] for part in parts), height, centre_count(width, s) + 2 * pad + 1), np.float32)
     first = 0
     for part in parts:  # straight into the phase planes: no concatenated copy of the frame
-        _phase_copy_kernel(part, first, pad, out)
+        phase_copy(part, first, pad, out)
         first += part.shape[0]
     return out
 
 
 @numba.njit(parallel=True, cache=True)
-def _phase_copy_kernel(src, first, pad, out):
+def phase_copy(src, first, pad, out):
     """Planes src (k, H, W) into out[:, first : first + k] of `_phase_planes`' layout, zeros around."""
     count, height, width = src.shape
     s, lanes = out.shape[0], out.shape[3]
@@ -623,7 +623,7 @@ def _phase_planes(planes: np.ndarray, params: BlockParams) -> np.ndarray:
     """Plain-numpy twin of `pack_planes`' phase split: (P, H, W) -> (S, P, H, Wc + 2 pad + 1) float32,
     S = sparsity: pixel x = S q + phase lands at [phase, :, :, q + pad], pad = ceil(radius / S); zeros
     outside the frame (the mask plane is 0 there)."""
-    s, pad = params.sparsity, _pad_lanes(params)
+    s, pad = params.sparsity, pad_lanes(params)
     count, height, width = planes.shape
     wc = centre_count(width, s)
     out = np.zeros((s, count, height, wc + 2 * pad + 1), np.float32)
@@ -680,10 +680,9 @@ def _pair_rows(planes, counts, scaled, consts, sw, phase, y, cy, lo, pad, rows, 
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True)
-def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, fa, fb, cross, acc):
-    """Moments of every centre row's lanes into acc (Hc, entries, Wc). cross: the terms have the
-    cross-regression layout (`is_cross_layout`), whose 61 entries `_accumulate_cross` sums in fused passes;
-    otherwise entry e is sum w * F[fa[e]] * F[fb[e]], one pass per entry."""
+def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, fa, fb, acc):
+    """Moments of every centre row's lanes into acc (Hc, entries, Wc): entry e is sum w * F[fa[e]] * F[fb[e]],
+    one pass per entry (the cross-regression's own layout has the fused kernel of `cross_block`)."""
     height = planes.shape[2]
     hc, entries, lanes = acc.shape
     nrows = 1 + counts[1] + counts[2] * counts[3] + counts[4]
@@ -708,9 +707,6 @@ def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, con
                     lo = pad + dx // sparsity + j0
                     _pair_rows(planes, counts, scaled, consts, spatial[dy + radius, dx + radius], phase, y, cy, lo,
                                pad + j0, rows, w, s, n)  # fmt: skip
-                    if cross:
-                        _accumulate_cross(part, rows, w, n)
-                        continue
                     last = -1
                     for e in range(entries):
                         if fa[e] != last:
@@ -721,65 +717,6 @@ def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, con
                         for j in range(n):
                             part[e, j] += wf[j] * rows[b, j]
             acc[a, :, j0 : j0 + n] = part[:, :n]
-
-
-CROSS_COUNTS = (3, 2, 3)  # shared features, grouped features per group, groups (one target channel each)
-
-
-def is_cross_layout(layout: _Layout) -> bool:
-    """Whether `_accumulate_cross` applies: the pair features of Choi eq. 6 (3 shared, 2 grouped per
-    colour channel) with one target channel per group; any number of weight guides."""
-    return (layout.ks, layout.kg, layout.g) == CROSS_COUNTS and layout.m == 1
-
-
-@numba.njit(inline="always", fastmath=True)
-def _accumulate_cross(part, rows, w, n):
-    """The 61 moments of the cross layout, in `_Layout.moment_entries` order, in 11 fused passes over the
-    n lanes (a pass per entry is slower: every pass reloads w and its factor). Rows: 0 the
-    constant, 1-3 shared, 4 + 2g and 5 + 2g group g's two grouped features, 10 + g its target."""
-    for j in range(n):  # entries 0-4: 1 x (1, s0, s1, s2), s0 x s0
-        wj = w[j]
-        s0 = wj * rows[1, j]
-        part[0, j] += wj
-        part[1, j] += s0
-        part[2, j] += wj * rows[2, j]
-        part[3, j] += wj * rows[3, j]
-        part[4, j] += s0 * rows[1, j]
-    for j in range(n):  # entries 5-9: s0 x (s1, s2), s1 x (s1, s2), s2 x s2
-        s0, s1, s2 = rows[1, j], rows[2, j], rows[3, j]
-        w1, w2 = w[j] * s1, w[j] * s2
-        part[5, j] += w1 * s0
-        part[6, j] += w2 * s0
-        part[7, j] += w1 * s1
-        part[8, j] += w2 * s1
-        part[9, j] += w2 * s2
-    # Per group g (entries 10 + 17 g ...): the scaled feature's column, the plain one's, the target's.
-    # Literal offsets: with offsets computed in a loop over g, LLVM cannot prove the rows apart and
-    # leaves these loops scalar (4-5x slower).
-    _accumulate(part, rows, w, n, 10, 4, 4, 5, False)
-    _accumulate(part, rows, w, n, 15, 5, 4, 5, True)
-    _accumulate(part, rows, w, n, 21, 10, 4, 5, True)
-    _accumulate(part, rows, w, n, 27, 6, 6, 7, False)
-    _accumulate(part, rows, w, n, 32, 7, 6, 7, True)
-    _accumulate(part, rows, w, n, 38, 11, 6, 7, True)
-    _accumulate(part, rows, w, n, 44, 8, 8, 9, False)
-    _accumulate(part, rows, w, n, 49, 9, 8, 9, True)
-    _accumulate(part, rows, w, n, 55, 12, 8, 9, True)
-
-
-@numba.njit(inline="always", fastmath=True)
-def _accumulate(part, rows, w, n, e, fa, u, v, with_v):
-    """part[e + k] += w * rows[fa] * rows[f_k] for f = (0, 1, 2, 3, u) and, when with_v, v: one pass.
-    with_v is a literal at every call, so the branch folds away once inlined."""
-    for j in range(n):
-        wf = w[j] * rows[fa, j]
-        part[e, j] += wf
-        part[e + 1, j] += wf * rows[1, j]
-        part[e + 2, j] += wf * rows[2, j]
-        part[e + 3, j] += wf * rows[3, j]
-        part[e + 4, j] += wf * rows[u, j]
-        if with_v:
-            part[e + 5, j] += wf * rows[v, j]
 
 
 # ------------------------------------------------------------------------------ block reconstruction
@@ -806,15 +743,14 @@ def block_reconstruct(
     den = np.zeros((s, height, planes.shape[3]), np.float32)
     coefs = np.ascontiguousarray(beta.reshape(hc, wc, -1).transpose(0, 2, 1))  # (Hc, G*K1*M, Wc)
     _block_reconstruct_kernel(planes, layout.counts(), np.asarray(terms.scaled, np.bool_), spatial_weights(params),
-                              params.radius, s, _constants(), coefs, ch, rows, cols, is_cross_layout(layout), num,
-                              den)  # fmt: skip
+                              params.radius, s, _constants(), coefs, ch, rows, cols, num, den)  # fmt: skip
     out = np.empty((g * m, height, width), np.float32)
-    _normalise_kernel(num, den, _pad_lanes(params), out)
+    normalise_phases(num, den, pad_lanes(params), out)
     return out
 
 
 @numba.njit(parallel=True, cache=True)
-def _normalise_kernel(num, den, pad, out):
+def normalise_phases(num, den, pad, out):
     """Back from the phase planes, eq. 5's division: out[c, y, x] = num[p, c, y, q] / den[p, y, q] with
     p = x % S, q = pad + x // S (0 where no weight arrived). num (S, C, H, L), den (S, H, L), out (C, H, W)."""
     s = num.shape[0]
@@ -850,10 +786,9 @@ def block_reconstruct_reference(terms: PairTerms, beta: np.ndarray, params: Bloc
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True)
-def _block_reconstruct_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, coefs, ch, frow, col,
-                              cross, num, den):  # fmt: skip
-    """Weighted predictions of every centre into num (S, C, H, lanes) and weights into den (S, H, lanes).
-    cross: the cross-regression layout (`is_cross_layout`): each channel's prediction in one fused pass."""
+def _block_reconstruct_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, coefs, ch, frow, col, num,
+                              den):  # fmt: skip
+    """Weighted predictions of every centre into num (S, C, H, lanes) and weights into den (S, H, lanes)."""
     height = planes.shape[2]
     hc, _, lanes = coefs.shape
     channels = num.shape[1]
@@ -884,11 +819,6 @@ def _block_reconstruct_kernel(planes, counts, scaled, spatial, radius, sparsity,
                         out = den[phase, y, lo : lo + n]
                         for j in range(n):
                             out[j] += w[j]
-                        if cross:  # literal feature rows: see _accumulate_cross
-                            _add_prediction(coefs[a], j0, rows, w, num[phase, 0, y, lo : lo + n], n, 0, 4)
-                            _add_prediction(coefs[a], j0, rows, w, num[phase, 1, y, lo : lo + n], n, 6, 6)
-                            _add_prediction(coefs[a], j0, rows, w, num[phase, 2, y, lo : lo + n], n, 12, 8)
-                            continue
                         pred[:, :n] = 0.0
                         for e in range(ch.shape[0]):
                             c, r, coef = ch[e], frow[e], coefs[a, col[e], j0 : j0 + n]
@@ -898,17 +828,6 @@ def _block_reconstruct_kernel(planes, counts, scaled, spatial, radius, sparsity,
                             out = num[phase, c, y, lo : lo + n]
                             for j in range(n):
                                 out[j] += w[j] * pred[c, j]
-
-
-@numba.njit(inline="always", fastmath=True)
-def _add_prediction(coefs, j0, rows, w, out, n, c0, u):
-    """out += w * (coefs[c0 : c0 + 6, j0 + j] . [1, rows 1-3, rows u, u + 1]): one cross-layout channel in
-    one pass; coefs (G*K1, Wc). Contiguous 1-D coefficient rows, so LLVM vectorises the loop."""
-    b0, b1, b2 = coefs[c0, j0 : j0 + n], coefs[c0 + 1, j0 : j0 + n], coefs[c0 + 2, j0 : j0 + n]
-    b3, b4, b5 = coefs[c0 + 3, j0 : j0 + n], coefs[c0 + 4, j0 : j0 + n], coefs[c0 + 5, j0 : j0 + n]
-    for j in range(n):
-        p = b0[j] + b1[j] * rows[1, j] + b2[j] * rows[2, j] + b3[j] * rows[3, j]
-        out[j] += w[j] * (p + b4[j] * rows[u, j] + b5[j] * rows[u + 1, j])
 
 
 # ---------------------------------------------------------------------------------------- the whole

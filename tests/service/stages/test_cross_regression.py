@@ -2,15 +2,25 @@ import numpy as np
 import pytest
 
 from service.stages.cross_regression import (
+    LOG_MAX,
     CrossRegressionParams,
     cross_regression,
     linear_to_log,
+    log_planes,
+    log_planes_reference,
     log_to_linear,
+    pilots_to_radiance,
+    pilots_to_radiance_reference,
     pixel_variance,
     pixel_variance_reference,
 )
+from service.stages.local_regression import FIREFLY_K
 
 PARITY_ATOL = 1e-3  # log units: numba (fast exp, other summation order) vs numpy, float32
+LOG1P_ULP = 1.0  # log_planes' log1p (musl's log1pf) against float64 log1p, float32 ulp
+EXPM1_ULP = 2.0  # pilots_to_radiance's expm1 against float64 expm1, float32 ulp
+TWIN_RTOL = 1e-6  # numba kernels vs numpy's SIMD log1p / expm1 (up to ~2.5 ulp each), relative
+ODD_SIZES = [(1, 1), (3, 5), (17, 31)]
 
 
 def _gbuffers(height, width, rng):
@@ -85,3 +95,81 @@ def test_a_log_colour_linear_in_albedo_and_normal_is_reproduced():
     inner = (slice(8, -8), slice(8, -8))
     for pilot in (pilot_a, pilot_b):
         np.testing.assert_allclose(pilot[inner], log_colour[inner], atol=0.02)
+
+
+def _ulp_error(value: np.ndarray, exact: np.ndarray) -> np.ndarray:
+    """|value - exact| in units of the float32 spacing at `exact` (float64)."""
+    spacing = np.spacing(np.abs(exact).astype(np.float32)).astype(np.float64)
+    return np.abs(value.astype(np.float64) - exact) / spacing
+
+
+def _radiance(height, width, rng):
+    """Lognormal radiance with negative values and a 1e6 firefly (and a -1e6 one on larger frames)."""
+    color = rng.lognormal(0.0, 2.0, (height, width, 3)).astype(np.float32)
+    color *= np.where(rng.random(color.shape) < 0.2, -1.0, 1.0).astype(np.float32)
+    color[height // 2, width // 2, 1] = 1e6
+    if height * width > 1:
+        color[0, -1, 2] = -1e6
+    return color
+
+
+@pytest.mark.parametrize("firefly_k", [FIREFLY_K, 0.5, None])
+@pytest.mark.parametrize("size", ODD_SIZES)
+def test_log_planes_matches_the_numpy_reference(size, firefly_k):
+    color = _radiance(*size, np.random.default_rng(5))
+    fast, slow = log_planes(color, firefly_k), log_planes_reference(color, firefly_k)
+    assert fast.shape == (3, *size) and fast.dtype == np.float32 and np.isfinite(fast).all()
+    np.testing.assert_allclose(fast, slow, rtol=TWIN_RTOL, atol=0.0)
+
+
+def test_log_planes_clamps_fireflies_then_takes_the_signed_log():
+    color = np.ones((5, 7, 3), np.float32)
+    color[2, 3] = [1e6, -1e6, 1.0]
+    color[0, 0, 0] = 1e6  # a corner, 3 neighbours
+    np.testing.assert_allclose(log_planes(color, FIREFLY_K), np.log1p(1.0), rtol=1e-7)  # neighbours all 1
+    unclamped = log_planes(color, None)
+    assert unclamped[0, 2, 3] == unclamped[0, 0, 0] == pytest.approx(np.log1p(1e6), rel=1e-7)
+    assert unclamped[1, 2, 3] == pytest.approx(-np.log1p(1e6), rel=1e-7)
+    single = np.float32([[[1e6, -3.0, 0.0]]])  # 1x1: no neighbour, nothing clamped
+    np.testing.assert_allclose(log_planes(single).ravel(), [np.log1p(1e6), -np.log1p(3.0), 0.0], rtol=1e-7)
+
+
+def test_log_planes_is_log1p_within_an_ulp_over_the_float32_range():
+    rng = np.random.default_rng(6)
+    magnitude = np.concatenate(
+        [np.float32([0.0, 1e-30, 1e-8, 0.41421354, 0.41421366, 1.0, 3e38]), np.exp(rng.uniform(-30, 88, 30000))]
+    ).astype(np.float32)
+    values = magnitude * np.where(rng.random(magnitude.size) < 0.5, -1.0, 1.0).astype(np.float32)
+    color = values[: values.size // 3 * 3].reshape(1, -1, 3)
+    got = log_planes(color, None)[:, 0].T.ravel()
+    exact = np.sign(color.ravel()) * np.log1p(np.abs(color.ravel().astype(np.float64)))
+    assert _ulp_error(got, exact).max() <= LOG1P_ULP
+
+
+@pytest.mark.parametrize("size", ODD_SIZES)
+def test_pilots_to_radiance_matches_the_numpy_reference(size):
+    rng = np.random.default_rng(7)
+    pilot_a, pilot_b = (rng.uniform(-100.0, 100.0, (3, *size)).astype(np.float32) for _ in range(2))
+    pilot_a[:, 0, 0] = [LOG_MAX, -1e3, 0.0]  # clipped to +-LOG_MAX, as log_to_linear does
+    fast, slow = pilots_to_radiance(pilot_a, pilot_b), pilots_to_radiance_reference(pilot_a, pilot_b)
+    assert fast.shape == (*size, 3) and fast.dtype == np.float32 and np.isfinite(fast).all()
+    scale = 0.5 * (np.abs(log_to_linear(pilot_a)) + np.abs(log_to_linear(pilot_b))).transpose(1, 2, 0)
+    assert (np.abs(fast - slow) <= TWIN_RTOL * scale).all()  # relative to the terms: a + b may cancel
+
+
+def test_pilots_to_radiance_is_the_mean_radiance_as_pixels():
+    radiance_a = np.float32([[[0.0, 2.0]], [[-3.0, 1e6]], [[0.5, -0.25]]])  # (3, 1, 2) planes
+    radiance_b = np.float32([[[4.0, 2.0]], [[3.0, 0.0]], [[1.5, -0.75]]])
+    out = pilots_to_radiance(linear_to_log(radiance_a), linear_to_log(radiance_b))
+    np.testing.assert_allclose(out, (0.5 * (radiance_a + radiance_b)).transpose(1, 2, 0), rtol=1e-6)
+    top = pilots_to_radiance(np.full((3, 1, 1), 1e3, np.float32), np.full((3, 1, 1), 1e3, np.float32))
+    assert np.isfinite(top).all() and top[0, 0, 0] == pytest.approx(np.expm1(88.0), rel=1e-6)
+
+
+def test_pilots_to_radiance_is_expm1_within_two_ulp():
+    rng = np.random.default_rng(8)
+    logs = np.concatenate([np.float32([0.0, 1e-30, 1e-8, 0.34, 0.35, -1.0, 87.9, -88.0]), rng.uniform(-88, 88, 30000)])
+    logs = logs.astype(np.float32)[: logs.size // 3 * 3].reshape(3, 1, -1)
+    got = pilots_to_radiance(logs, logs)[0].T.ravel()  # the mean of two equal terms is exact
+    exact = np.sign(logs.ravel()) * np.expm1(np.abs(logs.ravel().astype(np.float64)))
+    assert _ulp_error(got, exact).max() <= EXPM1_ULP

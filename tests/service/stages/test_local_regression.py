@@ -115,12 +115,9 @@ def test_standardise_matches_the_numpy_reference():
 
 @pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22), (4, 1600)])  # 1600: more centres than LANE_CHUNK
 def test_block_kernels_match_the_numpy_reference(size):
-    from service.stages.local_regression import _Layout, is_cross_layout
-
     rng = np.random.default_rng(2)
     terms, target = _random_terms(rng, *size)
     params = BlockParams(radius=5, sparsity=3, sigma_position=4.0)
-    assert is_cross_layout(_Layout(terms, 3))  # the kernel's fused path
     beta_ref = solve_ridge_reference(*block_moments_reference(terms, target, params))
     beta = block_solve(terms, target, params)
     assert beta.shape == beta_ref.shape and beta.dtype == np.float32
@@ -132,14 +129,11 @@ def test_block_kernels_match_the_numpy_reference(size):
 
 
 @pytest.mark.parametrize("size", [(1, 1), (17, 31)])
-def test_block_solve_matches_the_reference_on_a_non_cross_layout(size):
-    """BMFR-style terms (shared features only) take the kernel's generic one-pass-per-moment path."""
-    from service.stages.local_regression import _Layout, is_cross_layout
-
+def test_block_solve_matches_the_reference_on_bmfr_terms(size):
+    """BMFR-style terms: shared features only, no grouped ones, flat weights."""
     rng = np.random.default_rng(8)
     terms = plain_terms(rng.standard_normal((5, *size), dtype=np.float32), groups=3)
     target = rng.standard_normal((3, *size), dtype=np.float32)
-    assert not is_cross_layout(_Layout(terms, 3))
     params = BlockParams(radius=4, sparsity=2, sigma_position=3.0)
     beta_ref = solve_ridge_reference(*block_moments_reference(terms, target, params))
     np.testing.assert_allclose(

@@ -1,0 +1,284 @@
+"""The cross-regression's block regression (Choi 2024 eqs. 3-7) as one fused SIMD kernel per buffer.
+
+`cross_block` gives the same two pilots as `local_regression.block_regression` on
+`cross_regression.buffer_terms` (whose plain-numpy twin, `block_regression(..., reference=True)`, is the
+reference of the parity tests), with the same constants (EPS_SIGMA, EPS_VARIANCE, WEIGHT_FLOOR, the
+ridge of `solve_ridge`). It is that computation reorganised for the CPU:
+
+- Both buffers' inputs are packed once into phase planes (`local_regression`'s layout: pixel
+  x = S q + phase at lane q + pad of plane `phase`), so the pixels that one window offset pairs with
+  LANES consecutive centres of a centre row are LANES consecutive floats: one `simd.Vec`.
+- Per group of LANES centres, one pass computes each pair's weight (eq. 7) and colour scale
+  1 / (sigma_i + sigma_c + eps) (eq. 6) once, into a small scratch, together with the 10 moments of the
+  shared normal features; three more passes (one per colour channel) sum that channel's 17 moments.
+  Every accumulator is a Vec held in a register: no per-pair store, which is what bounds a
+  loop-vectorised kernel. The passes take ROW_CHUNK window rows at a time, so the later passes find
+  the rows the first one read still in L1.
+- The 61 moments are solved right there (`cholesky_ridge_solve`, the LANES centres as its lanes), and a
+  last pass adds each centre's weighted predictions (eq. 5) into the numerator and denominator planes,
+  reusing the stored weights. Centre rows whose windows overlap are never run at the same time.
+
+Per 16 pairs this is about 100 vector operations for the moments, 40 for the prediction and 6 stores.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from service.stages.local_regression import (
+    EPS_SIGMA,
+    EPS_VARIANCE,
+    WEIGHT_FLOOR,
+    BlockParams,
+    centre_count,
+    cholesky_ridge_solve,
+    normalise_phases,
+    pad_lanes,
+    phase_copy,
+    spatial_weights,
+)
+from service.stages.simd import LANES, exp_neg, load, store
+
+# Packed planes of both buffers (`pack_cross`): each buffer's log colour (3), its variance and sigma
+# follow each other, so a buffer is named by the index of its first log-colour plane.
+MASK, NORMAL, ALBEDO, BUFFER_A, BUFFER_B = 0, 1, 4, 7, 12
+PLANES = 17
+MOMENTS = 61  # 10 of the shared features (constant, normal) + 17 per colour channel
+ROW_CHUNK = 3  # window rows the moment passes take at a time: 15 planes x 4 phases x 3 rows fit in L1
+FEATURES = 6  # per colour channel: constant, 3 normal differences, scaled colour difference, albedo difference
+
+
+def cross_block(
+    log_a: np.ndarray,
+    variance_a: np.ndarray,
+    log_b: np.ndarray,
+    variance_b: np.ndarray,
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    params: BlockParams,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two cross-regression pilots (Choi 2024 sec. 4.1) by block regression, numba SIMD kernel.
+
+    log_a, log_b: (3, H, W) float32 log colour of the two buffers (`cross_regression.linear_to_log`);
+    variance_a, variance_b: (H, W) float32 >= 0, their `pixel_variance`; albedo, normal: (3, H, W) float32.
+    params: window radius, sparsity and ridge (`sigma_position` as in `spatial_weights`).
+    Returns (pilot_a, pilot_b), (3, H, W) float32 log colour: pilot_a regresses log_b on buffer A's
+    features and weights, pilot_b log_a on buffer B's.
+    """
+    planes = pack_cross(log_a, variance_a, log_b, variance_b, albedo, normal, params)
+    width = variance_a.shape[1]
+    return _regress(planes, width, BUFFER_A, BUFFER_B, params), _regress(planes, width, BUFFER_B, BUFFER_A, params)
+
+
+def pack_cross(
+    log_a: np.ndarray,
+    variance_a: np.ndarray,
+    log_b: np.ndarray,
+    variance_b: np.ndarray,
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    params: BlockParams,
+) -> np.ndarray:
+    """Phase planes (S, PLANES, H, L) float32 of both buffers (arguments as `cross_block`), in the order
+    [inside-frame mask, normal (3), albedo (3), log_a (3), variance_a, sigma_a, log_b (3), variance_b,
+    sigma_b]; L = the centre count rounded up to LANES, plus `pad_lanes` on each side; zeros outside."""
+    height, width = variance_a.shape
+    s, pad = params.sparsity, pad_lanes(params)
+    lanes = -(-centre_count(width, s) // LANES) * LANES
+    out = np.empty((s, PLANES, height, lanes + 2 * pad), np.float32)
+    parts = [np.ones((1, height, width), np.float32), normal, albedo]
+    for log, variance in ((log_a, variance_a), (log_b, variance_b)):
+        parts += [log, variance[None], np.sqrt(variance)[None]]
+    first = 0
+    for part in parts:
+        phase_copy(np.ascontiguousarray(part, dtype=np.float32), first, pad, out)
+        first += part.shape[0]
+    return out
+
+
+def _regress(planes: np.ndarray, width: int, guide: int, target: int, params: BlockParams) -> np.ndarray:
+    """One pilot from `pack_cross` planes of a frame `width` pixels wide: the buffer at plane `guide` gives
+    features and weights, the one at `target` the colours. Returns (3, H, W) float32."""
+    s, _, height, lanes = planes.shape
+    num = np.zeros((s, 3, height, lanes), np.float32)
+    den = np.zeros((s, height, lanes), np.float32)
+    consts = np.array([EPS_VARIANCE, EPS_SIGMA, WEIGHT_FLOOR], np.float32)
+    ridge = np.array([params.ridge_relative, params.ridge_absolute])
+    counts = np.array([centre_count(height, s), centre_count(width, s)], np.int64)
+    _cross_block_kernel(planes, guide, target, spatial_weights(params), params.radius, counts, consts, ridge, num, den)
+    out = np.empty((3, height, width), np.float32)
+    normalise_phases(num, den, pad_lanes(params), out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True, fastmath=True)
+def _cross_block_kernel(planes, guide, target, spatial, radius, counts, consts, ridge, num, den):  # pragma: no cover
+    """Every centre row's regression and its weighted predictions into num (S, 3, H, L), den (S, H, L).
+
+    Centre rows `stride` apart have disjoint windows, so one pass over rows first, first + stride, ...
+    runs in parallel without two rows adding into the same pixel."""
+    s, height = planes.shape[0], planes.shape[2]
+    hc, wc = counts[0], counts[1]
+    pad = -(-radius // s)
+    stride = (2 * radius) // s + 1
+    for first in range(stride):
+        for i in numba.prange((hc - first + stride - 1) // stride):
+            cy = (first + i * stride) * s
+            y0, y1 = max(cy - radius, 0), min(cy + radius + 1, height)
+            weights = np.empty((2, (y1 - y0) * (2 * radius + 1), LANES), np.float32)
+            moments = np.empty((MOMENTS, LANES), np.float32)
+            gram = np.empty((3, FEATURES, FEATURES, LANES))
+            rhs = np.empty((3, FEATURES, 1, LANES))
+            coefs = np.empty((3 * FEATURES, LANES), np.float32)
+            for q in range(0, wc, LANES):
+                c = pad + q
+                moments[:, :] = 0.0
+                for ya in range(y0, y1, ROW_CHUNK):  # all passes over a few rows at a time: they stay in L1
+                    rows = range(ya, min(ya + ROW_CHUNK, y1))
+                    _weights_pass(planes, guide, spatial, radius, consts, cy, y0, rows, c, weights, moments)
+                    for ch in range(3):
+                        _channel_pass(planes, guide, target, ch, radius, cy, y0, rows, c, weights, moments)
+                _solve(moments, ridge, gram, rhs, coefs)
+                _predict_pass(planes, guide, radius, cy, y0, y1, c, weights, coefs, num, den)
+
+
+@numba.njit(inline="always", fastmath=True)
+def _weights_pass(planes, guide, spatial, radius, consts, cy, y0, rows, c, weights, moments):  # pragma: no cover
+    """Window rows `rows` (a range within y0 ...) of LANES centres: the pair weights (eq. 7, times the
+    spatial factor, plus WEIGHT_FLOOR, 0 outside the frame) and colour scales 1 / (sigma_i + sigma_c +
+    eps) into weights (2, offsets, LANES), and the shared moments sum w [1, dn] [1, dn]^T (dn: normal
+    difference; upper triangle row by row) added to moments[0:10]."""
+    s = planes.shape[0]
+    eps_variance, eps_sigma, floor = consts[0], consts[1], consts[2]
+    mask_c = load(planes, (0, MASK, cy, c))
+    g0, g1, g2 = _centres3(planes, guide, cy, c)
+    var_c, sig_c = load(planes, (0, guide + 3, cy, c)) + eps_variance, load(planes, (0, guide + 4, cy, c)) + eps_sigma
+    n0, n1, n2 = _centres3(planes, NORMAL, cy, c)
+    m = (load(moments, (0, 0)), load(moments, (1, 0)), load(moments, (2, 0)), load(moments, (3, 0)),
+         load(moments, (4, 0)), load(moments, (5, 0)), load(moments, (6, 0)), load(moments, (7, 0)),
+         load(moments, (8, 0)), load(moments, (9, 0)))  # fmt: skip
+    for y in rows:
+        o = (y - y0) * (2 * radius + 1)
+        p, x = (-radius) % s, c + (-radius) // s
+        for dx in range(-radius, radius + 1):
+            d0 = load(planes, (p, guide, y, x)) - g0
+            d1 = load(planes, (p, guide + 1, y, x)) - g1
+            d2 = load(planes, (p, guide + 2, y, x)) - g2
+            ratio = (d0 * d0 + d1 * d1 + d2 * d2) / (load(planes, (p, guide + 3, y, x)) + var_c)
+            sw = spatial[y - cy + radius, dx + radius]
+            w = (exp_neg(ratio) * sw + floor) * (load(planes, (p, MASK, y, x)) * mask_c)
+            store(weights, (0, o, 0), w)
+            store(weights, (1, o, 0), np.float32(1.0) / (load(planes, (p, guide + 4, y, x)) + sig_c))
+            e0 = load(planes, (p, NORMAL, y, x)) - n0
+            e1 = load(planes, (p, NORMAL + 1, y, x)) - n1
+            e2 = load(planes, (p, NORMAL + 2, y, x)) - n2
+            w0, w1, w2 = w * e0, w * e1, w * e2
+            m = (m[0] + w, m[1] + w0, m[2] + w1, m[3] + w2, m[4] + w0 * e0, m[5] + w0 * e1, m[6] + w0 * e2,
+                 m[7] + w1 * e1, m[8] + w1 * e2, m[9] + w2 * e2)  # fmt: skip
+            o, p = o + 1, p + 1
+            if p == s:
+                p, x = 0, x + 1
+    for e in range(10):
+        store(moments, (e, 0), m[e])
+
+
+@numba.njit(inline="always", fastmath=True)
+def _channel_pass(planes, guide, target, ch, radius, cy, y0, rows, c, weights, moments):  # pragma: no cover
+    """Window rows `rows` of LANES centres: colour channel ch's 17 moments, added to moments[10 + 17 ch ...]:
+    sum w u [1, dn, u], w a [1, dn, u, a] and the right-hand side sum w t [1, dn, u, a], with u the scaled
+    colour difference (eq. 6), a the albedo difference and t the target colour."""
+    s = planes.shape[0]
+    g, a_c = load(planes, (0, guide + ch, cy, c)), load(planes, (0, ALBEDO + ch, cy, c))
+    n0, n1, n2 = _centres3(planes, NORMAL, cy, c)
+    k = 10 + 17 * ch
+    m = (load(moments, (k, 0)), load(moments, (k + 1, 0)), load(moments, (k + 2, 0)), load(moments, (k + 3, 0)),
+         load(moments, (k + 4, 0)), load(moments, (k + 5, 0)), load(moments, (k + 6, 0)), load(moments, (k + 7, 0)),
+         load(moments, (k + 8, 0)), load(moments, (k + 9, 0)), load(moments, (k + 10, 0)),
+         load(moments, (k + 11, 0)), load(moments, (k + 12, 0)), load(moments, (k + 13, 0)),
+         load(moments, (k + 14, 0)), load(moments, (k + 15, 0)), load(moments, (k + 16, 0)))  # fmt: skip
+    for y in rows:
+        o = (y - y0) * (2 * radius + 1)
+        p, x = (-radius) % s, c + (-radius) // s
+        for _ in range(2 * radius + 1):
+            w = load(weights, (0, o, 0))
+            e0 = load(planes, (p, NORMAL, y, x)) - n0
+            e1 = load(planes, (p, NORMAL + 1, y, x)) - n1
+            e2 = load(planes, (p, NORMAL + 2, y, x)) - n2
+            u = (load(planes, (p, guide + ch, y, x)) - g) * load(weights, (1, o, 0))
+            a = load(planes, (p, ALBEDO + ch, y, x)) - a_c
+            wu, wa, wt = w * u, w * a, w * load(planes, (p, target + ch, y, x))
+            m = (m[0] + wu, m[1] + wu * e0, m[2] + wu * e1, m[3] + wu * e2, m[4] + wu * u,
+                 m[5] + wa, m[6] + wa * e0, m[7] + wa * e1, m[8] + wa * e2, m[9] + wa * u, m[10] + wa * a,
+                 m[11] + wt, m[12] + wt * e0, m[13] + wt * e1, m[14] + wt * e2, m[15] + wt * u,
+                 m[16] + wt * a)  # fmt: skip
+            o, p = o + 1, p + 1
+            if p == s:
+                p, x = 0, x + 1
+    for e in range(17):
+        store(moments, (k + e, 0), m[e])
+
+
+@numba.njit(inline="always")
+def _centres3(planes, first, cy, c):  # pragma: no cover
+    """The LANES centres' values (centre row cy, lanes c ...) of planes first, first + 1 and first + 2."""
+    return load(planes, (0, first, cy, c)), load(planes, (0, first + 1, cy, c)), load(planes, (0, first + 2, cy, c))
+
+
+# (row, column) of the 6x6 system of every moment: the shared ones (0-9) in every channel's system,
+# then per channel the scaled-colour column, the albedo column and the right-hand side (column 6).
+_SHARED = ((0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3))
+_CHANNEL = ((0, 4), (1, 4), (2, 4), (3, 4), (4, 4), (0, 5), (1, 5), (2, 5), (3, 5), (4, 5), (5, 5),
+            (0, 6), (1, 6), (2, 6), (3, 6), (4, 6), (5, 6))  # fmt: skip
+MOMENT_ENTRIES = np.array([(0, *rc) for rc in _SHARED] + [(ch + 1, *rc) for ch in range(3) for rc in _CHANNEL])
+
+
+@numba.njit(inline="always")
+def _solve(moments, ridge, gram, rhs, coefs):  # pragma: no cover
+    """moments (MOMENTS, LANES) -> coefs (3 * FEATURES, LANES): per colour channel the ridge solve of
+    `solve_ridge` (float64 Cholesky, constant unregularised), the LANES centres as its lanes."""
+    for e in range(MOMENTS):
+        kind, row, col = MOMENT_ENTRIES[e, 0], MOMENT_ENTRIES[e, 1], MOMENT_ENTRIES[e, 2]
+        for ch in range(3):
+            if kind != 0 and ch != kind - 1:
+                continue
+            for j in range(LANES):
+                if col == FEATURES:
+                    rhs[ch, row, 0, j] = moments[e, j]
+                else:
+                    gram[ch, row, col, j] = gram[ch, col, row, j] = moments[e, j]
+    unused = np.empty(0)  # weight sums: the constant column holds them
+    for ch in range(3):
+        cholesky_ridge_solve(gram[ch], rhs[ch], FEATURES, 1, ridge[0], ridge[1], True, unused, LANES)
+        for k in range(FEATURES):
+            for j in range(LANES):
+                coefs[ch * FEATURES + k, j] = rhs[ch, k, 0, j]
+
+
+@numba.njit(inline="always", fastmath=True)
+def _predict_pass(planes, guide, radius, cy, y0, y1, c, weights, coefs, num, den):  # pragma: no cover
+    """Eq. 5's sums: num[channel] += w (alpha + beta . x) and den += w at every pixel of the window."""
+    s = planes.shape[0]
+    g0, g1, g2 = _centres3(planes, guide, cy, c)
+    a0, a1, a2 = _centres3(planes, ALBEDO, cy, c)
+    n0, n1, n2 = _centres3(planes, NORMAL, cy, c)
+    o = 0
+    for y in range(y0, y1):
+        p, x = (-radius) % s, c + (-radius) // s
+        for _ in range(2 * radius + 1):  # phases interleaved: a vector is re-read s offsets after its store
+            w, scale = load(weights, (0, o, 0)), load(weights, (1, o, 0))
+            e0 = load(planes, (p, NORMAL, y, x)) - n0
+            e1 = load(planes, (p, NORMAL + 1, y, x)) - n1
+            e2 = load(planes, (p, NORMAL + 2, y, x)) - n2
+            for ch, g, a_c in ((0, g0, a0), (1, g1, a1), (2, g2, a2)):
+                k = ch * FEATURES
+                pred = load(coefs, (k, 0)) + load(coefs, (k + 1, 0)) * e0 + load(coefs, (k + 2, 0)) * e1
+                pred += load(coefs, (k + 3, 0)) * e2
+                pred += load(coefs, (k + 4, 0)) * ((load(planes, (p, guide + ch, y, x)) - g) * scale)
+                pred += load(coefs, (k + 5, 0)) * (load(planes, (p, ALBEDO + ch, y, x)) - a_c)
+                store(num, (p, ch, y, x), load(num, (p, ch, y, x)) + w * pred)
+            store(den, (p, y, x), load(den, (p, y, x)) + w)
+            o += 1
+            p += 1
+            if p == s:
+                p, x = 0, x + 1

@@ -1,0 +1,81 @@
+import numpy as np
+import pytest
+
+from service.stages.cross_block import LANES, cross_block, pack_cross
+from service.stages.cross_regression import buffer_terms, linear_to_log, pixel_variance
+from service.stages.local_regression import BlockParams, _phase_planes, block_regression
+
+PARITY_RTOL = 2e-4  # SIMD kernel (other summation order, float32 moments) vs the numpy reference, float32
+
+
+def _buffers(rng: np.random.Generator, height: int, width: int) -> dict[str, np.ndarray]:
+    """Two noisy log-colour buffers of one smooth signal with an edge, and G-buffers, as planes."""
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    signal = 1.0 + 0.5 * np.sin(0.3 * x + 0.2 * y) + (x > width / 2)
+    albedo = rng.random((3, height, width), dtype=np.float32)
+    normal = rng.standard_normal((3, height, width)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=0, keepdims=True)
+    out = {"albedo": albedo, "normal": normal}
+    for name in ("a", "b"):
+        radiance = signal * albedo * rng.lognormal(0.0, 0.5, (3, height, width)).astype(np.float32)
+        out[name] = linear_to_log(radiance)
+        out["var_" + name] = pixel_variance(out[name])
+    return out
+
+
+def _reference(inputs: dict[str, np.ndarray], params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
+    albedo, normal = inputs["albedo"], inputs["normal"]
+    terms_a = buffer_terms(inputs["a"], inputs["var_a"], albedo, normal)
+    terms_b = buffer_terms(inputs["b"], inputs["var_b"], albedo, normal)
+    return (block_regression(terms_a, inputs["b"], params, reference=True),
+            block_regression(terms_b, inputs["a"], params, reference=True))  # fmt: skip
+
+
+def _run(inputs: dict[str, np.ndarray], params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
+    return cross_block(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], inputs["albedo"],
+                       inputs["normal"], params)  # fmt: skip
+
+
+@pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22), (9, 4 * LANES * 2 + 7)])  # last: 3 lane groups
+@pytest.mark.parametrize(
+    "params",
+    [BlockParams(), BlockParams(radius=5, sparsity=3, sigma_position=4.0), BlockParams(radius=2, sparsity=1)],
+    ids=["paper", "gaussian", "dense"],
+)
+def test_cross_block_matches_the_numpy_reference(size, params):
+    inputs = _buffers(np.random.default_rng(3), *size)
+    for out, ref in zip(_run(inputs, params), _reference(inputs, params), strict=True):
+        assert out.shape == (3, *size) and out.dtype == np.float32
+        np.testing.assert_allclose(out, ref, rtol=PARITY_RTOL, atol=PARITY_RTOL * np.abs(ref).max())
+
+
+def test_pilot_a_is_fitted_to_buffer_b():
+    """Buffer B constant: pilot_a (A's features, B's colours) is that constant; pilot_b is not."""
+    inputs = _buffers(np.random.default_rng(4), 20, 24)
+    inputs["b"] = np.full_like(inputs["b"], 0.7)
+    inputs["var_b"] = np.zeros_like(inputs["var_b"])
+    pilot_a, pilot_b = _run(inputs, BlockParams())
+    np.testing.assert_allclose(pilot_a, 0.7, rtol=1e-5)
+    assert np.abs(pilot_b - 0.7).max() > 0.1
+
+
+def test_constant_g_buffers_and_black_frames_stay_finite():
+    """Constant albedo and normal make the normal equations singular: the ridge keeps the result finite."""
+    zeros = np.zeros((3, 13, 18), np.float32)
+    inputs = {"a": zeros, "b": zeros, "var_a": zeros[0], "var_b": zeros[0], "albedo": zeros + 0.5, "normal": zeros}
+    for pilot in _run(inputs, BlockParams()):
+        np.testing.assert_array_equal(pilot, 0.0)
+
+
+def test_pack_cross_is_the_numpy_phase_split():
+    inputs = _buffers(np.random.default_rng(5), 11, 29)
+    params = BlockParams(radius=5, sparsity=3)
+    packed = pack_cross(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], inputs["albedo"],
+                        inputs["normal"], params)  # fmt: skip
+    planes = [np.ones((1, 11, 29), np.float32), inputs["normal"], inputs["albedo"]]
+    for name in ("a", "b"):
+        planes += [inputs[name], inputs["var_" + name][None], np.sqrt(inputs["var_" + name])[None]]
+    expected = _phase_planes(np.concatenate(planes), params)  # lanes: 10 centres + 1, pad 2 on each side
+    assert packed.shape == (3, 17, 11, LANES + 2 * 2)  # the centres rounded up to whole Vecs
+    np.testing.assert_array_equal(packed[..., : expected.shape[-1]], expected)
+    assert not packed[..., expected.shape[-1] :].any()

@@ -1,0 +1,66 @@
+import numba
+import numpy as np
+
+from service.stages.local_regression import _exp_neg
+from service.stages.simd import LANES, exp_neg, floor, load, splat, store, vmax
+
+EXP_RTOL = 1e-5  # exp_neg on [0, 80]: float32 rounding of x log2(e) grows the error with x (~6e-6 at 80)
+
+
+@numba.njit(fastmath=True)
+def _lanewise(x, y, out):
+    for i in range(0, x.shape[1], LANES):
+        a, b = load(x, (0, i)), load(y, (0, i))
+        store(out, (0, i), a + b)
+        store(out, (1, i), a - 2.0 * b)
+        store(out, (2, i), (a * b) / (b + np.float32(1.0)))
+        store(out, (3, i), vmax(a, b))
+        store(out, (4, i), floor(a))
+        acc = splat(np.float32(0.5))
+        acc += a
+        acc *= b
+        store(out, (5, i), acc)
+        store(out, (6, i), exp_neg(b))
+
+
+@numba.njit(fastmath=True)
+def _exp_neg_scalar(x, out):
+    for i in range(x.shape[0]):
+        out[i] = _exp_neg(x[i])
+
+
+def test_vec_arithmetic_is_lane_wise_float32():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-50.0, 50.0, (1, 4 * LANES)).astype(np.float32)
+    y = rng.uniform(0.0, 80.0, (1, 4 * LANES)).astype(np.float32)
+    out = np.zeros((7, 4 * LANES), np.float32)
+    _lanewise(x, y, out)
+    a, b = x[0], y[0]
+    expected = [a + b, a - 2 * b, a * b / (b + 1), np.maximum(a, b), np.floor(a), (0.5 + a) * b]
+    for got, want in zip(out[:6], expected, strict=True):
+        np.testing.assert_allclose(got, want.astype(np.float32), rtol=1e-6)
+    np.testing.assert_allclose(out[6], np.exp(-b.astype(np.float64)), rtol=EXP_RTOL, atol=0.0)
+
+
+def test_exp_neg_is_the_scalar_polynomial_bit_for_bit():
+    x = np.concatenate([[0.0, 1e-8, 0.5, 86.0, 87.0, 88.0, 1e30, np.inf], np.linspace(0, 90, 8 * LANES - 8)])
+    x = x.astype(np.float32)
+    vector, scalar = np.zeros((7, x.size), np.float32), np.zeros(x.size, np.float32)
+    _lanewise(np.zeros((1, x.size), np.float32), x[None], vector)
+    _exp_neg_scalar(x, scalar)
+    np.testing.assert_array_equal(vector[6], scalar)
+    assert (vector[6] > 0).all() and vector[6].max() == 1.0 and vector[6][6] < 2e-38  # clamped at exp(-87)
+
+
+def test_load_and_store_touch_exactly_one_vec():
+    src = np.arange(3 * 2 * 40, dtype=np.float32).reshape(3, 2, 40)
+    dst = np.zeros_like(src)
+
+    @numba.njit
+    def copy(src, dst):
+        store(dst, (2, 1, 5), load(src, (1, 0, 7)))
+
+    copy(src, dst)
+    np.testing.assert_array_equal(dst[2, 1, 5 : 5 + LANES], src[1, 0, 7 : 7 + LANES])
+    dst[2, 1, 5 : 5 + LANES] = 0.0
+    assert not dst.any()
