@@ -67,6 +67,20 @@ def test_network_input_follows_the_layout_and_history_is_used(odd_frames):
     assert second.sample().shape == (13, 17, 22)
 
 
+def test_cached_pilots_give_the_same_network_input(odd_frames):
+    """Offline training passes (H, W, 3) pilots it computed once; the result equals computing them here."""
+    from service.stages.cross_regression import cross_regression
+
+    pipeline = pipelines.get("crossreg")
+    _, state = _run(pipeline, odd_frames[:1])
+    frame = odd_frames[1]
+    cached = cross_regression(frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"])
+    fresh, reused = prepare_frame(frame, state.history), prepare_frame(frame, state.history, pilots=cached)
+    np.testing.assert_array_equal(fresh.planes, reused.planes)
+    np.testing.assert_array_equal(fresh.valid, reused.valid)
+    np.testing.assert_array_equal(fresh.previous_pilots, reused.previous_pilots)
+
+
 @pytest.mark.parametrize("screen", [True, False])
 def test_previous_is_the_screened_history_or_the_pilots_mean(odd_frames, screen):
     _, state = _run(pipelines.get("crossreg"), odd_frames[:1])
