@@ -12,8 +12,7 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
   1 / (sigma_i + sigma_c + eps) (eq. 6) once, into a small scratch, together with the 10 moments of the
   shared normal features; three more passes (one per colour channel) sum that channel's 17 moments.
   Every accumulator is a Vec held in a register: no per-pair store, which is what bounds a
-  loop-vectorised kernel. The passes take ROW_CHUNK window rows at a time, so the later passes find
-  the rows the first one read still in L1.
+  loop-vectorised kernel.
 - The 61 moments are solved right there (`cholesky_ridge_solve`, the LANES centres as its lanes), and a
   last pass adds each centre's weighted predictions (eq. 5) into the numerator and denominator planes,
   reusing the stored weights. Centre rows whose windows overlap are never run at the same time.
@@ -38,14 +37,13 @@ from service.stages.local_regression import (
     phase_copy,
     spatial_weights,
 )
-from service.stages.simd import LANES, exp_neg, load, store
+from service.stages.simd import LANES, exp_neg, load, splat, store
 
 # Packed planes of both buffers (`pack_cross`): each buffer's log colour (3), its variance and sigma
 # follow each other, so a buffer is named by the index of its first log-colour plane.
 MASK, NORMAL, ALBEDO, BUFFER_A, BUFFER_B = 0, 1, 4, 7, 12
 PLANES = 17
 MOMENTS = 61  # 10 of the shared features (constant, normal) + 17 per colour channel
-ROW_CHUNK = 3  # window rows the moment passes take at a time: 15 planes x 4 phases x 3 rows fit in L1
 FEATURES = 6  # per colour channel: constant, 3 normal differences, scaled colour difference, albedo difference
 
 
@@ -133,32 +131,28 @@ def _cross_block_kernel(planes, guide, target, spatial, radius, counts, consts, 
             coefs = np.empty((3 * FEATURES, LANES), np.float32)
             for q in range(0, wc, LANES):
                 c = pad + q
-                moments[:, :] = 0.0
-                for ya in range(y0, y1, ROW_CHUNK):  # all passes over a few rows at a time: they stay in L1
-                    rows = range(ya, min(ya + ROW_CHUNK, y1))
-                    _weights_pass(planes, guide, spatial, radius, consts, cy, y0, rows, c, weights, moments)
-                    for ch in range(3):
-                        _channel_pass(planes, guide, target, ch, radius, cy, y0, rows, c, weights, moments)
+                _weights_pass(planes, guide, spatial, radius, consts, cy, y0, y1, c, weights, moments)
+                for ch in range(3):
+                    _channel_pass(planes, guide, target, ch, radius, cy, y0, y1, c, weights, moments)
                 _solve(moments, ridge, gram, rhs, coefs)
                 _predict_pass(planes, guide, radius, cy, y0, y1, c, weights, coefs, num, den)
 
 
 @numba.njit(inline="always", fastmath=True)
-def _weights_pass(planes, guide, spatial, radius, consts, cy, y0, rows, c, weights, moments):  # pragma: no cover
-    """Window rows `rows` (a range within y0 ...) of LANES centres: the pair weights (eq. 7, times the
-    spatial factor, plus WEIGHT_FLOOR, 0 outside the frame) and colour scales 1 / (sigma_i + sigma_c +
-    eps) into weights (2, offsets, LANES), and the shared moments sum w [1, dn] [1, dn]^T (dn: normal
-    difference; upper triangle row by row) added to moments[0:10]."""
+def _weights_pass(planes, guide, spatial, radius, consts, cy, y0, y1, c, weights, moments):  # pragma: no cover
+    """The window (rows y0 ... y1 - 1) of LANES centres: the pair weights (eq. 7, times the spatial factor,
+    plus WEIGHT_FLOOR, 0 outside the frame) and colour scales 1 / (sigma_i + sigma_c + eps) into
+    weights (2, offsets, LANES), and the shared moments sum w [1, dn] [1, dn]^T (dn: normal difference;
+    upper triangle row by row) into moments[0:10]."""
     s = planes.shape[0]
     eps_variance, eps_sigma, floor = consts[0], consts[1], consts[2]
     mask_c = load(planes, (0, MASK, cy, c))
     g0, g1, g2 = _centres3(planes, guide, cy, c)
     var_c, sig_c = load(planes, (0, guide + 3, cy, c)) + eps_variance, load(planes, (0, guide + 4, cy, c)) + eps_sigma
     n0, n1, n2 = _centres3(planes, NORMAL, cy, c)
-    m = (load(moments, (0, 0)), load(moments, (1, 0)), load(moments, (2, 0)), load(moments, (3, 0)),
-         load(moments, (4, 0)), load(moments, (5, 0)), load(moments, (6, 0)), load(moments, (7, 0)),
-         load(moments, (8, 0)), load(moments, (9, 0)))  # fmt: skip
-    for y in rows:
+    zero = splat(np.float32(0.0))
+    m = (zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
+    for y in range(y0, y1):
         o = (y - y0) * (2 * radius + 1)
         p, x = (-radius) % s, c + (-radius) // s
         for dx in range(-radius, radius + 1):
@@ -184,20 +178,17 @@ def _weights_pass(planes, guide, spatial, radius, consts, cy, y0, rows, c, weigh
 
 
 @numba.njit(inline="always", fastmath=True)
-def _channel_pass(planes, guide, target, ch, radius, cy, y0, rows, c, weights, moments):  # pragma: no cover
-    """Window rows `rows` of LANES centres: colour channel ch's 17 moments, added to moments[10 + 17 ch ...]:
+def _channel_pass(planes, guide, target, ch, radius, cy, y0, y1, c, weights, moments):  # pragma: no cover
+    """The window of LANES centres: colour channel ch's 17 moments into moments[10 + 17 ch ...]:
     sum w u [1, dn, u], w a [1, dn, u, a] and the right-hand side sum w t [1, dn, u, a], with u the scaled
     colour difference (eq. 6), a the albedo difference and t the target colour."""
     s = planes.shape[0]
     g, a_c = load(planes, (0, guide + ch, cy, c)), load(planes, (0, ALBEDO + ch, cy, c))
     n0, n1, n2 = _centres3(planes, NORMAL, cy, c)
     k = 10 + 17 * ch
-    m = (load(moments, (k, 0)), load(moments, (k + 1, 0)), load(moments, (k + 2, 0)), load(moments, (k + 3, 0)),
-         load(moments, (k + 4, 0)), load(moments, (k + 5, 0)), load(moments, (k + 6, 0)), load(moments, (k + 7, 0)),
-         load(moments, (k + 8, 0)), load(moments, (k + 9, 0)), load(moments, (k + 10, 0)),
-         load(moments, (k + 11, 0)), load(moments, (k + 12, 0)), load(moments, (k + 13, 0)),
-         load(moments, (k + 14, 0)), load(moments, (k + 15, 0)), load(moments, (k + 16, 0)))  # fmt: skip
-    for y in rows:
+    zero = splat(np.float32(0.0))
+    m = (zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
+    for y in range(y0, y1):
         o = (y - y0) * (2 * radius + 1)
         p, x = (-radius) % s, c + (-radius) // s
         for _ in range(2 * radius + 1):
