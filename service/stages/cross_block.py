@@ -31,13 +31,12 @@ from service.stages.local_regression import (
     WEIGHT_FLOOR,
     BlockParams,
     centre_count,
-    cholesky_ridge_solve,
     normalise_phases,
     pad_lanes,
     phase_copy,
     spatial_weights,
 )
-from service.stages.simd import LANES, exp_neg, load, splat, store
+from service.stages.simd import HALF, LANES, exp_neg, load, narrow, splat, splat_d, sqrt, store, vmax, widen
 
 # Packed planes of both buffers (`pack_cross`): each buffer's log colour (3), its variance and sigma
 # follow each other, so a buffer is named by the index of its first log-colour plane.
@@ -127,7 +126,7 @@ def _cross_block_kernel(planes, guide, target, spatial, radius, counts, consts, 
             weights = np.empty((2, (y1 - y0) * (2 * radius + 1), LANES), np.float32)
             moments = np.empty((MOMENTS, LANES), np.float32)
             gram = np.empty((3, FEATURES, FEATURES, LANES))
-            rhs = np.empty((3, FEATURES, 1, LANES))
+            rhs = np.empty((3, FEATURES, LANES))
             coefs = np.empty((3 * FEATURES, LANES), np.float32)
             for q in range(0, wc, LANES):
                 c = pad + q
@@ -224,26 +223,63 @@ _CHANNEL = ((0, 4), (1, 4), (2, 4), (3, 4), (4, 4), (0, 5), (1, 5), (2, 5), (3, 
 MOMENT_ENTRIES = np.array([(0, *rc) for rc in _SHARED] + [(ch + 1, *rc) for ch in range(3) for rc in _CHANNEL])
 
 
-@numba.njit(inline="always")
+@numba.njit(inline="always", fastmath=True)
 def _solve(moments, ridge, gram, rhs, coefs):  # pragma: no cover
-    """moments (MOMENTS, LANES) -> coefs (3 * FEATURES, LANES): per colour channel the ridge solve of
-    `solve_ridge` (float64 Cholesky, constant unregularised), the LANES centres as its lanes."""
+    """moments (MOMENTS, LANES) float32 -> coefs (3 * FEATURES, LANES) float32: per colour channel the
+    ridge solve of `solve_ridge` in float64, on the LANES centres as vectors (`_cholesky_solve`).
+    gram (3, FEATURES, FEATURES, LANES), rhs (3, FEATURES, LANES): float64 scratch."""
     for e in range(MOMENTS):
         kind, row, col = MOMENT_ENTRIES[e, 0], MOMENT_ENTRIES[e, 1], MOMENT_ENTRIES[e, 2]
+        value = load(moments, (e, 0))
+        lo, hi = widen(value, 0), widen(value, 1)
         for ch in range(3):
             if kind != 0 and ch != kind - 1:
                 continue
-            for j in range(LANES):
-                if col == FEATURES:
-                    rhs[ch, row, 0, j] = moments[e, j]
-                else:
-                    gram[ch, row, col, j] = gram[ch, col, row, j] = moments[e, j]
-    unused = np.empty(0)  # weight sums: the constant column holds them
+            if col == FEATURES:
+                store(rhs, (ch, row, 0), lo)
+                store(rhs, (ch, row, HALF), hi)
+            else:
+                store(gram, (ch, col, row, 0), lo)  # the lower triangle, which the Cholesky reads
+                store(gram, (ch, col, row, HALF), hi)
     for ch in range(3):
-        cholesky_ridge_solve(gram[ch], rhs[ch], FEATURES, 1, ridge[0], ridge[1], True, unused, LANES)
+        for h in (0, HALF):
+            _cholesky_solve(gram[ch], rhs[ch], ridge[0], ridge[1], h)
         for k in range(FEATURES):
-            for j in range(LANES):
-                coefs[ch * FEATURES + k, j] = rhs[ch, k, 0, j]
+            store(coefs, (ch * FEATURES + k, 0), narrow(load(rhs, (ch, k, 0)), load(rhs, (ch, k, HALF))))
+
+
+@numba.njit(inline="always", fastmath=True)
+def _cholesky_solve(a, b, ridge_relative, ridge_absolute, h):  # pragma: no cover
+    """`local_regression.cholesky_ridge_solve` (constant feature 0, one right-hand side) on VecD lanes
+    h ... h + HALF - 1: a (FEATURES, FEATURES, LANES) float64 lower triangle of X^T W X, b (FEATURES, LANES)
+    X^T W Y -> beta, in place; the same operations in the same order."""
+    scale = vmax(load(a, (0, 0, h)), splat_d(1e-30))
+    store(a, (0, 0, h), scale)
+    least = scale * ridge_absolute  # pivot floor
+    for j in range(1, FEATURES):
+        d = load(a, (j, j, h))
+        store(a, (j, j, h), d + (vmax(d, splat_d(0.0)) * ridge_relative + least))
+    for j in range(FEATURES):
+        d = load(a, (j, j, h))
+        for p in range(j):
+            d -= load(a, (j, p, h)) * load(a, (j, p, h))
+        inv = 1.0 / sqrt(vmax(d, least))
+        store(a, (j, j, h), inv)  # the diagonal holds 1 / L_jj
+        for i in range(j + 1, FEATURES):
+            v = load(a, (i, j, h))
+            for p in range(j):
+                v -= load(a, (i, p, h)) * load(a, (j, p, h))
+            store(a, (i, j, h), v * inv)
+    for i in range(FEATURES):
+        v = load(b, (i, h))
+        for p in range(i):
+            v -= load(a, (i, p, h)) * load(b, (p, h))
+        store(b, (i, h), v * load(a, (i, i, h)))
+    for i in range(FEATURES - 1, -1, -1):
+        v = load(b, (i, h))
+        for p in range(i + 1, FEATURES):
+            v -= load(a, (p, i, h)) * load(b, (p, h))
+        store(b, (i, h), v * load(a, (i, i, h)))
 
 
 @numba.njit(inline="always", fastmath=True)

@@ -1,18 +1,23 @@
-"""Explicit float32 SIMD vectors for numba kernels: `Vec`, LANES lanes held in one LLVM vector value.
+"""Explicit SIMD vectors for numba kernels: `Vec` (LANES float32) and `VecD` (LANES / 2 float64), each
+one LLVM vector value.
 
 numba's auto-vectoriser only vectorises innermost loops, so a kernel whose accumulators must stay in
 registers across an inner loop (the window offsets of a regression) is left scalar or spills every
-accumulator to memory on every step. With `Vec` a kernel writes the vector code itself: a Vec local
-variable is an LLVM `<LANES x float>` value, which the register allocator keeps in a SIMD register.
-LANES = 16 is one AVX-512 register; on narrower hardware LLVM splits each operation (two AVX2 ops,
-four NEON ops), so the same kernel is correct everywhere.
+accumulator to memory on every step, and a loop over a literal 16 lanes is unrolled into scalar code.
+With these types a kernel writes the vector code itself: a local variable is an LLVM vector, which the
+register allocator keeps in a SIMD register. LANES = 16 float32 (or 8 float64) is one AVX-512
+register; on narrower hardware LLVM splits each operation (two AVX2 ops, four NEON ops), so the same
+kernel is correct everywhere.
 
-In numba code (all arithmetic in float32, fast-math: fused multiply-adds and reassociation allowed):
-    v = load(array, (i, j, k))    # LANES consecutive float32 along the last axis, from array[i, j, k]
-    store(array, (i, j, k), v)    # the reverse; C-contiguous arrays, indices unchecked
-    v = splat(x)                  # every lane = float32 x
-    v + w, v - w, v * w, v / w    # lane-wise; either side may be a Python/numpy float
-    vmax(v, w), floor(v), exp_neg(v)
+In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allowed):
+    v = load(array, (i, j, k))    # consecutive values along the last axis from array[i, j, k]: a Vec
+                                  # from a float32 array, a VecD from a float64 one (C-contiguous,
+    store(array, (i, j, k), v)    # indices unchecked), and the reverse
+    v = splat(x)                  # Vec with every lane float32(x); splat_d(x): VecD, float64(x)
+    v + w, v - w, v * w, v / w    # same-type vectors; either side may also be a Python/numpy number
+    vmax(v, w), floor(v), sqrt(v), exp_neg(v)
+    d = widen(v, half)            # VecD of lanes half * LANES/2 ... of the Vec v
+    v = narrow(lo, hi)            # Vec of two VecD halves, rounded to float32
 `exp_neg` is the vector twin of `local_regression._exp_neg` (the same polynomial, the same values).
 """
 
@@ -27,79 +32,107 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
 
-LANES = 16  # float32 lanes of one Vec: one AVX-512 register
+LANES = 16  # float32 lanes of one Vec: one AVX-512 register; a VecD holds LANES // 2 float64
+HALF = LANES // 2
 
-_FLOAT = ir.FloatType()
-_VECTOR = ir.VectorType(_FLOAT, LANES)
-_INTS = ir.VectorType(ir.IntType(32), LANES)
 _FAST = ("fast",)
+_INT32 = ir.IntType(32)
+_INTS = ir.VectorType(_INT32, LANES)
 
 
 class VecType(types.Type):
-    """numba type of a Vec: LANES float32 values in one LLVM vector."""
+    """numba type of a SIMD vector: `count` values of `dtype` (types.float32 or types.float64)."""
 
-    def __init__(self) -> None:
-        super().__init__(name=f"Vec{LANES}xf32")
+    def __init__(self, dtype: types.Float, count: int) -> None:
+        self.dtype, self.count = dtype, count
+        super().__init__(name=f"Vec{count}x{dtype}")
+
+    @property
+    def llvm(self) -> ir.VectorType:
+        return ir.VectorType(ir.FloatType() if self.dtype == types.float32 else ir.DoubleType(), self.count)
+
+    @property
+    def suffix(self) -> str:
+        """LLVM intrinsic name suffix, e.g. v16f32."""
+        return f"v{self.count}f{self.dtype.bitwidth}"
 
 
-vec = VecType()
+vec = VecType(types.float32, LANES)
+vec_d = VecType(types.float64, HALF)
+_BY_DTYPE = {types.float32: vec, types.float64: vec_d}
 
 
 @register_model(VecType)
 class _VecModel(models.PrimitiveModel):
     def __init__(self, dmm, fe_type):
-        super().__init__(dmm, fe_type, _VECTOR)
+        super().__init__(dmm, fe_type, fe_type.llvm)
 
 
-def _pointer(context, builder, aryty, ary, index, indices):
-    """LLVM pointer to array[indices], as a pointer to a whole Vec."""
+def _vector_of(array) -> VecType:
+    if not (isinstance(array, types.Array) and array.dtype in _BY_DTYPE and array.layout == "C"):
+        raise numba.TypingError(f"simd: needs a C-contiguous float32 or float64 array, got {array}")
+    return _BY_DTYPE[array.dtype]
+
+
+def _pointer(context, builder, aryty, ary, index, indices, vector: VecType):
+    """LLVM pointer to array[indices], as a pointer to a whole vector."""
     array = context.make_array(aryty)(context, builder, ary)
     items = cgutils.unpack_tuple(builder, index, len(indices))
     items = [context.cast(builder, item, ty, types.intp) for item, ty in zip(items, indices, strict=True)]
     ptr = cgutils.get_item_pointer(context, builder, aryty, array, items)
-    return builder.bitcast(ptr, _VECTOR.as_pointer())
+    return builder.bitcast(ptr, vector.llvm.as_pointer())
 
 
-def _check_access(array, index) -> None:
-    if not (isinstance(array, types.Array) and array.dtype == types.float32 and array.layout == "C"):
-        raise numba.TypingError(f"simd: needs a C-contiguous float32 array, got {array}")
+def _check_index(array, index) -> None:
     if not (isinstance(index, types.BaseTuple) and len(index) == array.ndim):
         raise numba.TypingError(f"simd: needs a tuple of {array.ndim} indices, got {index}")
 
 
 @intrinsic
 def load(typingctx, array, index):
-    """Vec of array[index] and the LANES - 1 values after it along the last axis (unaligned load)."""
-    _check_access(array, index)
+    """The vector at array[index] and the values after it along the last axis (unaligned load)."""
+    vector = _vector_of(array)
+    _check_index(array, index)
 
     def codegen(context, builder, sig, args):
-        return builder.load(_pointer(context, builder, array, args[0], args[1], index.types), align=4)
+        return builder.load(_pointer(context, builder, array, args[0], args[1], index.types, vector), align=4)
 
-    return vec(array, index), codegen
+    return vector(array, index), codegen
 
 
 @intrinsic
 def store(typingctx, array, index, value):
-    """Write a Vec to array[index] and the LANES - 1 places after it along the last axis."""
-    _check_access(array, index)
+    """Write a vector to array[index] and the places after it along the last axis."""
+    vector = _vector_of(array)
+    _check_index(array, index)
+    if value != vector:
+        raise numba.TypingError(f"simd: cannot store {value} into {array}")
 
     def codegen(context, builder, sig, args):
-        builder.store(args[2], _pointer(context, builder, array, args[0], args[1], index.types), align=4)
+        builder.store(args[2], _pointer(context, builder, array, args[0], args[1], index.types, vector), align=4)
         return context.get_dummy_value()
 
-    return types.void(array, index, vec), codegen
+    return types.void(array, index, vector), codegen
 
 
-@intrinsic
-def splat(typingctx, x):
-    """Vec with every lane = float32(x)."""
+def _fill(builder, vector: VecType, value):
+    """LLVM vector of `vector`'s type with every lane = value (already of its element type)."""
+    one = builder.insert_element(ir.Constant(vector.llvm, ir.Undefined), value, ir.Constant(_INT32, 0))
+    return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(_INT32, vector.count), [0] * vector.count))
 
-    def codegen(context, builder, sig, args):
-        value = context.cast(builder, args[0], sig.args[0], types.float32)
-        one = builder.insert_element(ir.Constant(_VECTOR, ir.Undefined), value, ir.Constant(ir.IntType(32), 0))
-        return builder.shuffle_vector(one, one, ir.Constant(_INTS, [0] * LANES))
 
-    return vec(x), codegen
+def _splat_into(vector: VecType):
+    def splat_intrinsic(typingctx, x):
+        def codegen(context, builder, sig, args):
+            return _fill(builder, vector, context.cast(builder, args[0], sig.args[0], vector.dtype))
+
+        return vector(x), codegen
+
+    return intrinsic(splat_intrinsic)
+
+
+splat = _splat_into(vec)
+splat_d = _splat_into(vec_d)
 
 
 def _binary(name: str):
@@ -108,7 +141,7 @@ def _binary(name: str):
         def codegen(context, builder, sig, args):
             return getattr(builder, name)(args[0], args[1], flags=_FAST)
 
-        return vec(vec, vec), codegen
+        return a(a, b), codegen
 
     return op
 
@@ -116,57 +149,102 @@ def _binary(name: str):
 _add, _sub, _mul, _div = (_binary(name) for name in ("fadd", "fsub", "fmul", "fdiv"))
 
 
+@intrinsic
+def _broadcast(typingctx, like, x):
+    """x (a number) as a vector of like's type."""
+
+    def codegen(context, builder, sig, args):
+        return _fill(builder, like, context.cast(builder, args[1], sig.args[1], like.dtype))
+
+    return like(like, x), codegen
+
+
 def _overload_operator(operation, op) -> None:
     @overload(operation)
     def impl(a, b):
-        if isinstance(a, VecType) and isinstance(b, VecType):
+        if isinstance(a, VecType) and a == b:
             return lambda a, b: op(a, b)
         if isinstance(a, VecType) and isinstance(b, (types.Float, types.Integer)):
-            return lambda a, b: op(a, splat(b))
+            return lambda a, b: op(a, _broadcast(a, b))
         if isinstance(a, (types.Float, types.Integer)) and isinstance(b, VecType):
-            return lambda a, b: op(splat(a), b)
+            return lambda a, b: op(_broadcast(b, a), b)
         return None
 
 
+_IN_PLACE = {operator.add: operator.iadd, operator.sub: operator.isub, operator.mul: operator.imul,
+             operator.truediv: operator.itruediv}  # fmt: skip
 for _operation, _op in ((operator.add, _add), (operator.sub, _sub), (operator.mul, _mul), (operator.truediv, _div)):
     _overload_operator(_operation, _op)
-    _overload_operator({operator.add: operator.iadd, operator.sub: operator.isub, operator.mul: operator.imul,
-                        operator.truediv: operator.itruediv}[_operation], _op)  # fmt: skip
+    _overload_operator(_IN_PLACE[_operation], _op)
 
 
-def _call_llvm(builder, name: str, *args):
-    module = builder.module
-    fn = cgutils.get_or_insert_function(module, ir.FunctionType(_VECTOR, [_VECTOR] * len(args)), name)
+def _call_llvm(builder, name: str, vector: VecType, *args):
+    fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(vector.llvm, [vector.llvm] * len(args)), name)
     return builder.call(fn, args)
 
 
 @intrinsic
 def vmax(typingctx, a, b):
-    """Lane-wise maximum of two Vecs."""
+    """Lane-wise maximum of two vectors of one type."""
 
     def codegen(context, builder, sig, args):
-        return _call_llvm(builder, f"llvm.maxnum.v{LANES}f32", args[0], args[1])
+        return _call_llvm(builder, f"llvm.maxnum.{a.suffix}", a, args[0], args[1])
 
-    return vec(vec, vec), codegen
+    return a(a, b), codegen
 
 
 @intrinsic
 def floor(typingctx, a):
-    """Lane-wise floor of a Vec."""
+    """Lane-wise floor."""
 
     def codegen(context, builder, sig, args):
-        return _call_llvm(builder, f"llvm.floor.v{LANES}f32", args[0])
+        return _call_llvm(builder, f"llvm.floor.{a.suffix}", a, args[0])
 
-    return vec(vec), codegen
+    return a(a), codegen
+
+
+@intrinsic
+def sqrt(typingctx, a):
+    """Lane-wise square root."""
+
+    def codegen(context, builder, sig, args):
+        return _call_llvm(builder, f"llvm.sqrt.{a.suffix}", a, args[0])
+
+    return a(a), codegen
+
+
+@intrinsic
+def widen(typingctx, v, half):
+    """VecD of the float32 lanes half * HALF ... (half * HALF + HALF - 1) of the Vec v; half a literal 0 or 1."""
+    if not isinstance(half, types.IntegerLiteral) or half.literal_value not in (0, 1):
+        raise numba.TypingError("simd.widen: half must be a literal 0 or 1")
+    first = half.literal_value * HALF
+
+    def codegen(context, builder, sig, args):
+        mask = ir.Constant(ir.VectorType(_INT32, HALF), list(range(first, first + HALF)))
+        return builder.fpext(builder.shuffle_vector(args[0], args[0], mask), vec_d.llvm)
+
+    return vec_d(vec, half), codegen
+
+
+@intrinsic
+def narrow(typingctx, lo, hi):
+    """Vec of two VecD halves (lanes 0 ... HALF - 1 from lo), each value rounded to float32."""
+
+    def codegen(context, builder, sig, args):
+        halves = [builder.fptrunc(arg, ir.VectorType(ir.FloatType(), HALF)) for arg in args]
+        return builder.shuffle_vector(halves[0], halves[1], ir.Constant(_INTS, list(range(LANES))))
+
+    return vec(vec_d, vec_d), codegen
 
 
 @intrinsic
 def _pow2(typingctx, n):
-    """2^n per lane for integral float lanes n in [-126, 127]: the exponent bits of a float32."""
+    """2^n per lane for integral float32 lanes n in [-126, 127]: the exponent bits of a float32."""
 
     def codegen(context, builder, sig, args):
         bits = builder.add(builder.fptosi(args[0], _INTS), ir.Constant(_INTS, [127] * LANES))
-        return builder.bitcast(builder.shl(bits, ir.Constant(_INTS, [23] * LANES)), _VECTOR)
+        return builder.bitcast(builder.shl(bits, ir.Constant(_INTS, [23] * LANES)), vec.llvm)
 
     return vec(vec), codegen
 

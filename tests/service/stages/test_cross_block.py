@@ -1,9 +1,18 @@
+import numba
 import numpy as np
 import pytest
 
-from service.stages.cross_block import LANES, cross_block, pack_cross
+from service.stages.cross_block import FEATURES, _cholesky_solve, cross_block, pack_cross
 from service.stages.cross_regression import buffer_terms, linear_to_log, pixel_variance
-from service.stages.local_regression import BlockParams, _phase_planes, block_regression
+from service.stages.local_regression import (
+    RIDGE_ABSOLUTE,
+    RIDGE_RELATIVE,
+    BlockParams,
+    _phase_planes,
+    block_regression,
+    cholesky_ridge_solve,
+)
+from service.stages.simd import HALF, LANES
 
 PARITY_RTOL = 2e-4  # SIMD kernel (other summation order, float32 moments) vs the numpy reference, float32
 
@@ -79,3 +88,30 @@ def test_pack_cross_is_the_numpy_phase_split():
     assert packed.shape == (3, 17, 11, LANES + 2 * 2)  # the centres rounded up to whole Vecs
     np.testing.assert_array_equal(packed[..., : expected.shape[-1]], expected)
     assert not packed[..., expected.shape[-1] :].any()
+
+
+@numba.njit
+def _both_solvers(gram, rhs, out_vec, out_scalar):
+    a, b = gram.copy(), rhs.copy()
+    for h in (0, HALF):
+        _cholesky_solve(a, b, RIDGE_RELATIVE, RIDGE_ABSOLUTE, h)
+    out_vec[:] = b
+    a, b = gram.copy(), rhs.copy().reshape(FEATURES, 1, LANES)
+    cholesky_ridge_solve(a, b, FEATURES, 1, RIDGE_RELATIVE, RIDGE_ABSOLUTE, True, np.empty(0), LANES)
+    out_scalar[:] = b[:, 0]
+
+
+def test_vector_cholesky_is_the_scalar_solver():
+    """Random, rank-deficient (constant features) and all-zero (no weight) systems, one per lane."""
+    rng = np.random.default_rng(7)
+    gram, rhs = np.zeros((FEATURES, FEATURES, LANES)), np.zeros((FEATURES, LANES))
+    for lane in range(LANES - 1):
+        x = rng.standard_normal((40, FEATURES))
+        x[:, 0] = 1.0
+        if lane % 3 == 1:
+            x[:, 2:4] = 0.5  # constant features: singular without the ridge
+        gram[:, :, lane], rhs[:, lane] = x.T @ x, x.T @ rng.standard_normal(40)
+    out_vec, out_scalar = np.empty_like(rhs), np.empty_like(rhs)
+    _both_solvers(gram, rhs, out_vec, out_scalar)
+    assert np.isfinite(out_vec).all() and not out_vec[:, -1].any()  # no weight: beta = 0
+    np.testing.assert_allclose(out_vec, out_scalar, rtol=1e-12, atol=1e-12)

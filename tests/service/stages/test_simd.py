@@ -2,7 +2,7 @@ import numba
 import numpy as np
 
 from service.stages.local_regression import _exp_neg
-from service.stages.simd import LANES, exp_neg, floor, load, splat, store, vmax
+from service.stages.simd import HALF, LANES, exp_neg, floor, load, narrow, splat, splat_d, sqrt, store, vmax, widen
 
 EXP_RTOL = 1e-5  # exp_neg on [0, 80]: float32 rounding of x log2(e) grows the error with x (~6e-6 at 80)
 
@@ -64,3 +64,25 @@ def test_load_and_store_touch_exactly_one_vec():
     np.testing.assert_array_equal(dst[2, 1, 5 : 5 + LANES], src[1, 0, 7 : 7 + LANES])
     dst[2, 1, 5 : 5 + LANES] = 0.0
     assert not dst.any()
+
+
+@numba.njit(fastmath=True)
+def _double_ops(x, y, out, back):
+    for h in (0, HALF):
+        a, b = load(x, (h,)), load(y, (h,))
+        store(out, (0, h), sqrt(a) + b / (a + 1.0))
+        store(out, (1, h), vmax(a, b) * splat_d(2.0))
+    v = load(back, (0, 0))
+    store(back, (1, 0), narrow(widen(v, 1), widen(v, 0)))  # halves swapped
+
+
+def test_double_vectors_widen_and_narrow():
+    rng = np.random.default_rng(1)
+    x, y = rng.uniform(0.0, 9.0, LANES), rng.uniform(-3.0, 3.0, LANES)
+    out = np.zeros((2, LANES))
+    back = np.zeros((2, LANES), np.float32)
+    back[0] = rng.standard_normal(LANES)
+    _double_ops(x, y, out, back)
+    np.testing.assert_allclose(out[0], np.sqrt(x) + y / (x + 1.0), rtol=1e-14)
+    np.testing.assert_array_equal(out[1], np.maximum(x, y) * 2.0)
+    np.testing.assert_array_equal(back[1], np.concatenate([back[0, HALF:], back[0, :HALF]]))
