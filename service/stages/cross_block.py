@@ -30,11 +30,12 @@ from service.stages.local_regression import (
     EPS_VARIANCE,
     WEIGHT_FLOOR,
     BlockParams,
+    _phase_planes,
     centre_count,
     normalise_phases,
     pad_lanes,
-    phase_copy,
     spatial_weights,
+    to_planes,
 )
 from service.stages.simd import HALF, LANES, exp_neg, load, narrow, splat, splat_d, sqrt, store, vmax, widen
 
@@ -58,7 +59,8 @@ def cross_block(
     """The two cross-regression pilots (Choi 2024 sec. 4.1) by block regression, numba SIMD kernel.
 
     log_a, log_b: (3, H, W) float32 log colour of the two buffers (`cross_regression.linear_to_log`);
-    variance_a, variance_b: (H, W) float32 >= 0, their `pixel_variance`; albedo, normal: (3, H, W) float32.
+    variance_a, variance_b: (H, W) float32 >= 0, their `pixel_variance`; albedo, normal: (H, W, 3) float32
+    frame layers.
     params: window radius, sparsity and ridge (`sigma_position` as in `spatial_weights`).
     Returns (pilot_a, pilot_b), (3, H, W) float32 log colour: pilot_a regresses log_b on buffer A's
     features and weights, pilot_b log_a on buffer B's.
@@ -79,19 +81,62 @@ def pack_cross(
 ) -> np.ndarray:
     """Phase planes (S, PLANES, H, L) float32 of both buffers (arguments as `cross_block`), in the order
     [inside-frame mask, normal (3), albedo (3), log_a (3), variance_a, sigma_a, log_b (3), variance_b,
-    sigma_b]; L = the centre count rounded up to LANES, plus `pad_lanes` on each side; zeros outside."""
+    sigma_b]; L = the centre count rounded up to LANES, plus `pad_lanes` on each side; zeros outside.
+    One numba pass over the frame; `pack_cross_reference` is the numpy twin."""
     height, width = variance_a.shape
     s, pad = params.sparsity, pad_lanes(params)
     lanes = -(-centre_count(width, s) // LANES) * LANES
     out = np.empty((s, PLANES, height, lanes + 2 * pad), np.float32)
-    parts = [np.ones((1, height, width), np.float32), normal, albedo]
+    f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (log_a, variance_a, log_b, variance_b, albedo, normal)]
+    _pack_kernel(*f32, pad, out)
+    return out
+
+
+def pack_cross_reference(
+    log_a: np.ndarray,
+    variance_a: np.ndarray,
+    log_b: np.ndarray,
+    variance_b: np.ndarray,
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    params: BlockParams,
+) -> np.ndarray:
+    """Plain-numpy twin of `pack_cross` (same arguments and result)."""
+    height, width = variance_a.shape
+    parts = [np.ones((1, height, width), np.float32), to_planes(normal), to_planes(albedo)]
     for log, variance in ((log_a, variance_a), (log_b, variance_b)):
         parts += [log, variance[None], np.sqrt(variance)[None]]
-    first = 0
-    for part in parts:
-        phase_copy(np.ascontiguousarray(part, dtype=np.float32), first, pad, out)
-        first += part.shape[0]
+    split = _phase_planes(np.concatenate(parts).astype(np.float32), params)  # lanes: centres + 1
+    lanes = -(-centre_count(width, params.sparsity) // LANES) * LANES + 2 * pad_lanes(params)
+    out = np.zeros((*split.shape[:3], lanes), np.float32)
+    out[..., : min(lanes, split.shape[3])] = split[..., :lanes]
     return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _pack_kernel(log_a, var_a, log_b, var_b, albedo, normal, pad, out):  # pragma: no cover
+    """The planes of `pack_cross` (log_* (3, H, W); var_* (H, W); albedo, normal (H, W, 3)) into out."""
+    s, _, height, lanes = out.shape
+    width = var_a.shape[1]
+    for y in numba.prange(height):
+        for p in range(s):
+            count = (width - p + s - 1) // s if p < width else 0
+            for k in range(PLANES):
+                row = out[p, k, y]
+                row[:pad] = 0.0
+                row[pad + count :] = 0.0
+            for j in range(count):
+                x, q = p + s * j, pad + j
+                out[p, MASK, y, q] = 1.0
+                for c in range(3):
+                    out[p, NORMAL + c, y, q] = normal[y, x, c]
+                    out[p, ALBEDO + c, y, q] = albedo[y, x, c]
+                    out[p, BUFFER_A + c, y, q] = log_a[c, y, x]
+                    out[p, BUFFER_B + c, y, q] = log_b[c, y, x]
+                out[p, BUFFER_A + 3, y, q] = var_a[y, x]
+                out[p, BUFFER_A + 4, y, q] = np.sqrt(var_a[y, x])
+                out[p, BUFFER_B + 3, y, q] = var_b[y, x]
+                out[p, BUFFER_B + 4, y, q] = np.sqrt(var_b[y, x])
 
 
 def _regress(planes: np.ndarray, width: int, guide: int, target: int, params: BlockParams) -> np.ndarray:

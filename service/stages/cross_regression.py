@@ -348,10 +348,10 @@ def cross_regression_planes(
     block = params.block()
     to_log = log_planes_reference if reference else log_planes
     log_a, log_b = (to_log(color, params.firefly_k) for color in (color_a, color_b))
-    albedo_planes, normal_planes = to_planes(albedo), to_planes(normal)
     variance_a, variance_b = pixel_variance(log_a), pixel_variance(log_b)
     if not reference:
-        return cross_block(log_a, variance_a, log_b, variance_b, albedo_planes, normal_planes, block)
+        return cross_block(log_a, variance_a, log_b, variance_b, albedo, normal, block)
+    albedo_planes, normal_planes = to_planes(albedo), to_planes(normal)
     terms_a = buffer_terms(log_a, variance_a, albedo_planes, normal_planes)
     terms_b = buffer_terms(log_b, variance_b, albedo_planes, normal_planes)
     pilot_a = block_regression(terms_a, log_b, block, reference=True)

@@ -756,12 +756,16 @@ def normalise_phases(num, den, pad, out):
     s = num.shape[0]
     channels, height, width = out.shape
     for y in numba.prange(height):
-        for x in range(width):
-            p, q = x % s, pad + x // s
-            d = den[p, y, q]
-            inv = np.float32(1.0) / d if d > 0 else np.float32(1.0)
+        inv = np.empty(num.shape[3], np.float32)
+        for p in range(min(s, width)):  # phase by phase: no division per pixel
+            count = (width - p + s - 1) // s
+            for j in range(count):
+                d = den[p, y, pad + j]
+                inv[j] = np.float32(1.0) / d if d > 0 else np.float32(1.0)
             for c in range(channels):
-                out[c, y, x] = num[p, c, y, q] * inv
+                src, dst = num[p, c, y], out[c, y]
+                for j in range(count):
+                    dst[p + s * j] = src[pad + j] * inv[j]
 
 
 def block_reconstruct_reference(terms: PairTerms, beta: np.ndarray, params: BlockParams) -> np.ndarray:

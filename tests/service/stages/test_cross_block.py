@@ -2,15 +2,23 @@ import numba
 import numpy as np
 import pytest
 
-from service.stages.cross_block import FEATURES, _cholesky_solve, cross_block, pack_cross
+from service.stages.cross_block import (
+    BUFFER_A,
+    FEATURES,
+    MASK,
+    _cholesky_solve,
+    cross_block,
+    pack_cross,
+    pack_cross_reference,
+)
 from service.stages.cross_regression import buffer_terms, linear_to_log, pixel_variance
 from service.stages.local_regression import (
     RIDGE_ABSOLUTE,
     RIDGE_RELATIVE,
     BlockParams,
-    _phase_planes,
     block_regression,
     cholesky_ridge_solve,
+    from_planes,
 )
 from service.stages.simd import HALF, LANES
 
@@ -41,8 +49,8 @@ def _reference(inputs: dict[str, np.ndarray], params: BlockParams) -> tuple[np.n
 
 
 def _run(inputs: dict[str, np.ndarray], params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
-    return cross_block(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], inputs["albedo"],
-                       inputs["normal"], params)  # fmt: skip
+    return cross_block(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], from_planes(inputs["albedo"]),
+                       from_planes(inputs["normal"]), params)  # fmt: skip
 
 
 @pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22), (9, 4 * LANES * 2 + 7)])  # last: 3 lane groups
@@ -76,18 +84,25 @@ def test_constant_g_buffers_and_black_frames_stay_finite():
         np.testing.assert_array_equal(pilot, 0.0)
 
 
-def test_pack_cross_is_the_numpy_phase_split():
-    inputs = _buffers(np.random.default_rng(5), 11, 29)
+@pytest.mark.parametrize("size", [(1, 1), (3, 5), (11, 29), (6, 4 * LANES * 2 + 9)])
+def test_pack_cross_matches_the_numpy_reference(size):
+    inputs = _buffers(np.random.default_rng(5), *size)
     params = BlockParams(radius=5, sparsity=3)
-    packed = pack_cross(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], inputs["albedo"],
-                        inputs["normal"], params)  # fmt: skip
-    planes = [np.ones((1, 11, 29), np.float32), inputs["normal"], inputs["albedo"]]
-    for name in ("a", "b"):
-        planes += [inputs[name], inputs["var_" + name][None], np.sqrt(inputs["var_" + name])[None]]
-    expected = _phase_planes(np.concatenate(planes), params)  # lanes: 10 centres + 1, pad 2 on each side
-    assert packed.shape == (3, 17, 11, LANES + 2 * 2)  # the centres rounded up to whole Vecs
-    np.testing.assert_array_equal(packed[..., : expected.shape[-1]], expected)
-    assert not packed[..., expected.shape[-1] :].any()
+    args = (inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], from_planes(inputs["albedo"]),
+            from_planes(inputs["normal"]), params)  # fmt: skip
+    packed, expected = pack_cross(*args), pack_cross_reference(*args)
+    assert packed.shape == expected.shape and packed.shape[-1] % LANES == 2 * 2  # whole Vecs, pad 2 each side
+    np.testing.assert_array_equal(packed, expected)
+
+
+def test_pack_cross_reference_is_the_phase_split():
+    """Pixel x = 3 q + phase lands at lane q + pad of its phase plane; the mask marks the frame."""
+    inputs = _buffers(np.random.default_rng(6), 2, 7)
+    args = (inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], from_planes(inputs["albedo"]),
+            from_planes(inputs["normal"]), BlockParams(radius=5, sparsity=3))  # fmt: skip
+    packed = pack_cross_reference(*args)
+    np.testing.assert_array_equal(packed[1, BUFFER_A, :, 2:5], inputs["a"][0][:, [1, 4, 7 - 1]] * [1, 1, 0])
+    np.testing.assert_array_equal(packed[2, MASK, 0, :5], [0, 0, 1, 1, 0])  # x = 2, 5; nothing at 8
 
 
 @numba.njit
