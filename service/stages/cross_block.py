@@ -84,6 +84,9 @@ def pack_cross(
     sigma_b]; L = the centre count rounded up to LANES, plus `pad_lanes` on each side; zeros outside.
     One numba pass over the frame; `pack_cross_reference` is the numpy twin."""
     height, width = variance_a.shape
+    shapes = [x.shape for x in (log_a, variance_a, log_b, variance_b, albedo, normal)]
+    if shapes != [(3, height, width), (height, width)] * 2 + [(height, width, 3)] * 2:
+        raise ValueError(f"cross_block: inconsistent input shapes {shapes}")  # the kernel does not check indices
     s, pad = params.sparsity, pad_lanes(params)
     lanes = -(-centre_count(width, s) // LANES) * LANES
     out = np.empty((s, PLANES, height, lanes + 2 * pad), np.float32)

@@ -130,3 +130,10 @@ def test_vector_cholesky_is_the_scalar_solver():
     _both_solvers(gram, rhs, out_vec, out_scalar)
     assert np.isfinite(out_vec).all() and not out_vec[:, -1].any()  # no weight: beta = 0
     np.testing.assert_allclose(out_vec, out_scalar, rtol=1e-12, atol=1e-12)
+
+
+def test_inconsistent_shapes_are_refused_before_the_kernel():
+    inputs = _buffers(np.random.default_rng(8), 6, 9)
+    with pytest.raises(ValueError, match="cross_block: inconsistent input shapes"):
+        cross_block(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], inputs["albedo"], inputs["normal"],
+                    BlockParams())  # fmt: skip  # planes where (H, W, 3) layers belong
