@@ -5,17 +5,18 @@
 reference of the parity tests), with the same constants (EPS_SIGMA, EPS_VARIANCE, WEIGHT_FLOOR, the
 ridge of `solve_ridge`). It is that computation reorganised for the CPU:
 
-- Both buffers' inputs are packed once into phase planes (`local_regression`'s layout: pixel
-  x = S q + phase at lane q + pad of plane `phase`), so the pixels that one window offset pairs with
-  LANES consecutive centres of a centre row are LANES consecutive floats: one `simd.Vec`.
+- Both buffers' inputs are packed once, in one pass, into phase planes (`local_regression`'s layout:
+  pixel x = S q + phase at lane q + pad of plane `phase`), so the pixels that one window offset pairs
+  with LANES consecutive centres of a centre row are LANES consecutive floats: one `simd.Vec`.
 - Per group of LANES centres, one pass computes each pair's weight (eq. 7) and colour scale
   1 / (sigma_i + sigma_c + eps) (eq. 6) once, into a small scratch, together with the 10 moments of the
   shared normal features; three more passes (one per colour channel) sum that channel's 17 moments.
   Every accumulator is a Vec held in a register: no per-pair store, which is what bounds a
   loop-vectorised kernel.
-- The 61 moments are solved right there (`cholesky_ridge_solve`, the LANES centres as its lanes), and a
-  last pass adds each centre's weighted predictions (eq. 5) into the numerator and denominator planes,
-  reusing the stored weights. Centre rows whose windows overlap are never run at the same time.
+- The 61 moments are solved right there, in float64 on `simd.VecD` vectors (`_cholesky_solve`, the
+  operations of `local_regression.cholesky_ridge_solve`), and a last pass adds each centre's weighted
+  predictions (eq. 5) into the numerator and denominator planes, reusing the stored weights. Centre
+  rows whose windows overlap are never run at the same time.
 
 Per 16 pairs this is about 100 vector operations for the moments, 40 for the prediction and 6 stores.
 """
