@@ -8,15 +8,17 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
 - Both buffers' inputs are packed once, in one pass, into phase planes (`local_regression`'s layout:
   pixel x = S q + phase at lane q + pad of plane `phase`), so the pixels that one window offset pairs
   with LANES consecutive centres of a centre row are LANES consecutive floats: one `simd.Vec`.
-- Per group of LANES centres, one pass computes each pair's weight (eq. 7) and colour scale
-  1 / (sigma_i + sigma_c + eps) (eq. 6) once, into a small scratch, together with the 10 moments of the
-  shared normal features; three more passes (one per colour channel) sum that channel's 17 moments.
-  Every accumulator is a Vec held in a register: no per-pair store, which is what bounds a
-  loop-vectorised kernel.
+- Per group of LANES centres, one pass reads the window from the planes once and writes each pair's
+  terms (weight, eq. 7; normal, scaled colour (eq. 6) and albedo differences; target colour) to a
+  scratch in pair order, summing the 10 moments of the shared normal features on the way; three more
+  passes (one per colour channel) stream that scratch and sum the channel's 17 moments. Every
+  accumulator is a Vec held in a register: no per-moment store, which is what bounds a
+  loop-vectorised kernel. (Gathering from the 4 phase planes x 17 rows in every pass instead cost
+  ~15% more.)
 - The 61 moments are solved right there, in float64 on `simd.VecD` vectors (`_cholesky_solve`, the
   operations of `local_regression.cholesky_ridge_solve`), and a last pass adds each centre's weighted
-  predictions (eq. 5) into the numerator and denominator planes, reusing the stored weights. Centre
-  rows whose windows overlap are never run at the same time.
+  predictions (eq. 5) into the numerator and denominator planes from the same scratch. Centre rows whose
+  windows overlap are never run at the same time.
 
 Per 16 pairs this is about 100 vector operations for the moments, 40 for the prediction and 6 stores.
 """
@@ -46,6 +48,10 @@ MASK, NORMAL, ALBEDO, BUFFER_A, BUFFER_B = 0, 1, 4, 7, 12
 PLANES = 17
 MOMENTS = 61  # 10 of the shared features (constant, normal) + 17 per colour channel
 FEATURES = 6  # per colour channel: constant, 3 normal differences, scaled colour difference, albedo difference
+# Rows of the per-pair scratch (`_pairs_pass`): weight, normal difference (3), then per colour channel
+# the scaled colour difference u, the albedo difference a and the target colour t.
+WEIGHT, DN, U, A, T = 0, 1, 4, 7, 10
+PAIR_ROWS = 13
 
 
 def cross_block(
@@ -172,32 +178,35 @@ def _cross_block_kernel(planes, guide, target, spatial, radius, counts, consts, 
         for i in numba.prange((hc - first + stride - 1) // stride):
             cy = (first + i * stride) * s
             y0, y1 = max(cy - radius, 0), min(cy + radius + 1, height)
-            weights = np.empty((2, (y1 - y0) * (2 * radius + 1), LANES), np.float32)
+            pairs = np.empty(((y1 - y0) * (2 * radius + 1), PAIR_ROWS, LANES), np.float32)  # ~220 KB: L2
             moments = np.empty((MOMENTS, LANES), np.float32)
             gram = np.empty((3, FEATURES, FEATURES, LANES))
             rhs = np.empty((3, FEATURES, LANES))
             coefs = np.empty((3 * FEATURES, LANES), np.float32)
             for q in range(0, wc, LANES):
                 c = pad + q
-                _weights_pass(planes, guide, spatial, radius, consts, cy, y0, y1, c, weights, moments)
+                _pairs_pass(planes, guide, target, spatial, radius, consts, cy, y0, y1, c, pairs, moments)
                 for ch in range(3):
-                    _channel_pass(planes, guide, target, ch, radius, cy, y0, y1, c, weights, moments)
+                    _channel_pass(ch, pairs, moments)
                 _solve(moments, ridge, gram, rhs, coefs)
-                _predict_pass(planes, guide, radius, cy, y0, y1, c, weights, coefs, num, den)
+                _predict_pass(s, radius, y0, y1, c, pairs, coefs, num, den)
 
 
 @numba.njit(inline="always", fastmath=True)
-def _weights_pass(planes, guide, spatial, radius, consts, cy, y0, y1, c, weights, moments):  # pragma: no cover
-    """The window (rows y0 ... y1 - 1) of LANES centres: the pair weights (eq. 7, times the spatial factor,
-    plus WEIGHT_FLOOR, 0 outside the frame) and colour scales 1 / (sigma_i + sigma_c + eps) into
-    weights (2, offsets, LANES), and the shared moments sum w [1, dn] [1, dn]^T (dn: normal difference;
-    upper triangle row by row) into moments[0:10]."""
+def _pairs_pass(planes, guide, target, spatial, radius, consts, cy, y0, y1, c, pairs, moments):  # pragma: no cover
+    """The window (rows y0 ... y1 - 1) of LANES centres, read from the planes once: every pair's terms into
+    pairs (offsets, PAIR_ROWS, LANES): the weight (eq. 7, times the spatial factor, plus WEIGHT_FLOOR, 0
+    outside the frame), the normal difference dn and per colour channel u = (y_i - y_c) / (sigma_i +
+    sigma_c + eps) (eq. 6), the albedo difference and the target colour; and the shared moments
+    sum w [1, dn] [1, dn]^T (upper triangle row by row) into moments[0:10]. The later passes stream the
+    scratch in order instead of gathering from 4 phase planes x 17 rows again."""
     s = planes.shape[0]
     eps_variance, eps_sigma, floor = consts[0], consts[1], consts[2]
     mask_c = load(planes, (0, MASK, cy, c))
     g0, g1, g2 = _centres3(planes, guide, cy, c)
     var_c, sig_c = load(planes, (0, guide + 3, cy, c)) + eps_variance, load(planes, (0, guide + 4, cy, c)) + eps_sigma
     n0, n1, n2 = _centres3(planes, NORMAL, cy, c)
+    a0, a1, a2 = _centres3(planes, ALBEDO, cy, c)
     zero = splat(np.float32(0.0))
     m = (zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
     for y in range(y0, y1):
@@ -210,11 +219,17 @@ def _weights_pass(planes, guide, spatial, radius, consts, cy, y0, y1, c, weights
             ratio = (d0 * d0 + d1 * d1 + d2 * d2) / (load(planes, (p, guide + 3, y, x)) + var_c)
             sw = spatial[y - cy + radius, dx + radius]
             w = (exp_neg(ratio) * sw + floor) * (load(planes, (p, MASK, y, x)) * mask_c)
-            store(weights, (0, o, 0), w)
-            store(weights, (1, o, 0), np.float32(1.0) / (load(planes, (p, guide + 4, y, x)) + sig_c))
+            scale = np.float32(1.0) / (load(planes, (p, guide + 4, y, x)) + sig_c)
             e0 = load(planes, (p, NORMAL, y, x)) - n0
             e1 = load(planes, (p, NORMAL + 1, y, x)) - n1
             e2 = load(planes, (p, NORMAL + 2, y, x)) - n2
+            for row, value in ((WEIGHT, w), (DN, e0), (DN + 1, e1), (DN + 2, e2), (U, d0 * scale),
+                               (U + 1, d1 * scale), (U + 2, d2 * scale), (A, load(planes, (p, ALBEDO, y, x)) - a0),
+                               (A + 1, load(planes, (p, ALBEDO + 1, y, x)) - a1),
+                               (A + 2, load(planes, (p, ALBEDO + 2, y, x)) - a2), (T, load(planes, (p, target, y, x))),
+                               (T + 1, load(planes, (p, target + 1, y, x))),
+                               (T + 2, load(planes, (p, target + 2, y, x)))):  # fmt: skip
+                store(pairs, (o, row, 0), value)
             w0, w1, w2 = w * e0, w * e1, w * e2
             m = (m[0] + w, m[1] + w0, m[2] + w1, m[3] + w2, m[4] + w0 * e0, m[5] + w0 * e1, m[6] + w0 * e2,
                  m[7] + w1 * e1, m[8] + w1 * e2, m[9] + w2 * e2)  # fmt: skip
@@ -226,34 +241,20 @@ def _weights_pass(planes, guide, spatial, radius, consts, cy, y0, y1, c, weights
 
 
 @numba.njit(inline="always", fastmath=True)
-def _channel_pass(planes, guide, target, ch, radius, cy, y0, y1, c, weights, moments):  # pragma: no cover
-    """The window of LANES centres: colour channel ch's 17 moments into moments[10 + 17 ch ...]:
-    sum w u [1, dn, u], w a [1, dn, u, a] and the right-hand side sum w t [1, dn, u, a], with u the scaled
-    colour difference (eq. 6), a the albedo difference and t the target colour."""
-    s = planes.shape[0]
-    g, a_c = load(planes, (0, guide + ch, cy, c)), load(planes, (0, ALBEDO + ch, cy, c))
-    n0, n1, n2 = _centres3(planes, NORMAL, cy, c)
-    k = 10 + 17 * ch
+def _channel_pass(ch, pairs, moments):  # pragma: no cover
+    """Colour channel ch's 17 moments from the pair terms into moments[10 + 17 ch ...]: sum w u [1, dn, u],
+    w a [1, dn, u, a] and the right-hand side sum w t [1, dn, u, a]."""
     zero = splat(np.float32(0.0))
     m = (zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
-    for y in range(y0, y1):
-        o = (y - y0) * (2 * radius + 1)
-        p, x = (-radius) % s, c + (-radius) // s
-        for _ in range(2 * radius + 1):
-            w = load(weights, (0, o, 0))
-            e0 = load(planes, (p, NORMAL, y, x)) - n0
-            e1 = load(planes, (p, NORMAL + 1, y, x)) - n1
-            e2 = load(planes, (p, NORMAL + 2, y, x)) - n2
-            u = (load(planes, (p, guide + ch, y, x)) - g) * load(weights, (1, o, 0))
-            a = load(planes, (p, ALBEDO + ch, y, x)) - a_c
-            wu, wa, wt = w * u, w * a, w * load(planes, (p, target + ch, y, x))
-            m = (m[0] + wu, m[1] + wu * e0, m[2] + wu * e1, m[3] + wu * e2, m[4] + wu * u,
-                 m[5] + wa, m[6] + wa * e0, m[7] + wa * e1, m[8] + wa * e2, m[9] + wa * u, m[10] + wa * a,
-                 m[11] + wt, m[12] + wt * e0, m[13] + wt * e1, m[14] + wt * e2, m[15] + wt * u,
-                 m[16] + wt * a)  # fmt: skip
-            o, p = o + 1, p + 1
-            if p == s:
-                p, x = 0, x + 1
+    for o in range(pairs.shape[0]):
+        w, u, a = load(pairs, (o, WEIGHT, 0)), load(pairs, (o, U + ch, 0)), load(pairs, (o, A + ch, 0))
+        e0, e1, e2 = load(pairs, (o, DN, 0)), load(pairs, (o, DN + 1, 0)), load(pairs, (o, DN + 2, 0))
+        wu, wa, wt = w * u, w * a, w * load(pairs, (o, T + ch, 0))
+        m = (m[0] + wu, m[1] + wu * e0, m[2] + wu * e1, m[3] + wu * e2, m[4] + wu * u,
+             m[5] + wa, m[6] + wa * e0, m[7] + wa * e1, m[8] + wa * e2, m[9] + wa * u, m[10] + wa * a,
+             m[11] + wt, m[12] + wt * e0, m[13] + wt * e1, m[14] + wt * e2, m[15] + wt * u,
+             m[16] + wt * a)  # fmt: skip
+    k = 10 + 17 * ch
     for e in range(17):
         store(moments, (k + e, 0), m[e])
 
@@ -332,29 +333,23 @@ def _cholesky_solve(a, b, ridge_relative, ridge_absolute, h):  # pragma: no cove
 
 
 @numba.njit(inline="always", fastmath=True)
-def _predict_pass(planes, guide, radius, cy, y0, y1, c, weights, coefs, num, den):  # pragma: no cover
-    """Eq. 5's sums: num[channel] += w (alpha + beta . x) and den += w at every pixel of the window."""
-    s = planes.shape[0]
-    g0, g1, g2 = _centres3(planes, guide, cy, c)
-    a0, a1, a2 = _centres3(planes, ALBEDO, cy, c)
-    n0, n1, n2 = _centres3(planes, NORMAL, cy, c)
+def _predict_pass(s, radius, y0, y1, c, pairs, coefs, num, den):  # pragma: no cover
+    """Eq. 5's sums: num[channel] += w (alpha + beta . x) and den += w at every pixel of the window, the
+    pair terms x from the scratch of `_pairs_pass`; s the sparsity (phase planes)."""
     o = 0
     for y in range(y0, y1):
         p, x = (-radius) % s, c + (-radius) // s
         for _ in range(2 * radius + 1):  # phases interleaved: a vector is re-read s offsets after its store
-            w, scale = load(weights, (0, o, 0)), load(weights, (1, o, 0))
-            e0 = load(planes, (p, NORMAL, y, x)) - n0
-            e1 = load(planes, (p, NORMAL + 1, y, x)) - n1
-            e2 = load(planes, (p, NORMAL + 2, y, x)) - n2
-            for ch, g, a_c in ((0, g0, a0), (1, g1, a1), (2, g2, a2)):
+            w = load(pairs, (o, WEIGHT, 0))
+            e0, e1, e2 = load(pairs, (o, DN, 0)), load(pairs, (o, DN + 1, 0)), load(pairs, (o, DN + 2, 0))
+            for ch in range(3):
                 k = ch * FEATURES
                 pred = load(coefs, (k, 0)) + load(coefs, (k + 1, 0)) * e0 + load(coefs, (k + 2, 0)) * e1
                 pred += load(coefs, (k + 3, 0)) * e2
-                pred += load(coefs, (k + 4, 0)) * ((load(planes, (p, guide + ch, y, x)) - g) * scale)
-                pred += load(coefs, (k + 5, 0)) * (load(planes, (p, ALBEDO + ch, y, x)) - a_c)
+                pred += load(coefs, (k + 4, 0)) * load(pairs, (o, U + ch, 0))
+                pred += load(coefs, (k + 5, 0)) * load(pairs, (o, A + ch, 0))
                 store(num, (p, ch, y, x), load(num, (p, ch, y, x)) + w * pred)
             store(den, (p, y, x), load(den, (p, y, x)) + w)
-            o += 1
-            p += 1
+            o, p = o + 1, p + 1
             if p == s:
                 p, x = 0, x + 1
