@@ -34,8 +34,6 @@ from service.stages.local_regression import (
     RIDGE_RELATIVE,
     BlockParams,
     PairTerms,
-    _bits_to_float32,
-    _float32_to_bits,
     block_regression,
     check_firefly_k,
     clamp_fireflies_reference,
@@ -44,6 +42,7 @@ from service.stages.local_regression import (
     neighbour_mean,
     to_planes,
 )
+from service.stages.simd import bits_to_float32, float32_to_bits
 
 LOG_MAX = 88.0  # |log value| limit of `log_to_linear`: expm1(88) = 1.65e38, two of them still below float32 max
 
@@ -207,10 +206,10 @@ def _log1p_nonneg(x):
     k = 0 and f = x exactly; c corrects for the rounding of 1 + x."""
     one = np.float32(1.0)
     u = one + x
-    bits = _float32_to_bits(u) + (0x3F800000 - 0x3F3504F3)
+    bits = float32_to_bits(u) + (0x3F800000 - 0x3F3504F3)
     k = (bits >> 23) - 0x7F
     c = (one - (u - x) if k >= 2 else x - (u - one)) / u
-    reduced = _bits_to_float32((bits & 0x007FFFFF) + 0x3F3504F3) - one
+    reduced = bits_to_float32((bits & 0x007FFFFF) + 0x3F3504F3) - one
     small = x < np.float32(_SQRT2_M1)
     f = x if small else reduced
     c = np.float32(0.0) if small else c
@@ -242,7 +241,7 @@ def _expm1_nonneg(t):
     p = p * r + np.float32(1.0 / 6.0)
     p = p * r + np.float32(0.5)
     p = p * r * r + r
-    scale = _bits_to_float32((np.int32(n) + np.int32(127)) << np.int32(23))
+    scale = bits_to_float32((np.int32(n) + np.int32(127)) << np.int32(23))
     return scale * p + (scale - np.float32(1.0))
 
 

@@ -22,13 +22,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import llvmlite.ir
 import numba
 import numpy as np
-from numba import types
-from numba.extending import intrinsic
 
 from service.stages.albedo import ALBEDO_EPS, demodulate, remodulate
+from service.stages.simd import bits_to_float32, float32_to_bits
 from service.stages.window import overlap, window_offsets
 
 RIDGE_RELATIVE = 1e-3  # Tikhonov: fraction of each feature's own weighted second moment added to its diagonal
@@ -354,17 +352,6 @@ def _clamp_kernel(planes, k, out):
 # -------------------------------------------------------------------------------- fast exp for numba
 
 
-@intrinsic
-def _bits_to_float32(typingctx, bits):
-    """Reinterpret int32 bits as float32 (vectorises, unlike a call to expf)."""
-    sig = types.float32(types.int32)
-
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], llvmlite.ir.FloatType())
-
-    return sig, codegen
-
-
 @numba.njit(inline="always", fastmath=True)
 def _exp_neg(x):
     """exp(-x) for x >= 0 in float32, relative error < 3e-7, 0 below exp(-87). Vectorisable."""
@@ -378,7 +365,7 @@ def _exp_neg(x):
     p = p * f + np.float32(0.5)
     p = p * f + np.float32(1.0)
     p = p * f + np.float32(1.0)
-    return p * _bits_to_float32((np.int32(n) + np.int32(127)) << np.int32(23))
+    return p * bits_to_float32((np.int32(n) + np.int32(127)) << np.int32(23))
 
 
 # ------------------------------------------------------------------------------------ block moments
@@ -1408,24 +1395,13 @@ def clamp_outlier_clusters_reference(
     return np.where(clipped == t, planes, back).astype(np.float32)
 
 
-@intrinsic
-def _float32_to_bits(typingctx, value):
-    """Reinterpret float32 bits as int32 (vectorises)."""
-    sig = types.int32(types.float32)
-
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], llvmlite.ir.IntType(32))
-
-    return sig, codegen
-
-
 @numba.njit(inline="always", fastmath=True)
 def _log_fast(v):
     """log(v) for finite float32 v >= 1, relative error ~1e-7 (Cephes logf polynomial). Vectorisable,
     unlike a call to logf: v = 2^e m with m in [sqrt(1/2), sqrt(2)), log v = e ln 2 + log m."""
-    bits = _float32_to_bits(v)
+    bits = float32_to_bits(v)
     e = np.float32((bits >> np.int32(23)) - np.int32(127))
-    m = _bits_to_float32((bits & np.int32(0x7FFFFF)) | np.int32(0x3F800000))  # [1, 2)
+    m = bits_to_float32((bits & np.int32(0x7FFFFF)) | np.int32(0x3F800000))  # [1, 2)
     big = m > np.float32(1.4142135623730951)
     m = m * np.float32(0.5) if big else m
     e = e + np.float32(1.0) if big else e

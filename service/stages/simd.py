@@ -19,6 +19,10 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
     d = widen(v, half)            # VecD of lanes half * LANES/2 ... of the Vec v
     v = narrow(lo, hi)            # Vec of two VecD halves, rounded to float32
 `exp_neg` is the vector twin of `local_regression._exp_neg` (the same polynomial, the same values).
+
+Also here, for scalar numba code: `bits_to_float32` and `float32_to_bits`, the bit casts with which the
+exp and log polynomials of the stages build and split float32 exponents (they vectorise, unlike calls
+to the C library's expf or frexpf).
 """
 
 from __future__ import annotations
@@ -264,3 +268,23 @@ def exp_neg(x):
     p = p * f + np.float32(1.0)
     p = p * f + np.float32(1.0)
     return p * _pow2(n)
+
+
+@intrinsic
+def bits_to_float32(typingctx, bits):
+    """Reinterpret int32 bits as a float32 (scalar numba code)."""
+
+    def codegen(context, builder, sig, args):
+        return builder.bitcast(args[0], ir.FloatType())
+
+    return types.float32(types.int32), codegen
+
+
+@intrinsic
+def float32_to_bits(typingctx, value):
+    """Reinterpret a float32's bits as int32 (scalar numba code); inverse of `bits_to_float32`."""
+
+    def codegen(context, builder, sig, args):
+        return builder.bitcast(args[0], _INT32)
+
+    return types.int32(types.float32), codegen
