@@ -33,6 +33,7 @@ from service.stages.local_regression import (
     EPS_VARIANCE,
     WEIGHT_FLOOR,
     BlockParams,
+    _Layout,
     _phase_planes,
     centre_count,
     normalise_phases,
@@ -265,12 +266,18 @@ def _centres3(planes, first, cy, c):  # pragma: no cover
     return load(planes, (0, first, cy, c)), load(planes, (0, first + 1, cy, c)), load(planes, (0, first + 2, cy, c))
 
 
-# (row, column) of the 6x6 system of every moment: the shared ones (0-9) in every channel's system,
-# then per channel the scaled-colour column, the albedo column and the right-hand side (column 6).
-_SHARED = ((0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3))
-_CHANNEL = ((0, 4), (1, 4), (2, 4), (3, 4), (4, 4), (0, 5), (1, 5), (2, 5), (3, 5), (4, 5), (5, 5),
-            (0, 6), (1, 6), (2, 6), (3, 6), (4, 6), (5, 6))  # fmt: skip
-MOMENT_ENTRIES = np.array([(0, *rc) for rc in _SHARED] + [(ch + 1, *rc) for ch in range(3) for rc in _CHANNEL])
+def _moment_entries() -> np.ndarray:
+    """(kind, row, column) of each moment in the order the passes store them, which is
+    `local_regression._Layout.moment_entries` of the cross layout (3 guides, 3 shared features, 3 groups
+    of 2, 3 targets): kind 0 for the shared ones (in every channel's system), ch + 1 for channel ch's;
+    column FEATURES for the right-hand side."""
+    _, _, dest = _Layout(3, 3, 3, 2, 3).moment_entries()
+    entries = [(0 if kind == 0 else g + 1, p, q if kind < 2 else FEATURES) for kind, g, p, q in dest]
+    assert len(entries) == MOMENTS
+    return np.array(entries, np.int64)
+
+
+MOMENT_ENTRIES = _moment_entries()
 
 
 @numba.njit(inline="always", fastmath=True)

@@ -382,7 +382,7 @@ def block_solve(
     feature order [1, shared..., grouped...]. packed: `pack_planes(terms, target, params)`, if at hand.
     """
     hc, wc, g, k1, m = _moment_shape(terms, target, params)
-    layout = _Layout(terms, target.shape[0])
+    layout = _Layout.of(terms, target.shape[0])
     fa, fb, dest = layout.moment_entries()
     acc = np.zeros((hc, len(fa), wc), np.float32)
     _block_moments_kernel(
@@ -510,14 +510,16 @@ LANE_CHUNK = 512  # centres processed together: a whole centre row up to 2048 px
 
 
 class _Layout:
-    """Plane and feature-row indices of one PairTerms + target channel count."""
+    """Plane and feature-row indices of a block regression: d weight guides, ks shared features, g groups
+    of kg grouped features, c target channels (`of` reads them from a PairTerms)."""
 
-    def __init__(self, terms: PairTerms, channels: int):
-        self.d = terms.weight_guide.shape[0]
-        self.ks = terms.shared.shape[0]
-        self.g, self.kg = terms.grouped.shape[:2]
-        self.c = channels
-        self.m = channels // self.g
+    def __init__(self, d: int, ks: int, g: int, kg: int, c: int):
+        self.d, self.ks, self.g, self.kg, self.c = d, ks, g, kg, c
+        self.m = c // g
+
+    @classmethod
+    def of(cls, terms: PairTerms, channels: int) -> _Layout:
+        return cls(terms.weight_guide.shape[0], terms.shared.shape[0], *terms.grouped.shape[:2], channels)
 
     def counts(self) -> np.ndarray:
         return np.array([self.d, self.ks, self.g, self.kg, self.c], np.int64)
@@ -577,7 +579,7 @@ def pad_lanes(params: BlockParams) -> int:
 
 def pack_planes(terms: PairTerms, target: np.ndarray | None, params: BlockParams) -> np.ndarray:
     """The kernels' input: every plane of `terms` (and `target`) packed and split into phase planes."""
-    parts = _Layout(terms, 0 if target is None else target.shape[0]).parts(terms, target)
+    parts = _Layout.of(terms, 0 if target is None else target.shape[0]).parts(terms, target)
     s, pad = params.sparsity, pad_lanes(params)
     height, width = terms.sigma.shape
     out = np.empty((s, sum(part.shape[0] for part in parts), height, centre_count(width, s) + 2 * pad + 1), np.float32)
@@ -722,7 +724,7 @@ def block_reconstruct(
     hc, wc, g, _, m = beta.shape
     height, width = terms.sigma.shape
     s = params.sparsity
-    layout = _Layout(terms, g * m)
+    layout = _Layout.of(terms, g * m)
     layout.c = 0  # the kernel reads no target planes
     ch, rows, cols = layout.prediction_entries()
     planes = pack_planes(terms, None, params) if packed is None else packed

@@ -147,7 +147,7 @@ def test_pack_planes_matches_the_numpy_phase_split(size):
 
     terms, target = _random_terms(np.random.default_rng(5), *size)
     params = BlockParams(radius=5, sparsity=3)
-    expected = _phase_planes(_Layout(terms, 3).pack(terms, target), params)
+    expected = _phase_planes(_Layout.of(terms, 3).pack(terms, target), params)
     np.testing.assert_array_equal(pack_planes(terms, target, params), expected)
 
 
