@@ -30,7 +30,7 @@ from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import dssim, rel_l2
 from service.pipelines.crossreg import prepare_frame
-from service.stages.cross_regression import log_to_linear
+from service.stages.cross_regression import cross_regression, pilots_to_radiance
 
 log = logging.getLogger("models.train.crossreg_evidence")
 
@@ -48,8 +48,8 @@ def _pilots_alone(frame: Frame) -> np.ndarray:
     emission = frame.get("emission")
     if emission is not None:
         frame = frame.replace(colorA=frame["colorA"] - emission, colorB=frame["colorB"] - emission)
-    prepared = prepare_frame(frame, None)
-    out = np.maximum(log_to_linear(0.5 * (prepared.pilot_a + prepared.pilot_b)), 0.0)
+    out = np.maximum(pilots_to_radiance(*cross_regression(frame["colorA"], frame["colorB"], frame["albedo"],
+                                                          frame["normal"])), 0.0)  # fmt: skip
     return out + (emission if emission is not None else 0.0)
 
 

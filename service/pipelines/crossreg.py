@@ -32,7 +32,7 @@ from service.online.trainer import OnlineConfig, OnlineTrainer, require_torch
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.runtime import OnnxModel, WeightError, default_init
-from service.stages.cross_regression import CrossRegressionParams, cross_regression_planes, log_to_linear
+from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
 from service.stages.reprojection import ReprojectionParams, reproject
 from service.stages.spatiotemporal_filter import FilterOutput, screen_history, spatiotemporal_filter
 
@@ -118,13 +118,12 @@ def prepare_frame(
 ) -> Prepared:
     """Stages 1-2 and the network input. frame: emission-free Frame with colorA, colorB, albedo, normal,
     motion (depth optional). history: the previous frame's, or None at the start of a sequence.
-    pilots: the frame's (pilot_a, pilot_b), (H, W, 3) float32 log1p, when already computed (offline
-    training caches them)."""
+    pilots: the frame's `cross_regression` (pilot_a, pilot_b), (3, H, W) float32 log1p planes, when already
+    computed (offline training caches them)."""
     albedo, normal = frame["albedo"], frame["normal"]
-    if pilots is None:  # (H, W, 3) views of the planes, which stack_planes copies as planes
-        planes_a, planes_b = cross_regression_planes(frame["colorA"], frame["colorB"], albedo, normal, params)
-        pilots = planes_a.transpose(1, 2, 0), planes_b.transpose(1, 2, 0)
-    pilot_a, pilot_b = pilots
+    if pilots is None:
+        pilots = cross_regression(frame["colorA"], frame["colorB"], albedo, normal, params)
+    pilot_a, pilot_b = (p.transpose(1, 2, 0) for p in pilots)  # (H, W, 3) views; stack_planes copies planes
     mean = 0.5 * (pilot_a + pilot_b)
     groups = {"pilotA": pilot_a, "pilotB": pilot_b, "previous": mean, "albedo": albedo, "normal": normal}
     planes = stack_planes(CROSSREG_INPUTS, groups)

@@ -15,7 +15,7 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
-from service.stages.cross_regression import CrossRegressionParams, cross_regression_planes, pilots_to_radiance
+from service.stages.cross_regression import CrossRegressionParams, cross_regression, pilots_to_radiance
 from service.stages.local_regression import FIREFLY_K
 from service.stages.range_clamp import clamp_to_local_range
 
@@ -42,7 +42,7 @@ class CrossRegressionPipeline(Pipeline):
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         opt = self.options
         params = CrossRegressionParams(opt.window, opt.sparsity, opt.firefly_k)
-        pilots = cross_regression_planes(frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], params)
+        pilots = cross_regression(frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], params)
         color = pilots_to_radiance(*pilots)  # the pilots' mean, linear radiance (H, W, 3)
         color = clamp_to_local_range(color, frame["color"], opt.window // 2)  # no extrapolated energy
         return {"color": color}, state

@@ -112,7 +112,7 @@ def pilots_to_radiance(pilot_a: np.ndarray, pilot_b: np.ndarray) -> np.ndarray:
     """The mean of the two pilots back in linear radiance, as pixels: from_planes(0.5 (log_to_linear(pilot_a)
     + log_to_linear(pilot_b))), in one numba pass.
 
-    pilot_a, pilot_b: (3, H, W) float32 log colour (`cross_regression_planes`). Returns (H, W, 3) float32
+    pilot_a, pilot_b: (3, H, W) float32 log colour (`cross_regression`). Returns (H, W, 3) float32
     linear HDR radiance (any sign, finite: log values are clipped to +-LOG_MAX as in `log_to_linear`).
     The exponential is a Cody-Waite reduction and a degree-7 polynomial (within 2 ulp of expm1).
     `pilots_to_radiance_reference` is the plain-numpy twin.
@@ -312,20 +312,6 @@ def buffer_terms(log_planes: np.ndarray, variance: np.ndarray, albedo: np.ndarra
 
 
 def cross_regression(
-    color_a: np.ndarray,
-    color_b: np.ndarray,
-    albedo: np.ndarray,
-    normal: np.ndarray,
-    params: CrossRegressionParams | None = None,
-    *,
-    reference: bool = False,
-) -> tuple[np.ndarray, np.ndarray]:
-    """`cross_regression_planes` with (H, W, 3) float32 pilots (same arguments, same values)."""
-    pilot_a, pilot_b = cross_regression_planes(color_a, color_b, albedo, normal, params, reference=reference)
-    return from_planes(pilot_a), from_planes(pilot_b)
-
-
-def cross_regression_planes(
     color_a: np.ndarray,
     color_b: np.ndarray,
     albedo: np.ndarray,

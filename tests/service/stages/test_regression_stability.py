@@ -6,13 +6,12 @@ import numpy as np
 import pytest
 
 from service.stages.bmfr import BmfrParams, bmfr
-from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
+from service.stages.cross_regression import CrossRegressionParams, cross_regression, pilots_to_radiance
 from service.stages.flr import FlrParams, gbuffer_guides, local_linear_regression
 
 
 def _crossregression(layers):
-    a, b = cross_regression(layers["colorA"], layers["colorB"], layers["albedo"], layers["normal"])
-    return 0.5 * (log_to_linear(a) + log_to_linear(b))
+    return pilots_to_radiance(*cross_regression(layers["colorA"], layers["colorB"], layers["albedo"], layers["normal"]))
 
 
 def _bmfr(layers):
