@@ -29,10 +29,8 @@ import numba
 import numpy as np
 
 from service.stages.local_regression import (
-    EPS_SIGMA,
-    EPS_VARIANCE,
-    WEIGHT_FLOOR,
     BlockParams,
+    _constants,
     _Layout,
     _phase_planes,
     centre_count,
@@ -156,10 +154,10 @@ def _regress(planes: np.ndarray, width: int, guide: int, target: int, params: Bl
     s, _, height, lanes = planes.shape
     num = np.zeros((s, 3, height, lanes), np.float32)
     den = np.zeros((s, height, lanes), np.float32)
-    consts = np.array([EPS_VARIANCE, EPS_SIGMA, WEIGHT_FLOOR], np.float32)
     ridge = np.array([params.ridge_relative, params.ridge_absolute])
     counts = np.array([centre_count(height, s), centre_count(width, s)], np.int64)
-    _cross_block_kernel(planes, guide, target, spatial_weights(params), params.radius, counts, consts, ridge, num, den)
+    _cross_block_kernel(planes, guide, target, spatial_weights(params), params.radius, counts, _constants(), ridge, num,
+                        den)  # fmt: skip
     out = np.empty((3, height, width), np.float32)
     normalise_phases(num, den, pad_lanes(params), out)
     return out
@@ -202,7 +200,7 @@ def _pairs_pass(planes, guide, target, spatial, radius, consts, cy, y0, y1, c, p
     sum w [1, dn] [1, dn]^T (upper triangle row by row) into moments[0:10]. The later passes stream the
     scratch in order instead of gathering from 4 phase planes x 17 rows again."""
     s = planes.shape[0]
-    eps_variance, eps_sigma, floor = consts[0], consts[1], consts[2]
+    eps_sigma, eps_variance, floor = consts[0], consts[1], consts[2]  # `local_regression._constants`
     mask_c = load(planes, (0, MASK, cy, c))
     g0, g1, g2 = _centres3(planes, guide, cy, c)
     var_c, sig_c = load(planes, (0, guide + 3, cy, c)) + eps_variance, load(planes, (0, guide + 4, cy, c)) + eps_sigma
