@@ -7,7 +7,9 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
 
 - Both buffers' inputs are packed once, in one pass, into phase planes (`local_regression`'s layout:
   pixel x = S q + phase at lane q + pad of plane `phase`), so the pixels that one window offset pairs
-  with LANES consecutive centres of a centre row are LANES consecutive floats: one `simd.Vec`.
+  with LANES consecutive centres of a centre row are LANES consecutive floats: one `simd.Vec`. The
+  service packs straight from the radiance (`cross_regression.pack_buffers`, which takes the logs and
+  variances on the way); both packers write a row with `pack_row`.
 - Per group of LANES centres, one pass reads the window from the planes once and writes each pair's
   terms (weight, eq. 7; normal, scaled colour (eq. 6) and albedo differences; target colour) to a
   scratch in pair order, summing the 10 moments of the shared normal features on the way; three more
@@ -39,7 +41,20 @@ from service.stages.local_regression import (
     spatial_weights,
     to_planes,
 )
-from service.stages.simd import HALF, LANES, exp_neg, load, narrow, splat, splat_d, sqrt, store, vmax, widen
+from service.stages.simd import (
+    HALF,
+    LANES,
+    exp_neg,
+    load,
+    load_phase,
+    narrow,
+    splat,
+    splat_d,
+    sqrt,
+    store,
+    vmax,
+    widen,
+)
 
 # Packed planes of both buffers (`pack_cross`): each buffer's log colour (3), its variance and sigma
 # follow each other, so a buffer is named by the index of its first log-colour plane.
@@ -72,7 +87,13 @@ def cross_block(
     features and weights, pilot_b log_a on buffer B's.
     """
     planes = pack_cross(log_a, variance_a, log_b, variance_b, albedo, normal, params)
-    width = variance_a.shape[1]
+    return regress_packed(planes, variance_a.shape[1], params)
+
+
+def regress_packed(planes: np.ndarray, width: int, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
+    """The two pilots of `cross_block` from both buffers' phase planes (S, PLANES, H, L) float32 (`pack_cross`,
+    or `cross_regression.pack_buffers` from the radiance) of a frame `width` pixels wide, packed with the
+    same params. Returns (pilot_a, pilot_b), (3, H, W) float32 log colour."""
     return _regress(planes, width, BUFFER_A, BUFFER_B, params), _regress(planes, width, BUFFER_B, BUFFER_A, params)
 
 
@@ -93,12 +114,16 @@ def pack_cross(
     shapes = [x.shape for x in (log_a, variance_a, log_b, variance_b, albedo, normal)]
     if shapes != [(3, height, width), (height, width)] * 2 + [(height, width, 3)] * 2:
         raise ValueError(f"cross_block: inconsistent input shapes {shapes}")  # the kernel does not check indices
-    s, pad = params.sparsity, pad_lanes(params)
-    lanes = -(-centre_count(width, s) // LANES) * LANES
-    out = np.empty((s, PLANES, height, lanes + 2 * pad), np.float32)
+    out = empty_planes(height, width, params)
     f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (log_a, variance_a, log_b, variance_b, albedo, normal)]
-    _pack_kernel(*f32, pad, out)
+    _pack_kernel(*f32, pad_lanes(params), out)
     return out
+
+
+def empty_planes(height: int, width: int, params: BlockParams) -> np.ndarray:
+    """Uninitialised phase planes (S, PLANES, H, L) float32 of an H x W frame, L as in `pack_cross`."""
+    lanes = -(-centre_count(width, params.sparsity) // LANES) * LANES
+    return np.empty((params.sparsity, PLANES, height, lanes + 2 * pad_lanes(params)), np.float32)
 
 
 def pack_cross_reference(
@@ -125,27 +150,93 @@ def pack_cross_reference(
 @numba.njit(parallel=True, cache=True)
 def _pack_kernel(log_a, var_a, log_b, var_b, albedo, normal, pad, out):  # pragma: no cover
     """The planes of `pack_cross` (log_* (3, H, W); var_* (H, W); albedo, normal (H, W, 3)) into out."""
-    s, _, height, lanes = out.shape
-    width = var_a.shape[1]
+    height, width = var_a.shape
+    albedo, normal = albedo.reshape(height, 3 * width), normal.reshape(height, 3 * width)
     for y in numba.prange(height):
-        for p in range(s):
-            count = (width - p + s - 1) // s if p < width else 0
-            for k in range(PLANES):
-                row = out[p, k, y]
-                row[:pad] = 0.0
-                row[pad + count :] = 0.0
-            for j in range(count):
-                x, q = p + s * j, pad + j
-                out[p, MASK, y, q] = 1.0
-                for c in range(3):
-                    out[p, NORMAL + c, y, q] = normal[y, x, c]
-                    out[p, ALBEDO + c, y, q] = albedo[y, x, c]
-                    out[p, BUFFER_A + c, y, q] = log_a[c, y, x]
-                    out[p, BUFFER_B + c, y, q] = log_b[c, y, x]
-                out[p, BUFFER_A + 3, y, q] = var_a[y, x]
-                out[p, BUFFER_A + 4, y, q] = np.sqrt(var_a[y, x])
-                out[p, BUFFER_B + 3, y, q] = var_b[y, x]
-                out[p, BUFFER_B + 4, y, q] = np.sqrt(var_b[y, x])
+        pack_row(log_a, log_b, y, var_a[y], var_b[y], albedo[y], normal[y], pad, out, y)
+
+
+@numba.njit(inline="always")
+def pack_row(log_a, log_b, r, var_a, var_b, albedo, normal, pad, out, y):  # pragma: no cover
+    """Frame row y into the planes out (S, PLANES, H, L) float32 of `pack_cross`, zeros in the pad lanes.
+    log_a, log_b: (3, R, W) float32 log colour, the row at [:, r] (the frame, r = y, or a ring of rows);
+    var_a, var_b: (W,) float32 the row's variance; albedo, normal: (3 W,) float32 the row of the layers,
+    interleaved. At sparsity 4 (the paper's) whole blocks of 4 LANES pixels go as vectors (`_split_block`),
+    the other pixels one value at a time."""
+    s = out.shape[0]
+    width = var_a.shape[0]
+    for p in range(s):
+        count = (width - p + s - 1) // s if p < width else 0
+        for k in range(PLANES):
+            row = out[p, k, y]
+            row[:pad] = 0.0
+            row[pad + count :] = 0.0
+    done = width // (4 * LANES) * 4 * LANES if s == 4 else 0  # pixels in whole blocks
+    for x in range(0, done, 4 * LANES):
+        _split_block(log_a, log_b, r, var_a, var_b, albedo, normal, x, out, y, pad + x // 4)
+    for p in range(s):
+        count = (width - p + s - 1) // s if p < width else 0
+        for j in range(done // s, count):
+            x, q = p + s * j, pad + j
+            out[p, MASK, y, q] = 1.0
+            for c in range(3):
+                out[p, NORMAL + c, y, q] = normal[3 * x + c]
+                out[p, ALBEDO + c, y, q] = albedo[3 * x + c]
+                out[p, BUFFER_A + c, y, q] = log_a[c, r, x]
+                out[p, BUFFER_B + c, y, q] = log_b[c, r, x]
+            out[p, BUFFER_A + 3, y, q] = var_a[x]
+            out[p, BUFFER_A + 4, y, q] = np.sqrt(var_a[x])
+            out[p, BUFFER_B + 3, y, q] = var_b[x]
+            out[p, BUFFER_B + 4, y, q] = np.sqrt(var_b[x])
+
+
+@numba.njit(inline="always")
+def _split_block(log_a, log_b, r, var_a, var_b, albedo, normal, x, out, y, q):  # pragma: no cover
+    """Pixels x ... x + 4 LANES - 1 of `pack_row` (its arguments) at sparsity 4: phase p's LANES of each plane
+    into lanes q ... of out[p, plane, y], every input read in whole vectors (`load_phase`)."""
+    one = splat(np.float32(1.0))
+    for p in range(4):
+        store(out, (p, MASK, y, q), one)
+    for c in range(3):
+        _split4(log_a[c, r], x, False, out, BUFFER_A + c, y, q)
+        _split4(log_b[c, r], x, False, out, BUFFER_B + c, y, q)
+    _split4(var_a, x, False, out, BUFFER_A + 3, y, q)
+    _split4(var_a, x, True, out, BUFFER_A + 4, y, q)  # sigma
+    _split4(var_b, x, False, out, BUFFER_B + 3, y, q)
+    _split4(var_b, x, True, out, BUFFER_B + 4, y, q)
+    _split4x3(normal, 3 * x, out, NORMAL, y, q)
+    _split4x3(albedo, 3 * x, out, ALBEDO, y, q)
+
+
+@numba.njit(inline="always")
+def _split4(row, x, root, out, plane, y, q):  # pragma: no cover
+    """Values x ... x + 4 LANES - 1 of row (N,) float32 into out[p, plane, y, q ...] by phase p = x mod 4;
+    their square roots if root. (Each vector is written out by hand: a loop over a tuple of vectors indexes
+    it at run time, which compiled to code as slow as the scalar loop.)"""
+    v0, v1, v2, v3 = (load_phase(row, (x,), 4, 0), load_phase(row, (x,), 4, 1), load_phase(row, (x,), 4, 2),
+                      load_phase(row, (x,), 4, 3))  # fmt: skip
+    store(out, (0, plane, y, q), sqrt(v0) if root else v0)
+    store(out, (1, plane, y, q), sqrt(v1) if root else v1)
+    store(out, (2, plane, y, q), sqrt(v2) if root else v2)
+    store(out, (3, plane, y, q), sqrt(v3) if root else v3)
+
+
+@numba.njit(inline="always")
+def _split4x3(row, i, out, plane, y, q):  # pragma: no cover
+    """The 4 LANES pixels of 3 interleaved channels from row[i] on (row (3 N,) float32) into
+    out[p, plane + c, y, q ...] by channel c and phase p (written out by hand, as in `_split4`)."""
+    store(out, (0, plane, y, q), load_phase(row, (i,), 12, 0))
+    store(out, (0, plane + 1, y, q), load_phase(row, (i,), 12, 1))
+    store(out, (0, plane + 2, y, q), load_phase(row, (i,), 12, 2))
+    store(out, (1, plane, y, q), load_phase(row, (i,), 12, 3))
+    store(out, (1, plane + 1, y, q), load_phase(row, (i,), 12, 4))
+    store(out, (1, plane + 2, y, q), load_phase(row, (i,), 12, 5))
+    store(out, (2, plane, y, q), load_phase(row, (i,), 12, 6))
+    store(out, (2, plane + 1, y, q), load_phase(row, (i,), 12, 7))
+    store(out, (2, plane + 2, y, q), load_phase(row, (i,), 12, 8))
+    store(out, (3, plane, y, q), load_phase(row, (i,), 12, 9))
+    store(out, (3, plane + 1, y, q), load_phase(row, (i,), 12, 10))
+    store(out, (3, plane + 2, y, q), load_phase(row, (i,), 12, 11))
 
 
 def _regress(planes: np.ndarray, width: int, guide: int, target: int, params: BlockParams) -> np.ndarray:

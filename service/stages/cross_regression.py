@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from service.stages.cross_block import cross_block
+from service.stages.cross_block import empty_planes, pack_row, regress_packed
 from service.stages.local_regression import (
     FIREFLY_K,
     RIDGE_ABSOLUTE,
@@ -40,6 +40,7 @@ from service.stages.local_regression import (
     from_planes,
     interleave_row,
     neighbour_mean,
+    pad_lanes,
     to_planes,
 )
 from service.stages.simd import bits_to_float32, float32_to_bits
@@ -95,9 +96,14 @@ def log_planes(color: np.ndarray, firefly_k: float | None = FIREFLY_K) -> np.nda
     """
     color = np.ascontiguousarray(color, dtype=np.float32)
     out = np.empty((3, *color.shape[:2]), np.float32)
-    clamp = firefly_k is not None
-    _log_planes_kernel(color, np.float32(firefly_k if clamp else 1.0), clamp, out)  # k: unused when off
+    _log_planes_kernel(color, *_clamp_args(firefly_k), out)
     return out
+
+
+def _clamp_args(firefly_k: float | None) -> tuple[np.float32, bool]:
+    """(k, clamp) of the log kernels for `firefly_k`: k is unused when clamp is off (None)."""
+    clamp = firefly_k is not None
+    return np.float32(firefly_k if clamp else 1.0), clamp
 
 
 def log_planes_reference(color: np.ndarray, firefly_k: float | None = FIREFLY_K) -> np.ndarray:
@@ -131,47 +137,66 @@ def pilots_to_radiance_reference(pilot_a: np.ndarray, pilot_b: np.ndarray) -> np
 
 @numba.njit(parallel=True, cache=True)
 def _log_planes_kernel(color, k, clamp, out):  # pragma: no cover - jitted
-    """color (H, W, 3) -> out (3, H, W), a task per row. The clamp of `local_regression._clamp_kernel` (the
-    same float32 operations, no fast-math) runs on the interleaved rows, where the neighbour in x of a value
-    lies a constant 3 values away, so every loop is contiguous and vectorises. Without `clamp` no neighbour
-    is read, and lo > hi leaves every value as it is (as for a 1x1 frame). Then the signed log1p, and the
-    row is split into the planes. (Allocating lo and hi under an `if clamp` halved the clamp's speed.)"""
+    """color (H, W, 3) -> out (3, H, W), a task per row (`_log_row`)."""
     height, width = color.shape[:2]
-    n = 3 * width
-    flat = color.reshape(height, n)
+    flat = color.reshape(height, 3 * width)
     for y in numba.prange(height):
-        src = flat[y]
-        lo = np.full(n, np.inf, np.float32)
-        hi = np.full(n, -np.inf, np.float32)
-        for yy in range(max(0, y - 1), min(height, y + 2) if clamp else 0):
-            row = flat[yy]
-            for i in range(3, n):  # left neighbour
-                v = row[i - 3]
-                lo[i] = min(lo[i], v)
-                hi[i] = max(hi[i], v)
-            for i in range(n - 3):  # right neighbour
-                v = row[i + 3]
-                lo[i] = min(lo[i], v)
-                hi[i] = max(hi[i], v)
-            if yy != y:  # the neighbour above or below
-                for i in range(n):
-                    v = row[i]
-                    lo[i] = min(lo[i], v)
-                    hi[i] = max(hi[i], v)
-        line = np.empty(n, np.float32)
-        for i in range(n):
-            spread = k * (hi[i] - lo[i])
-            clamped = min(max(src[i], lo[i] - spread), hi[i] + spread)
-            line[i] = clamped if lo[i] <= hi[i] else src[i]
-        for i in range(n):
-            v = line[i]
-            log_abs = _log1p_nonneg(abs(v))
-            line[i] = -log_abs if v < 0 else log_abs
-        d0, d1, d2 = out[0, y], out[1, y], out[2, y]
-        for x in range(width):  # a constant stride: the strided loads vectorise together
-            d0[x] = line[3 * x]
-            d1[x] = line[3 * x + 1]
-            d2[x] = line[3 * x + 2]
+        _log_row(flat, y, k, clamp, out[0, y], out[1, y], out[2, y])
+
+
+@numba.njit(inline="always")
+def _log_row(flat, y, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
+    """Row y of `log_planes` into d0, d1, d2 (W,) float32, its three colour planes' rows, from flat (H, 3 W)
+    float32, the interleaved radiance. The clamp of `local_regression._clamp_kernel` (the same float32
+    operations; min and max are exact, so the order in which the neighbours are taken does not matter) runs
+    on the interleaved rows, where the neighbour in x of a value lies a constant 3 values away, so every loop
+    is contiguous and vectorises; one pass per neighbour row over the pixels that have both x neighbours,
+    then the first and last pixel. Without `clamp` no neighbour is read, and lo > hi leaves every value as
+    it is (as for a 1x1 frame). Then the signed log1p, and the row is split into the planes. No fast-math
+    (its callers have none either: inlined, it would take theirs). (Allocating lo and hi under an `if
+    clamp` halved the clamp's speed; taking them, or the line, as scratch from the caller: their loops no
+    longer vectorised.)"""
+    height, n = flat.shape
+    width = n // 3
+    src = flat[y]
+    lo = np.full(n, np.inf, np.float32)
+    hi = np.full(n, -np.inf, np.float32)
+    for yy in range(max(0, y - 1), min(height, y + 2) if clamp else 0):
+        row = flat[yy]
+        if yy != y:  # the row above or below: the neighbours left, right and in line
+            for i in range(3, n - 3):
+                a, b, c = row[i - 3], row[i], row[i + 3]
+                lo[i] = min(min(lo[i], c), min(a, b))
+                hi[i] = max(max(hi[i], c), max(a, b))
+        else:  # the own row: left and right
+            for i in range(3, n - 3):
+                a, c = row[i - 3], row[i + 3]
+                lo[i] = min(lo[i], min(a, c))
+                hi[i] = max(hi[i], max(a, c))
+        for e in range(6):  # the first and the last pixel (some values twice if W < 3: min and max do not mind)
+            i = e if e < 3 else n - 6 + e
+            if i >= 3:
+                lo[i] = min(lo[i], row[i - 3])
+                hi[i] = max(hi[i], row[i - 3])
+            if i + 3 < n:
+                lo[i] = min(lo[i], row[i + 3])
+                hi[i] = max(hi[i], row[i + 3])
+            if yy != y:
+                lo[i] = min(lo[i], row[i])
+                hi[i] = max(hi[i], row[i])
+    line = np.empty(n, np.float32)
+    for i in range(n):
+        spread = k * (hi[i] - lo[i])
+        clamped = min(max(src[i], lo[i] - spread), hi[i] + spread)
+        line[i] = clamped if lo[i] <= hi[i] else src[i]
+    for i in range(n):
+        v = line[i]
+        log_abs = _log1p_nonneg(abs(v))
+        line[i] = -log_abs if v < 0 else log_abs
+    for x in range(width):  # a constant stride: the strided loads vectorise together
+        d0[x] = line[3 * x]
+        d1[x] = line[3 * x + 1]
+        d2[x] = line[3 * x + 2]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -263,34 +288,43 @@ def pixel_variance_reference(log_planes: np.ndarray) -> np.ndarray:
     return np.einsum("chw,chw->hw", diff, diff).astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True)
 def _variance_kernel(planes, out):  # pragma: no cover - jitted
-    """planes (C, H, W) -> out (H, W): 3-pixel row sums of the valid rows, minus the pixel, per channel."""
+    """planes (C, H, W) -> out (H, W), a task per row (`_variance_row`)."""
     channels, height, width = planes.shape
     for y in numba.prange(height):
-        y0, y1 = max(0, y - 1), min(height, y + 2)
-        rows = y1 - y0
-        total = np.zeros(width, np.float32)
-        acc = np.empty(width, np.float32)
-        for c in range(channels):
-            acc[:] = 0.0
-            for yy in range(y0, y1):
-                row = planes[c, yy]
-                for x in range(1, width - 1):
-                    acc[x] += row[x - 1] + row[x] + row[x + 1]
-                acc[0] += row[0] + (row[1] if width > 1 else np.float32(0.0))
-                if width > 1:
-                    acc[width - 1] += row[width - 2] + row[width - 1]
-            own = planes[c, y]
-            inner = np.float32(1.0) / np.float32(3 * rows - 1)
+        _variance_row(planes, y, height, np.empty(width, np.float32), out[y])
+
+
+@numba.njit(fastmath=True)
+def _variance_row(planes, y, height, acc, total):  # pragma: no cover - jitted
+    """Row y of `pixel_variance` of an H-row frame into total (W,) float32: 3-pixel row sums of the valid
+    rows, minus the pixel, per channel. Frame row yy lies at planes[:, yy % P], planes (C, P, W) float32: the
+    frame itself (P = H), or a ring of the rows around y. acc: (W,) float32 scratch. Fast-math, and not
+    inlined by numba (which would give it its caller's flags): every caller runs the same operations, so
+    `pixel_variance` and `pack_buffers` agree bit for bit."""
+    channels, period, width = planes.shape
+    y0, y1 = max(0, y - 1), min(height, y + 2)
+    rows = y1 - y0
+    total[:] = 0.0
+    for c in range(channels):
+        acc[:] = 0.0
+        for yy in range(y0, y1):
+            row = planes[c, yy % period]
             for x in range(1, width - 1):
-                d = own[x] - (acc[x] - own[x]) * inner
-                total[x] += d * d
-            count = (2 if width > 1 else 1) * rows - 1  # at the first and last column
-            for x in range(0, width, max(width - 1, 1)):
-                d = own[x] - (acc[x] - own[x]) / count if count > 0 else np.float32(0.0)
-                total[x] += d * d
-        out[y] = total
+                acc[x] += row[x - 1] + row[x] + row[x + 1]
+            acc[0] += row[0] + (row[1] if width > 1 else np.float32(0.0))
+            if width > 1:
+                acc[width - 1] += row[width - 2] + row[width - 1]
+        own = planes[c, y % period]
+        inner = np.float32(1.0) / np.float32(3 * rows - 1)
+        for x in range(1, width - 1):
+            d = own[x] - (acc[x] - own[x]) * inner
+            total[x] += d * d
+        count = (2 if width > 1 else 1) * rows - 1  # at the first and last column
+        for x in range(0, width, max(width - 1, 1)):
+            d = own[x] - (acc[x] - own[x]) / count if count > 0 else np.float32(0.0)
+            total[x] += d * d
 
 
 def buffer_terms(log_planes: np.ndarray, variance: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> PairTerms:
@@ -309,6 +343,58 @@ def buffer_terms(log_planes: np.ndarray, variance: np.ndarray, albedo: np.ndarra
         weight_guide=log_planes,
         weight_variance=variance,
     )
+
+
+def pack_buffers(
+    color_a: np.ndarray,
+    color_b: np.ndarray,
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    firefly_k: float | None,
+    params: BlockParams,
+) -> np.ndarray:
+    """Both buffers' phase planes for `cross_block.regress_packed`, straight from the radiance, in one numba
+    pass: the same array, bit for bit, as `cross_block.pack_cross` of each buffer's `log_planes` (clamp
+    k = firefly_k, None: off) and their `pixel_variance`.
+
+    color_a, color_b: (H, W, 3) float32 linear HDR radiance (any sign, finite); albedo, normal: (H, W, 3)
+    float32 frame layers; params: the block regression's geometry. Returns (S, PLANES, H, L) float32 (see
+    `pack_cross`). The numpy twin is that chain of the twins: `log_planes_reference`,
+    `pixel_variance_reference`, `pack_cross_reference`.
+    """
+    shapes = [x.shape for x in (color_a, color_b, albedo, normal)]
+    if len(set(shapes)) != 1 or len(shapes[0]) != 3 or shapes[0][2] != 3:
+        raise ValueError(f"pack_buffers: expected four (H, W, 3) layers of one shape, got {shapes}")
+    height, width = shapes[0][:2]
+    out = empty_planes(height, width, params)
+    f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (color_a, color_b, albedo, normal)]
+    rows = max(1, -(-height // numba.get_num_threads()))  # a task per thread: the fewest logs taken twice
+    _pack_buffers_kernel(*f32, *_clamp_args(firefly_k), rows, pad_lanes(params), out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _pack_buffers_kernel(color_a, color_b, albedo, normal, k, clamp, rows, pad, out):  # pragma: no cover
+    """color_a, color_b, albedo, normal (H, W, 3) -> out, a task per `rows` consecutive frame rows. A task
+    keeps each buffer's log rows y - 1, y, y + 1 (`_log_row`) in a ring of three, frame row yy in slot
+    yy % 3, forms the variance of row y from it (`_variance_row`) and packs the row (`cross_block.pack_row`);
+    the logs of the row before its first and after its last are taken by the neighbouring task as well."""
+    height, width = albedo.shape[:2]
+    flat_a, flat_b = color_a.reshape(height, 3 * width), color_b.reshape(height, 3 * width)
+    albedo, normal = albedo.reshape(height, 3 * width), normal.reshape(height, 3 * width)
+    for task in numba.prange(-(-height // rows)):
+        first, last = task * rows, min(height, task * rows + rows)
+        ring_a, ring_b = np.empty((3, 3, width), np.float32), np.empty((3, 3, width), np.float32)
+        var_a, var_b, acc = np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32)
+        for after in range(max(first - 1, 0), last + 1):  # row after = y + 1 is taken, then row y is packed
+            r = min(after, height - 1)  # the last row twice, not under an `if` (which stopped the vectorising)
+            _log_row(flat_a, r, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
+            _log_row(flat_b, r, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
+            y = after - 1
+            if y >= first:
+                _variance_row(ring_a, y, height, acc, var_a)
+                _variance_row(ring_b, y, height, acc, var_b)
+                pack_row(ring_a, ring_b, y % 3, var_a, var_b, albedo[y], normal[y], pad, out, y)
 
 
 def cross_regression(
@@ -331,11 +417,11 @@ def cross_regression(
     """
     params = params or CrossRegressionParams()
     block = params.block()
-    to_log = log_planes_reference if reference else log_planes
-    log_a, log_b = (to_log(color, params.firefly_k) for color in (color_a, color_b))
-    variance_a, variance_b = pixel_variance(log_a), pixel_variance(log_b)
     if not reference:
-        return cross_block(log_a, variance_a, log_b, variance_b, albedo, normal, block)
+        planes = pack_buffers(color_a, color_b, albedo, normal, params.firefly_k, block)
+        return regress_packed(planes, color_a.shape[1], block)
+    log_a, log_b = (log_planes_reference(color, params.firefly_k) for color in (color_a, color_b))
+    variance_a, variance_b = pixel_variance(log_a), pixel_variance(log_b)
     albedo_planes, normal_planes = to_planes(albedo), to_planes(normal)
     terms_a = buffer_terms(log_a, variance_a, albedo_planes, normal_planes)
     terms_b = buffer_terms(log_b, variance_b, albedo_planes, normal_planes)

@@ -14,6 +14,8 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
                                   # from a float32 array, a VecD from a float64 one (C-contiguous,
     store(array, (i, j, k), v)    # indices unchecked), and the reverse
     v = splat(x)                  # Vec with every lane float32(x); splat_d(x): VecD, float64(x)
+    v = load_phase(array, (i, j), n, p)  # every n-th value from array[i, j + p] on (n, p literal ints,
+                                  # p < n): lane q is array[i, j + n q + p]; one wide load and a shuffle
     v + w, v - w, v * w, v / w    # same-type vectors; either side may also be a Python/numpy number
     vmax(v, w), floor(v), sqrt(v), exp_neg(v)
     d = widen(v, half)            # VecD of lanes half * LANES/2 ... of the Vec v
@@ -117,6 +119,29 @@ def store(typingctx, array, index, value):
         return context.get_dummy_value()
 
     return types.void(array, index, vector), codegen
+
+
+@intrinsic
+def load_phase(typingctx, array, index, stride, phase):
+    """The vector of every stride-th value along the last axis from `phase` places after array[index] on: lane q
+    is the value stride * q + phase places on (stride and phase literal ints, 0 <= phase < stride). One wide
+    load of stride vectors and a shuffle: the calls for the phases of one index share the load, and split a
+    row into phases, or de-interleave channels, without gathers."""
+    vector = _vector_of(array)
+    _check_index(array, index)
+    literal = all(isinstance(x, types.IntegerLiteral) for x in (stride, phase))
+    if not literal or not 0 <= phase.literal_value < stride.literal_value:
+        raise numba.TypingError(f"simd.load_phase: needs literal ints 0 <= phase < stride, got {phase}, {stride}")
+    n, first, count = stride.literal_value, phase.literal_value, vector.count
+    wide = ir.VectorType(vector.llvm.element, n * count)
+
+    def codegen(context, builder, sig, args):
+        ptr = _pointer(context, builder, array, args[0], args[1], index.types, vector)
+        values = builder.load(builder.bitcast(ptr, wide.as_pointer()), align=4)
+        mask = ir.Constant(ir.VectorType(_INT32, count), list(range(first, n * count, n)))
+        return builder.shuffle_vector(values, ir.Constant(wide, ir.Undefined), mask)
+
+    return vector(array, index, stride, phase), codegen
 
 
 def _fill(builder, vector: VecType, value):

@@ -85,9 +85,10 @@ def test_constant_g_buffers_and_black_frames_stay_finite():
 
 
 @pytest.mark.parametrize("size", [(1, 1), (3, 5), (11, 29), (6, 4 * LANES * 2 + 9)])
-def test_pack_cross_matches_the_numpy_reference(size):
+@pytest.mark.parametrize("params", [BlockParams(), BlockParams(radius=5, sparsity=3)], ids=["paper", "sparsity3"])
+def test_pack_cross_matches_the_numpy_reference(size, params):
+    """At sparsity 4 (paper) whole blocks of 4 LANES pixels go as vectors, the rest (and sparsity 3) one by one."""
     inputs = _buffers(np.random.default_rng(5), *size)
-    params = BlockParams(radius=5, sparsity=3)
     args = (inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], from_planes(inputs["albedo"]),
             from_planes(inputs["normal"]), params)  # fmt: skip
     packed, expected = pack_cross(*args), pack_cross_reference(*args)

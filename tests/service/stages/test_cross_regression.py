@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from service.stages.cross_block import pack_cross, pack_cross_reference
 from service.stages.cross_regression import (
     LOG_MAX,
     CrossRegressionParams,
@@ -9,18 +10,22 @@ from service.stages.cross_regression import (
     log_planes,
     log_planes_reference,
     log_to_linear,
+    pack_buffers,
     pilots_to_radiance,
     pilots_to_radiance_reference,
     pixel_variance,
     pixel_variance_reference,
 )
-from service.stages.local_regression import FIREFLY_K, from_planes
+from service.stages.local_regression import FIREFLY_K, BlockParams, from_planes
+from service.stages.simd import LANES
 
 PARITY_ATOL = 1e-3  # log units: numba (fast exp, other summation order) vs numpy, float32
 LOG1P_ULP = 1.0  # log_planes' log1p (musl's log1pf) against float64 log1p, float32 ulp
 EXPM1_ULP = 2.0  # pilots_to_radiance's expm1 against float64 expm1, float32 ulp
 TWIN_RTOL = 1e-6  # numba kernels vs numpy's SIMD log1p / expm1 (up to ~2.5 ulp each), relative
+PACK_RTOL = 1e-5  # pack_buffers vs the numpy twins: variances of logs a few ulp apart (measured 1.3e-6), relative
 ODD_SIZES = [(1, 1), (3, 5), (17, 31)]
+PACK_SIZES = [(1, 1), (3, 5), (17, 31), (29, 22), (7, 4 * LANES * 2 + 9)]  # last: whole vector blocks and a tail
 
 
 def _gbuffers(height, width, rng):
@@ -144,6 +149,41 @@ def test_log_planes_is_log1p_within_an_ulp_over_the_float32_range():
     got = log_planes(color, None)[:, 0].T.ravel()
     exact = np.sign(color.ravel()) * np.log1p(np.abs(color.ravel().astype(np.float64)))
     assert _ulp_error(got, exact).max() <= LOG1P_ULP
+
+
+@pytest.mark.parametrize("params", [BlockParams(), BlockParams(radius=5, sparsity=3)], ids=["paper", "sparsity3"])
+@pytest.mark.parametrize("firefly_k", [FIREFLY_K, None])
+@pytest.mark.parametrize("size", PACK_SIZES)
+def test_pack_buffers_is_the_chain_it_fuses_bit_for_bit(size, firefly_k, params):
+    """pack_buffers = pack_cross of log_planes and pixel_variance, on radiance with negative values and fireflies."""
+    color_a, color_b, albedo, normal = _pack_inputs(size)
+    log_a, log_b = log_planes(color_a, firefly_k), log_planes(color_b, firefly_k)
+    chain = pack_cross(log_a, pixel_variance(log_a), log_b, pixel_variance(log_b), albedo, normal, params)
+    fused = pack_buffers(color_a, color_b, albedo, normal, firefly_k, params)
+    assert fused.shape == chain.shape and fused.dtype == np.float32 and np.isfinite(fused).all()
+    np.testing.assert_array_equal(fused.view(np.int32), chain.view(np.int32))  # the bits: signed zeros too
+
+
+@pytest.mark.parametrize("firefly_k", [FIREFLY_K, None])
+@pytest.mark.parametrize("size", PACK_SIZES)
+def test_pack_buffers_matches_the_numpy_reference(size, firefly_k):
+    color_a, color_b, albedo, normal = _pack_inputs(size)
+    log_a, log_b = log_planes_reference(color_a, firefly_k), log_planes_reference(color_b, firefly_k)
+    twin = pack_cross_reference(log_a, pixel_variance_reference(log_a), log_b, pixel_variance_reference(log_b), albedo,
+                                normal, BlockParams())  # fmt: skip
+    fused = pack_buffers(color_a, color_b, albedo, normal, firefly_k, BlockParams())
+    np.testing.assert_allclose(fused, twin, rtol=PACK_RTOL, atol=1e-6)
+
+
+def _pack_inputs(size):
+    rng = np.random.default_rng(9)
+    return _radiance(*size, rng), _radiance(*size, rng), *_gbuffers(*size, rng)
+
+
+def test_pack_buffers_refuses_layers_of_other_shapes():
+    color = np.ones((4, 6, 3), np.float32)
+    with pytest.raises(ValueError, match=r"pack_buffers: expected four \(H, W, 3\) layers of one shape, got "):
+        pack_buffers(color, color[:, :5], color, color, FIREFLY_K, BlockParams())
 
 
 @pytest.mark.parametrize("size", ODD_SIZES)

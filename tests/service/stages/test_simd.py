@@ -1,8 +1,23 @@
 import numba
 import numpy as np
+import pytest
 
 from service.stages.local_regression import _exp_neg
-from service.stages.simd import HALF, LANES, exp_neg, floor, load, narrow, splat, splat_d, sqrt, store, vmax, widen
+from service.stages.simd import (
+    HALF,
+    LANES,
+    exp_neg,
+    floor,
+    load,
+    load_phase,
+    narrow,
+    splat,
+    splat_d,
+    sqrt,
+    store,
+    vmax,
+    widen,
+)
 
 EXP_RTOL = 1e-5  # exp_neg on [0, 80]: float32 rounding of x log2(e) grows the error with x (~6e-6 at 80)
 
@@ -64,6 +79,33 @@ def test_load_and_store_touch_exactly_one_vec():
     np.testing.assert_array_equal(dst[2, 1, 5 : 5 + LANES], src[1, 0, 7 : 7 + LANES])
     dst[2, 1, 5 : 5 + LANES] = 0.0
     assert not dst.any()
+
+
+@numba.njit
+def _phases(src, out):
+    store(out, (0, 0), load_phase(src, (1, 3), 4, 0))
+    store(out, (1, 0), load_phase(src, (1, 3), 4, 3))
+    store(out, (2, 0), load_phase(src, (0, 5), 12, 7))
+    store(out, (3, 0), load_phase(src, (1, 2), 1, 0))
+
+
+def test_load_phase_takes_every_stride_th_value():
+    for dtype, lanes in ((np.float32, LANES), (np.float64, HALF)):
+        src = np.arange(2 * (12 * lanes + 5), dtype=dtype).reshape(2, -1)  # (0, 5) on: 12 vectors, to the end
+        out = np.zeros((4, lanes), dtype)
+        _phases(src, out)
+        q = np.arange(lanes)
+        expected = [src[1, 3 + 4 * q], src[1, 6 + 4 * q], src[0, 12 + 12 * q], src[1, 2 + q]]
+        np.testing.assert_array_equal(out, expected)
+
+
+def test_load_phase_needs_a_literal_phase_below_the_stride():
+    @numba.njit
+    def bad(src, out):
+        store(out, (0,), load_phase(src, (0,), 4, 4))
+
+    with pytest.raises(numba.TypingError, match="simd.load_phase: needs literal ints 0 <= phase < stride"):
+        bad(np.zeros(8 * LANES, np.float32), np.zeros(LANES, np.float32))
 
 
 @numba.njit(fastmath=True)
