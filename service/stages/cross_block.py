@@ -1,6 +1,6 @@
 """The cross-regression's block regression (Choi 2024 eqs. 3-7) as one fused SIMD kernel per buffer.
 
-`cross_block` gives the same two pilots as `local_regression.block_regression` on
+`regress_packed` gives the same two pilots as `local_regression.block_regression` on
 `cross_regression.buffer_terms` (whose plain-numpy twin, `block_regression(..., reference=True)`, is the
 reference of the parity tests), with the same constants (EPS_SIGMA, EPS_VARIANCE, WEIGHT_FLOOR, the
 ridge of `solve_ridge`). It is that computation reorganised for the CPU:
@@ -9,7 +9,8 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
   pixel x = S q + phase at lane q + pad of plane `phase`), so the pixels that one window offset pairs
   with LANES consecutive centres of a centre row are LANES consecutive floats: one `simd.Vec`. The
   service packs straight from the radiance (`cross_regression.pack_buffers`, which takes the logs and
-  variances on the way); both packers write a row with `pack_row`.
+  variances on the way and writes each row with `pack_row`); `pack_cross_reference` is the numpy
+  packing from given logs and variances.
 - Per group of LANES centres, one pass reads the window from the planes once and writes each pair's
   terms (weight, eq. 7; normal, scaled colour (eq. 6) and albedo differences; target colour) to a
   scratch in pair order, summing the 10 moments of the shared normal features on the way; three more
@@ -21,8 +22,6 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
   operations of `local_regression.cholesky_ridge_solve`), and a last pass adds each centre's weighted
   predictions (eq. 5), from the same scratch, into a one-row tile that stays in L1 and then into the
   numerator and denominator planes. Centre rows whose windows overlap are never run at the same time.
-
-Per 16 pairs this is about 100 vector operations for the moments, 40 for the prediction and 6 stores.
 """
 
 from __future__ import annotations
@@ -56,8 +55,8 @@ from service.stages.simd import (
     widen,
 )
 
-# Packed planes of both buffers (`pack_cross`): each buffer's log colour (3), its variance and sigma
-# follow each other, so a buffer is named by the index of its first log-colour plane.
+# Packed planes of both buffers (`cross_regression.pack_buffers`, `pack_cross_reference`): each buffer's
+# log colour (3), its variance and sigma follow each other, so a buffer is named by its first log plane.
 MASK, NORMAL, ALBEDO, BUFFER_A, BUFFER_B = 0, 1, 4, 7, 12
 PLANES = 17
 MOMENTS = 61  # 10 of the shared features (constant, normal) + 17 per colour channel
@@ -68,62 +67,25 @@ WEIGHT, DN, U, A, T = 0, 1, 4, 7, 10
 PAIR_ROWS = 13
 
 
-def cross_block(
-    log_a: np.ndarray,
-    variance_a: np.ndarray,
-    log_b: np.ndarray,
-    variance_b: np.ndarray,
-    albedo: np.ndarray,
-    normal: np.ndarray,
-    params: BlockParams,
-) -> tuple[np.ndarray, np.ndarray]:
+def regress_packed(planes: np.ndarray, width: int, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
     """The two cross-regression pilots (Choi 2024 sec. 4.1) by block regression, numba SIMD kernel.
 
-    log_a, log_b: (3, H, W) float32 log colour of the two buffers (`cross_regression.linear_to_log`);
-    variance_a, variance_b: (H, W) float32 >= 0, their `pixel_variance`; albedo, normal: (H, W, 3) float32
-    frame layers.
+    planes: both buffers' phase planes (S, PLANES, H, L) float32 of a frame `width` pixels wide, packed
+    with the same params (`cross_regression.pack_buffers` from the radiance, or `pack_cross_reference`).
     params: window radius, sparsity and ridge (`sigma_position` as in `spatial_weights`).
-    Returns (pilot_a, pilot_b), (3, H, W) float32 log colour: pilot_a regresses log_b on buffer A's
-    features and weights, pilot_b log_a on buffer B's.
-    """
-    planes = pack_cross(log_a, variance_a, log_b, variance_b, albedo, normal, params)
-    return regress_packed(planes, variance_a.shape[1], params)
-
-
-def regress_packed(planes: np.ndarray, width: int, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
-    """The two pilots of `cross_block` from both buffers' phase planes (S, PLANES, H, L) float32 (`pack_cross`,
-    or `cross_regression.pack_buffers` from the radiance) of a frame `width` pixels wide, packed with the
-    same params. Returns (pilot_a, pilot_b), (3, H, W) float32 log colour."""
+    Returns (pilot_a, pilot_b), (3, H, W) float32 log colour: pilot_a regresses buffer B's log colour on
+    buffer A's features and weights, pilot_b buffer A's on buffer B's."""
     return _regress(planes, width, BUFFER_A, BUFFER_B, params), _regress(planes, width, BUFFER_B, BUFFER_A, params)
 
 
-def pack_cross(
-    log_a: np.ndarray,
-    variance_a: np.ndarray,
-    log_b: np.ndarray,
-    variance_b: np.ndarray,
-    albedo: np.ndarray,
-    normal: np.ndarray,
-    params: BlockParams,
-) -> np.ndarray:
-    """Phase planes (S, PLANES, H, L) float32 of both buffers (arguments as `cross_block`), in the order
-    [inside-frame mask, normal (3), albedo (3), log_a (3), variance_a, sigma_a, log_b (3), variance_b,
-    sigma_b]; L = the centre count rounded up to LANES, plus `pad_lanes` on each side; zeros outside.
-    One numba pass over the frame; `pack_cross_reference` is the numpy twin."""
-    height, width = variance_a.shape
-    shapes = [x.shape for x in (log_a, variance_a, log_b, variance_b, albedo, normal)]
-    if shapes != [(3, height, width), (height, width)] * 2 + [(height, width, 3)] * 2:
-        raise ValueError(f"cross_block: inconsistent input shapes {shapes}")  # the kernel does not check indices
-    out = empty_planes(height, width, params)
-    f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (log_a, variance_a, log_b, variance_b, albedo, normal)]
-    _pack_kernel(*f32, pad_lanes(params), out)
-    return out
-
-
 def empty_planes(height: int, width: int, params: BlockParams) -> np.ndarray:
-    """Uninitialised phase planes (S, PLANES, H, L) float32 of an H x W frame, L as in `pack_cross`."""
-    lanes = -(-centre_count(width, params.sparsity) // LANES) * LANES
-    return np.empty((params.sparsity, PLANES, height, lanes + 2 * pad_lanes(params)), np.float32)
+    """Uninitialised phase planes (S, PLANES, H, L) float32 of an H x W frame (`plane_lanes`)."""
+    return np.empty((params.sparsity, PLANES, height, plane_lanes(width, params)), np.float32)
+
+
+def plane_lanes(width: int, params: BlockParams) -> int:
+    """L, the lanes of a phase plane row: the centre count rounded up to LANES, plus `pad_lanes` each side."""
+    return -(-centre_count(width, params.sparsity) // LANES) * LANES + 2 * pad_lanes(params)
 
 
 def pack_cross_reference(
@@ -135,31 +97,27 @@ def pack_cross_reference(
     normal: np.ndarray,
     params: BlockParams,
 ) -> np.ndarray:
-    """Plain-numpy twin of `pack_cross` (same arguments and result)."""
+    """Plain-numpy packing of both buffers into phase planes (S, PLANES, H, L) float32, the layout of
+    `cross_regression.pack_buffers`: [inside-frame mask, normal (3), albedo (3), log_a (3), variance_a,
+    sigma_a, log_b (3), variance_b, sigma_b], zeros outside the frame.
+
+    log_a, log_b: (3, H, W) float32 log colour; variance_a, variance_b: (H, W) float32 >= 0; albedo,
+    normal: (H, W, 3) float32 frame layers."""
     height, width = variance_a.shape
     parts = [np.ones((1, height, width), np.float32), to_planes(normal), to_planes(albedo)]
     for log, variance in ((log_a, variance_a), (log_b, variance_b)):
         parts += [log, variance[None], np.sqrt(variance)[None]]
     split = _phase_planes(np.concatenate(parts).astype(np.float32), params)  # lanes: centres + 1
-    lanes = -(-centre_count(width, params.sparsity) // LANES) * LANES + 2 * pad_lanes(params)
+    lanes = plane_lanes(width, params)
     out = np.zeros((*split.shape[:3], lanes), np.float32)
     out[..., : min(lanes, split.shape[3])] = split[..., :lanes]
     return out
 
 
-@numba.njit(parallel=True, cache=True)
-def _pack_kernel(log_a, var_a, log_b, var_b, albedo, normal, pad, out):  # pragma: no cover
-    """The planes of `pack_cross` (log_* (3, H, W); var_* (H, W); albedo, normal (H, W, 3)) into out."""
-    height, width = var_a.shape
-    albedo, normal = albedo.reshape(height, 3 * width), normal.reshape(height, 3 * width)
-    for y in numba.prange(height):
-        pack_row(log_a, log_b, y, var_a[y], var_b[y], albedo[y], normal[y], pad, out, y)
-
-
 @numba.njit(inline="always")
 def pack_row(log_a, log_b, r, var_a, var_b, albedo, normal, pad, out, y):  # pragma: no cover
-    """Frame row y into the planes out (S, PLANES, H, L) float32 of `pack_cross`, zeros in the pad lanes.
-    log_a, log_b: (3, R, W) float32 log colour, the row at [:, r] (the frame, r = y, or a ring of rows);
+    """Frame row y into the phase planes out (S, PLANES, H, L) float32 (layout of `pack_cross_reference`),
+    zeros in the pad lanes. log_a, log_b: (3, R, W) float32 log colour rows, row y at [:, r];
     var_a, var_b: (W,) float32 the row's variance; albedo, normal: (3 W,) float32 the row of the layers,
     interleaved. At sparsity 4 (the paper's) whole blocks of 4 LANES pixels go as vectors (`_split_block`),
     the other pixels one value at a time."""
@@ -240,7 +198,7 @@ def _split4x3(row, i, out, plane, y, q):  # pragma: no cover
 
 
 def _regress(planes: np.ndarray, width: int, guide: int, target: int, params: BlockParams) -> np.ndarray:
-    """One pilot from `pack_cross` planes of a frame `width` pixels wide: the buffer at plane `guide` gives
+    """One pilot from the packed planes of a frame `width` pixels wide: the buffer at plane `guide` gives
     features and weights, the one at `target` the colours. Returns (3, H, W) float32."""
     s, _, height, lanes = planes.shape
     # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_predict_pass` adds

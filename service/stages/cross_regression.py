@@ -86,28 +86,12 @@ def log_to_linear(log_color: np.ndarray) -> np.ndarray:
     return (np.sign(y) * np.expm1(np.abs(y))).astype(np.float32, copy=False)
 
 
-def log_planes(color: np.ndarray, firefly_k: float | None = FIREFLY_K) -> np.ndarray:
-    """One buffer into the regression's log space, as channel planes: `local_regression.clamp_fireflies`
-    with k = firefly_k (None: no clamp), then `linear_to_log`, in one numba pass over the pixels.
-
-    color: (H, W, 3) float32 linear HDR radiance (any sign, finite). Returns (3, H, W) float32 log colour.
-    The log is musl's log1pf (within 1 ulp of log1p; numpy's SIMD log1p is within ~2). `log_planes_reference`
-    is the plain-numpy twin.
-    """
-    color = np.ascontiguousarray(color, dtype=np.float32)
-    out = np.empty((3, *color.shape[:2]), np.float32)
-    _log_planes_kernel(color, *_clamp_args(firefly_k), out)
-    return out
-
-
-def _clamp_args(firefly_k: float | None) -> tuple[np.float32, bool]:
-    """(k, clamp) of the log kernels for `firefly_k`: k is unused when clamp is off (None)."""
-    clamp = firefly_k is not None
-    return np.float32(firefly_k if clamp else 1.0), clamp
-
-
 def log_planes_reference(color: np.ndarray, firefly_k: float | None = FIREFLY_K) -> np.ndarray:
-    """Plain-numpy twin of `log_planes`."""
+    """One buffer into the regression's log space, as channel planes, in plain numpy (the numba pass,
+    `_log_row`, runs inside `pack_buffers`): `local_regression.clamp_fireflies_reference` with k = firefly_k
+    (None: no clamp), then `linear_to_log`.
+
+    color: (H, W, 3) float32 linear HDR radiance (any sign, finite). Returns (3, H, W) float32 log colour."""
     planes = to_planes(color)
     if firefly_k is not None:
         planes = clamp_fireflies_reference(planes, firefly_k)
@@ -135,27 +119,18 @@ def pilots_to_radiance_reference(pilot_a: np.ndarray, pilot_b: np.ndarray) -> np
     return from_planes(np.float32(0.5) * (log_to_linear(pilot_a) + log_to_linear(pilot_b)))
 
 
-@numba.njit(parallel=True, cache=True)
-def _log_planes_kernel(color, k, clamp, out):  # pragma: no cover - jitted
-    """color (H, W, 3) -> out (3, H, W), a task per row (`_log_row`)."""
-    height, width = color.shape[:2]
-    flat = color.reshape(height, 3 * width)
-    for y in numba.prange(height):
-        _log_row(flat, y, k, clamp, out[0, y], out[1, y], out[2, y])
-
-
 @numba.njit(inline="always")
 def _log_row(flat, y, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
-    """Row y of `log_planes` into d0, d1, d2 (W,) float32, its three colour planes' rows, from flat (H, 3 W)
-    float32, the interleaved radiance. The clamp of `local_regression._clamp_kernel` (the same float32
-    operations; min and max are exact, so the order in which the neighbours are taken does not matter) runs
-    on the interleaved rows, where the neighbour in x of a value lies a constant 3 values away, so every loop
-    is contiguous and vectorises; one pass per neighbour row over the pixels that have both x neighbours,
-    then the first and last pixel. Without `clamp` no neighbour is read, and lo > hi leaves every value as
-    it is (as for a 1x1 frame). Then the signed log1p, and the row is split into the planes. No fast-math
-    (its callers have none either: inlined, it would take theirs). (Allocating lo and hi under an `if
-    clamp` halved the clamp's speed; taking them, or the line, as scratch from the caller: their loops no
-    longer vectorised.)"""
+    """Row y of one buffer in log space (`log_planes_reference`) into d0, d1, d2 (W,) float32, its three
+    colour planes' rows, from flat (H, 3 W) float32, the interleaved radiance. The clamp of
+    `local_regression._clamp_kernel` (the same float32 operations; min and max are exact, so the order in
+    which the neighbours are taken does not matter) runs on the interleaved rows, where the neighbour in x
+    of a value lies a constant 3 values away, so every loop is contiguous and vectorises; one pass per
+    neighbour row over the pixels that have both x neighbours, then the first and last pixel. Without
+    `clamp` no neighbour is read, and lo > hi leaves every value as it is (as for a 1x1 frame). Then the
+    signed log1p, and the row is split into the planes. No fast-math (its caller has none either: inlined,
+    it would take the caller's). (Allocating lo and hi under an `if clamp` halved the clamp's speed; taking
+    them, or the line, as scratch from the caller: their loops no longer vectorised.)"""
     height, n = flat.shape
     width = n // 3
     src = flat[y]
@@ -270,39 +245,22 @@ def _expm1_nonneg(t):
     return scale * p + (scale - np.float32(1.0))
 
 
-def pixel_variance(log_planes: np.ndarray) -> np.ndarray:
-    """Choi sec. 4.1 variance estimate: |y - mean of the 8 neighbours|^2, summed over channels, numba kernel.
+def pixel_variance_reference(log_planes: np.ndarray) -> np.ndarray:
+    """Choi sec. 4.1 variance estimate: |y - mean of the 8 neighbours|^2, summed over channels, in plain
+    numpy (the numba pass, `_variance_row`, runs inside `pack_buffers`).
 
     log_planes: (C, H, W) float32 log colour. Neighbours outside the frame are left out of the mean.
-    Returns (H, W) float32, >= 0 (0 for a 1x1 frame). `pixel_variance_reference` is the numpy twin.
-    """
-    planes = np.ascontiguousarray(log_planes, dtype=np.float32)
-    out = np.empty(planes.shape[1:], np.float32)
-    _variance_kernel(planes, out)
-    return out
-
-
-def pixel_variance_reference(log_planes: np.ndarray) -> np.ndarray:
-    """Plain-numpy twin of `pixel_variance` (same argument and result)."""
+    Returns (H, W) float32, >= 0 (0 for a 1x1 frame)."""
     diff = log_planes - neighbour_mean(log_planes)
     return np.einsum("chw,chw->hw", diff, diff).astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True)
-def _variance_kernel(planes, out):  # pragma: no cover - jitted
-    """planes (C, H, W) -> out (H, W), a task per row (`_variance_row`)."""
-    channels, height, width = planes.shape
-    for y in numba.prange(height):
-        _variance_row(planes, y, height, np.empty(width, np.float32), out[y])
-
-
 @numba.njit(fastmath=True)
 def _variance_row(planes, y, height, acc, total):  # pragma: no cover - jitted
-    """Row y of `pixel_variance` of an H-row frame into total (W,) float32: 3-pixel row sums of the valid
-    rows, minus the pixel, per channel. Frame row yy lies at planes[:, yy % P], planes (C, P, W) float32: the
-    frame itself (P = H), or a ring of the rows around y. acc: (W,) float32 scratch. Fast-math, and not
-    inlined by numba (which would give it its caller's flags): every caller runs the same operations, so
-    `pixel_variance` and `pack_buffers` agree bit for bit."""
+    """Row y of `pixel_variance_reference` of an H-row frame into total (W,) float32: 3-pixel row sums of
+    the valid rows, minus the pixel, per channel. Frame row yy lies at planes[:, yy % P], planes (C, P, W)
+    float32 a ring of the log rows around y. acc: (W,) float32 scratch. Fast-math, so a call: inlined,
+    numba would compile it with its caller's flags."""
     channels, period, width = planes.shape
     y0, y1 = max(0, y - 1), min(height, y + 2)
     rows = y1 - y0
@@ -330,7 +288,7 @@ def _variance_row(planes, y, height, acc, total):  # pragma: no cover - jitted
 def buffer_terms(log_planes: np.ndarray, variance: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> PairTerms:
     """One buffer's explanatory variables (eq. 6) and weights (eq. 7) for `block_regression`.
 
-    log_planes: (3, H, W) float32 log colour of the buffer; variance: (H, W) from `pixel_variance`;
+    log_planes: (3, H, W) float32 log colour of the buffer; variance: (H, W) from `pixel_variance_reference`;
     albedo, normal: (3, H, W) float32 planes. Per colour channel (group) the features are
     [1, n_x, n_y, n_z, scaled colour difference, albedo difference].
     """
@@ -354,12 +312,12 @@ def pack_buffers(
     params: BlockParams,
 ) -> np.ndarray:
     """Both buffers' phase planes for `cross_block.regress_packed`, straight from the radiance, in one numba
-    pass: the same array, bit for bit, as `cross_block.pack_cross` of each buffer's `log_planes` (clamp
-    k = firefly_k, None: off) and their `pixel_variance`.
+    pass: each buffer in log space (3x3 firefly clamp with k = firefly_k, None: off; signed log1p, musl's
+    log1pf, within 1 ulp of log1p), its 3x3 variance, and the G-buffers, packed.
 
     color_a, color_b: (H, W, 3) float32 linear HDR radiance (any sign, finite); albedo, normal: (H, W, 3)
-    float32 frame layers; params: the block regression's geometry. Returns (S, PLANES, H, L) float32 (see
-    `pack_cross`). The numpy twin is that chain of the twins: `log_planes_reference`,
+    float32 frame layers; params: the block regression's geometry. Returns (S, PLANES, H, L) float32 (the
+    layout of `cross_block.pack_cross_reference`). The numpy twin is the chain `log_planes_reference`,
     `pixel_variance_reference`, `pack_cross_reference`.
     """
     shapes = [x.shape for x in (color_a, color_b, albedo, normal)]
@@ -369,7 +327,8 @@ def pack_buffers(
     out = empty_planes(height, width, params)
     f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (color_a, color_b, albedo, normal)]
     rows = max(1, -(-height // numba.get_num_threads()))  # a task per thread: the fewest logs taken twice
-    _pack_buffers_kernel(*f32, *_clamp_args(firefly_k), rows, pad_lanes(params), out)
+    k = np.float32(1.0 if firefly_k is None else firefly_k)  # unused when the clamp is off
+    _pack_buffers_kernel(*f32, k, firefly_k is not None, rows, pad_lanes(params), out)
     return out
 
 
@@ -421,7 +380,7 @@ def cross_regression(
         planes = pack_buffers(color_a, color_b, albedo, normal, params.firefly_k, block)
         return regress_packed(planes, color_a.shape[1], block)
     log_a, log_b = (log_planes_reference(color, params.firefly_k) for color in (color_a, color_b))
-    variance_a, variance_b = pixel_variance(log_a), pixel_variance(log_b)
+    variance_a, variance_b = pixel_variance_reference(log_a), pixel_variance_reference(log_b)
     albedo_planes, normal_planes = to_planes(albedo), to_planes(normal)
     terms_a = buffer_terms(log_a, variance_a, albedo_planes, normal_planes)
     terms_b = buffer_terms(log_b, variance_b, albedo_planes, normal_planes)

@@ -672,7 +672,7 @@ def _pair_rows(planes, counts, scaled, consts, sw, phase, y, cy, lo, pad, rows, 
 @numba.njit(parallel=True, cache=True, fastmath=True)
 def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, fa, fb, acc):
     """Moments of every centre row's lanes into acc (Hc, entries, Wc): entry e is sum w * F[fa[e]] * F[fb[e]],
-    one pass per entry (the cross-regression's own layout has the fused kernel of `cross_block`)."""
+    one pass per entry (the cross-regression has its own fused kernel, `cross_block`)."""
     height = planes.shape[2]
     hc, entries, lanes = acc.shape
     nrows = 1 + counts[1] + counts[2] * counts[3] + counts[4]

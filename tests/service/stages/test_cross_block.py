@@ -7,11 +7,10 @@ from service.stages.cross_block import (
     FEATURES,
     MASK,
     _cholesky_solve,
-    cross_block,
-    pack_cross,
     pack_cross_reference,
+    regress_packed,
 )
-from service.stages.cross_regression import buffer_terms, linear_to_log, pixel_variance
+from service.stages.cross_regression import buffer_terms, linear_to_log, pixel_variance_reference
 from service.stages.local_regression import (
     RIDGE_ABSOLUTE,
     RIDGE_RELATIVE,
@@ -36,7 +35,7 @@ def _buffers(rng: np.random.Generator, height: int, width: int) -> dict[str, np.
     for name in ("a", "b"):
         radiance = signal * albedo * rng.lognormal(0.0, 0.5, (3, height, width)).astype(np.float32)
         out[name] = linear_to_log(radiance)
-        out["var_" + name] = pixel_variance(out[name])
+        out["var_" + name] = pixel_variance_reference(out[name])
     return out
 
 
@@ -49,8 +48,9 @@ def _reference(inputs: dict[str, np.ndarray], params: BlockParams) -> tuple[np.n
 
 
 def _run(inputs: dict[str, np.ndarray], params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
-    return cross_block(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], from_planes(inputs["albedo"]),
-                       from_planes(inputs["normal"]), params)  # fmt: skip
+    planes = pack_cross_reference(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"],
+                                  from_planes(inputs["albedo"]), from_planes(inputs["normal"]), params)  # fmt: skip
+    return regress_packed(planes, inputs["a"].shape[2], params)
 
 
 @pytest.mark.parametrize("size", [(1, 1), (3, 5), (17, 31), (29, 22), (9, 4 * LANES * 2 + 7)])  # last: 3 lane groups
@@ -59,7 +59,7 @@ def _run(inputs: dict[str, np.ndarray], params: BlockParams) -> tuple[np.ndarray
     [BlockParams(), BlockParams(radius=5, sparsity=3, sigma_position=4.0), BlockParams(radius=2, sparsity=1)],
     ids=["paper", "gaussian", "dense"],
 )
-def test_cross_block_matches_the_numpy_reference(size, params):
+def test_regress_packed_matches_the_numpy_reference(size, params):
     inputs = _buffers(np.random.default_rng(3), *size)
     for out, ref in zip(_run(inputs, params), _reference(inputs, params), strict=True):
         assert out.shape == (3, *size) and out.dtype == np.float32
@@ -82,18 +82,6 @@ def test_constant_g_buffers_and_black_frames_stay_finite():
     inputs = {"a": zeros, "b": zeros, "var_a": zeros[0], "var_b": zeros[0], "albedo": zeros + 0.5, "normal": zeros}
     for pilot in _run(inputs, BlockParams()):
         np.testing.assert_array_equal(pilot, 0.0)
-
-
-@pytest.mark.parametrize("size", [(1, 1), (3, 5), (11, 29), (6, 4 * LANES * 2 + 9)])
-@pytest.mark.parametrize("params", [BlockParams(), BlockParams(radius=5, sparsity=3)], ids=["paper", "sparsity3"])
-def test_pack_cross_matches_the_numpy_reference(size, params):
-    """At sparsity 4 (paper) whole blocks of 4 LANES pixels go as vectors, the rest (and sparsity 3) one by one."""
-    inputs = _buffers(np.random.default_rng(5), *size)
-    args = (inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], from_planes(inputs["albedo"]),
-            from_planes(inputs["normal"]), params)  # fmt: skip
-    packed, expected = pack_cross(*args), pack_cross_reference(*args)
-    assert packed.shape == expected.shape and packed.shape[-1] % LANES == 2 * 2  # whole Vecs, pad 2 each side
-    np.testing.assert_array_equal(packed, expected)
 
 
 def test_pack_cross_reference_is_the_phase_split():
@@ -131,10 +119,3 @@ def test_vector_cholesky_is_the_scalar_solver():
     _both_solvers(gram, rhs, out_vec, out_scalar)
     assert np.isfinite(out_vec).all() and not out_vec[:, -1].any()  # no weight: beta = 0
     np.testing.assert_allclose(out_vec, out_scalar, rtol=1e-12, atol=1e-12)
-
-
-def test_inconsistent_shapes_are_refused_before_the_kernel():
-    inputs = _buffers(np.random.default_rng(8), 6, 9)
-    with pytest.raises(ValueError, match="cross_block: inconsistent input shapes"):
-        cross_block(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"], inputs["albedo"], inputs["normal"],
-                    BlockParams())  # fmt: skip  # planes where (H, W, 3) layers belong

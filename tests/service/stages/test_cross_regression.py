@@ -1,31 +1,30 @@
 import numpy as np
 import pytest
 
-from service.stages.cross_block import pack_cross, pack_cross_reference
+from service.stages.cross_block import BUFFER_A, BUFFER_B, pack_cross_reference
 from service.stages.cross_regression import (
     LOG_MAX,
     CrossRegressionParams,
     cross_regression,
     linear_to_log,
-    log_planes,
     log_planes_reference,
     log_to_linear,
     pack_buffers,
     pilots_to_radiance,
     pilots_to_radiance_reference,
-    pixel_variance,
     pixel_variance_reference,
 )
-from service.stages.local_regression import FIREFLY_K, BlockParams, from_planes
+from service.stages.local_regression import FIREFLY_K, BlockParams, from_planes, pad_lanes
 from service.stages.simd import LANES
 
 PARITY_ATOL = 1e-3  # log units: numba (fast exp, other summation order) vs numpy, float32
-LOG1P_ULP = 1.0  # log_planes' log1p (musl's log1pf) against float64 log1p, float32 ulp
+LOG1P_ULP = 1.0  # pack_buffers' log1p (musl's log1pf) against float64 log1p, float32 ulp
 EXPM1_ULP = 2.0  # pilots_to_radiance's expm1 against float64 expm1, float32 ulp
 TWIN_RTOL = 1e-6  # numba kernels vs numpy's SIMD log1p / expm1 (up to ~2.5 ulp each), relative
 PACK_RTOL = 1e-5  # pack_buffers vs the numpy twins: variances of logs a few ulp apart (measured 1.3e-6), relative
 ODD_SIZES = [(1, 1), (3, 5), (17, 31)]
-PACK_SIZES = [(1, 1), (3, 5), (17, 31), (29, 22), (7, 4 * LANES * 2 + 9)]  # last: whole vector blocks and a tail
+# thin and tiny frames (a variance with 1-3 neighbours), and whole vector blocks at sparsity 4 with a tail
+PACK_SIZES = [(1, 1), (1, 7), (6, 1), (2, 2), (3, 5), (17, 31), (29, 22), (7, 4 * LANES * 2 + 9)]
 
 
 def _gbuffers(height, width, rng):
@@ -45,15 +44,9 @@ def test_log_space_is_log1p_and_round_trips_negative_radiance():
 def test_pixel_variance_is_squared_distance_to_the_neighbour_mean():
     planes = np.zeros((3, 3, 3), np.float32)
     planes[:, 1, 1] = 1.0
-    var = pixel_variance(planes)
+    var = pixel_variance_reference(planes)
     assert var[1, 1] == pytest.approx(3.0)  # 1^2 per channel, neighbours all 0
     assert var[0, 0] == pytest.approx(3 * (1 / 3) ** 2)
-
-
-@pytest.mark.parametrize("shape", [(3, 1, 1), (3, 1, 7), (3, 6, 1), (3, 2, 2), (3, 31, 47)])
-def test_pixel_variance_matches_the_numpy_reference(shape):
-    planes = np.random.default_rng(4).standard_normal(shape).astype(np.float32)
-    np.testing.assert_allclose(pixel_variance(planes), pixel_variance_reference(planes), rtol=1e-5, atol=1e-6)
 
 
 def test_params_are_validated():
@@ -118,61 +111,60 @@ def _radiance(height, width, rng):
     return color
 
 
+def _unpack(planes: np.ndarray, first: int, count: int, width: int, params: BlockParams) -> np.ndarray:
+    """Planes first ... first + count - 1 of packed phase planes back as (count, H, W) frame planes."""
+    s, pad = params.sparsity, pad_lanes(params)
+    return np.stack([planes[x % s, first : first + count, :, pad + x // s] for x in range(width)], axis=-1)
+
+
+def _logs(color: np.ndarray, firefly_k) -> np.ndarray:
+    """Buffer A's log planes (3, H, W) as `pack_buffers` takes them."""
+    zeros = np.zeros_like(color)
+    planes = pack_buffers(color, color, zeros, zeros, firefly_k, BlockParams())
+    return _unpack(planes, BUFFER_A, 3, color.shape[1], BlockParams())
+
+
+@pytest.mark.parametrize("params", [BlockParams(), BlockParams(radius=5, sparsity=3)], ids=["paper", "sparsity3"])
 @pytest.mark.parametrize("firefly_k", [FIREFLY_K, 0.5, None])
-@pytest.mark.parametrize("size", ODD_SIZES)
-def test_log_planes_matches_the_numpy_reference(size, firefly_k):
-    color = _radiance(*size, np.random.default_rng(5))
-    fast, slow = log_planes(color, firefly_k), log_planes_reference(color, firefly_k)
-    assert fast.shape == (3, *size) and fast.dtype == np.float32 and np.isfinite(fast).all()
-    np.testing.assert_allclose(fast, slow, rtol=TWIN_RTOL, atol=0.0)
+@pytest.mark.parametrize("size", PACK_SIZES)
+def test_pack_buffers_matches_the_numpy_reference(size, firefly_k, params):
+    """Log colour within the log1p twins' ulps, variances (and so sigmas) within PACK_RTOL, everything else
+    (mask, G-buffers, zeros in the pad lanes) exactly; on radiance with negative values and fireflies."""
+    color_a, color_b, albedo, normal = _pack_inputs(size)
+    log_a, log_b = log_planes_reference(color_a, firefly_k), log_planes_reference(color_b, firefly_k)
+    twin = pack_cross_reference(log_a, pixel_variance_reference(log_a), log_b, pixel_variance_reference(log_b), albedo,
+                                normal, params)  # fmt: skip
+    fused = pack_buffers(color_a, color_b, albedo, normal, firefly_k, params)
+    assert fused.shape == twin.shape and fused.dtype == np.float32 and np.isfinite(fused).all()
+    for buffer, log in ((BUFFER_A, log_a), (BUFFER_B, log_b)):
+        np.testing.assert_allclose(_unpack(fused, buffer, 3, size[1], params), log, rtol=TWIN_RTOL, atol=0.0)
+        np.testing.assert_allclose(fused[:, buffer + 3 : buffer + 5], twin[:, buffer + 3 : buffer + 5], rtol=PACK_RTOL,
+                                   atol=1e-6)  # fmt: skip
+    np.testing.assert_array_equal(fused[:, :BUFFER_A], twin[:, :BUFFER_A])
 
 
-def test_log_planes_clamps_fireflies_then_takes_the_signed_log():
+def test_pack_buffers_clamps_fireflies_then_takes_the_signed_log():
     color = np.ones((5, 7, 3), np.float32)
     color[2, 3] = [1e6, -1e6, 1.0]
     color[0, 0, 0] = 1e6  # a corner, 3 neighbours
-    np.testing.assert_allclose(log_planes(color, FIREFLY_K), np.log1p(1.0), rtol=1e-7)  # neighbours all 1
-    unclamped = log_planes(color, None)
+    np.testing.assert_allclose(_logs(color, FIREFLY_K), np.log1p(1.0), rtol=1e-7)  # neighbours all 1
+    unclamped = _logs(color, None)
     assert unclamped[0, 2, 3] == unclamped[0, 0, 0] == pytest.approx(np.log1p(1e6), rel=1e-7)
     assert unclamped[1, 2, 3] == pytest.approx(-np.log1p(1e6), rel=1e-7)
     single = np.float32([[[1e6, -3.0, 0.0]]])  # 1x1: no neighbour, nothing clamped
-    np.testing.assert_allclose(log_planes(single).ravel(), [np.log1p(1e6), -np.log1p(3.0), 0.0], rtol=1e-7)
+    np.testing.assert_allclose(_logs(single, FIREFLY_K).ravel(), [np.log1p(1e6), -np.log1p(3.0), 0.0], rtol=1e-7)
 
 
-def test_log_planes_is_log1p_within_an_ulp_over_the_float32_range():
+def test_pack_buffers_log_is_log1p_within_an_ulp_over_the_float32_range():
     rng = np.random.default_rng(6)
     magnitude = np.concatenate(
         [np.float32([0.0, 1e-30, 1e-8, 0.41421354, 0.41421366, 1.0, 3e38]), np.exp(rng.uniform(-30, 88, 30000))]
     ).astype(np.float32)
     values = magnitude * np.where(rng.random(magnitude.size) < 0.5, -1.0, 1.0).astype(np.float32)
     color = values[: values.size // 3 * 3].reshape(1, -1, 3)
-    got = log_planes(color, None)[:, 0].T.ravel()
+    got = _logs(color, None)[:, 0].T.ravel()
     exact = np.sign(color.ravel()) * np.log1p(np.abs(color.ravel().astype(np.float64)))
     assert _ulp_error(got, exact).max() <= LOG1P_ULP
-
-
-@pytest.mark.parametrize("params", [BlockParams(), BlockParams(radius=5, sparsity=3)], ids=["paper", "sparsity3"])
-@pytest.mark.parametrize("firefly_k", [FIREFLY_K, None])
-@pytest.mark.parametrize("size", PACK_SIZES)
-def test_pack_buffers_is_the_chain_it_fuses_bit_for_bit(size, firefly_k, params):
-    """pack_buffers = pack_cross of log_planes and pixel_variance, on radiance with negative values and fireflies."""
-    color_a, color_b, albedo, normal = _pack_inputs(size)
-    log_a, log_b = log_planes(color_a, firefly_k), log_planes(color_b, firefly_k)
-    chain = pack_cross(log_a, pixel_variance(log_a), log_b, pixel_variance(log_b), albedo, normal, params)
-    fused = pack_buffers(color_a, color_b, albedo, normal, firefly_k, params)
-    assert fused.shape == chain.shape and fused.dtype == np.float32 and np.isfinite(fused).all()
-    np.testing.assert_array_equal(fused.view(np.int32), chain.view(np.int32))  # the bits: signed zeros too
-
-
-@pytest.mark.parametrize("firefly_k", [FIREFLY_K, None])
-@pytest.mark.parametrize("size", PACK_SIZES)
-def test_pack_buffers_matches_the_numpy_reference(size, firefly_k):
-    color_a, color_b, albedo, normal = _pack_inputs(size)
-    log_a, log_b = log_planes_reference(color_a, firefly_k), log_planes_reference(color_b, firefly_k)
-    twin = pack_cross_reference(log_a, pixel_variance_reference(log_a), log_b, pixel_variance_reference(log_b), albedo,
-                                normal, BlockParams())  # fmt: skip
-    fused = pack_buffers(color_a, color_b, albedo, normal, firefly_k, BlockParams())
-    np.testing.assert_allclose(fused, twin, rtol=PACK_RTOL, atol=1e-6)
 
 
 def _pack_inputs(size):
