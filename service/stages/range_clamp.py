@@ -40,7 +40,8 @@ def _sliding(op: Reduce, image: np.ndarray, radius: int, axis: int) -> np.ndarra
     return op(np.take(acc, np.arange(0, n), axis), np.take(acc, np.arange(rest, rest + n), axis))
 
 
-def _check_radius(radius: int) -> None:
+def check_radius(radius: int) -> None:
+    """ValueError unless radius >= 0 (pixels)."""
     if radius < 0:
         raise ValueError(f"radius must be >= 0, got {radius}")
 
@@ -51,7 +52,7 @@ def local_range(image: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]
     image: (H, W, C) float32. Returns (lo, hi), both (H, W, C) float32. numba kernel;
     `local_range_reference` is the plain-numpy twin.
     """
-    _check_radius(radius)
+    check_radius(radius)
     image = np.ascontiguousarray(image, dtype=np.float32)
     lo, hi = np.empty_like(image), np.empty_like(image)
     _range_kernel(image, image, int(radius), False, _rows_per_task(image), lo, hi)
@@ -60,7 +61,7 @@ def local_range(image: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]
 
 def local_range_reference(image: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
     """Plain-numpy twin of `local_range`."""
-    _check_radius(radius)
+    check_radius(radius)
     lo = _sliding(np.minimum, _sliding(np.minimum, image, radius, 0), radius, 1)
     hi = _sliding(np.maximum, _sliding(np.maximum, image, radius, 0), radius, 1)
     return lo, hi
@@ -73,7 +74,7 @@ def clamp_to_local_range(output: np.ndarray, image: np.ndarray, radius: int) -> 
     (H, W, C) float32. One fused numba pass (no lo/hi frames); `clamp_to_local_range_reference` is the
     plain-numpy twin.
     """
-    _check_radius(radius)
+    check_radius(radius)
     image = np.ascontiguousarray(image, dtype=np.float32)
     output = np.ascontiguousarray(output, dtype=np.float32)
     out = np.empty_like(output)
@@ -133,7 +134,7 @@ def _min_max_pass(lo, hi, step, out_lo, out_hi, n):
 
 
 @numba.njit(inline="always")
-def _row_range(lo, hi, spare_lo, spare_hi, g, shift):
+def row_range(lo, hi, spare_lo, spare_hi, g, shift):
     """Padded rows lo, hi -> min (max) of lo (hi) at i + d shift, d = 0 .. g - 1, for i < len(lo) - (g - 1)
     shift, by doubling: spans 1, 2, 4, .. up to the largest power of two p <= g, then two overlapping spans
     of p. Passes alternate between the rows and the spare rows (no in-place pass: it would read ahead of
@@ -173,7 +174,7 @@ def _range_kernel(image, output, radius, clamp, rows_per_task, lo_out, hi_out):
     """clamp: lo_out[y] = clip(output[y], lo, hi); else lo_out, hi_out = lo, hi. Per band of output rows,
     the window's rows by van Herk / Gil-Werman: frame rows in blocks of g = 2r+1 starting at the band's
     first window; a window starting at row offset o of block k is the backward scan of block k at o and
-    the forward scan of block k+1 at o - 1 (3 min/max per value). Then along the row (`_row_range`)."""
+    the forward scan of block k+1 at o - 1 (3 min/max per value). Then along the row (`row_range`)."""
     height, width, channels = image.shape
     n, g = width * channels, 2 * radius + 1
     flat = image.reshape(height, n)
@@ -205,7 +206,7 @@ def _range_kernel(image, output, radius, clamp, rows_per_task, lo_out, hi_out):
                 row_lo[pad + n :] = np.inf
                 row_hi[:pad] = -np.inf
                 row_hi[pad + n :] = -np.inf
-                if _row_range(row_lo, row_hi, spare_lo, spare_hi, g, channels):  # branches, not a chosen
+                if row_range(row_lo, row_hi, spare_lo, spare_hi, g, channels):  # branches, not a chosen
                     _emit(spare_lo, spare_hi, output[y], clamp, lo_out[y], hi_out[y])  # name: vectorises
                 else:
                     _emit(row_lo, row_hi, output[y], clamp, lo_out[y], hi_out[y])

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
+from service.stages.range_clamp import check_radius, local_range_reference, row_range
 from service.stages.window import overlap, window_offsets
 
 FILTER_RADIUS = 5  # Choi 2024 eq. 8: 11x11 denoising window; authors' code FILTER_WIDTH = 11
@@ -292,6 +292,9 @@ def spatiotemporal_filter(
     _, height, width = pilot_a.shape
     if previous is None or valid is None:
         previous, valid = np.zeros((3, height, width), np.float32), np.zeros((height, width), bool)
+    shapes = [x.shape for x in (pilot_a, pilot_b, albedo, normal, previous, params, valid)]
+    if shapes != [(3, height, width)] * 5 + [(N_PRECISIONS + 1, height, width), (height, width)]:
+        raise ValueError(f"spatiotemporal_filter: inconsistent input shapes {shapes}")  # the kernel does not check
     inputs = [np.ascontiguousarray(a, np.float32) for a in (pilot_a, pilot_b, albedo, normal, params, previous)]
     out = FilterOutput(
         *(np.empty((3, height, width), np.float32) for _ in range(3)),
@@ -304,18 +307,19 @@ def spatiotemporal_filter(
 
 
 @numba.njit(inline="always", cache=True)
-def _screen_channel(plane, history, y, radius, padded, lo, hi, inside):  # pragma: no cover - jitted
-    """inside[x] &= history[y, x] within the min-max of plane (H, W) over the window around (y, x).
+def _screen_channel(plane, history, y, radius, padded, inside):  # pragma: no cover - jitted
+    """inside[x] &= history[y, x] within the min-max of plane (H, W) over the window around (y, x): column
+    extrema over the window's rows, then along the row by `range_clamp.row_range`.
 
-    padded: (2, W + 2 radius) float32 scratch; lo, hi: (W,) float32 scratch; inside: (W,) uint8."""
+    padded: (4, W + 2 radius) float32 scratch (rows lo, hi and their spares); inside: (W,) uint8."""
     height, width = plane.shape
     y0, y1 = max(0, y - radius), min(height, y + radius + 1)
     pad_lo, pad_hi = padded[0], padded[1]
-    for x in range(radius):  # columns outside the frame never win
+    for x in range(radius):  # columns outside the frame never win (row_range overwrote them last time)
         pad_lo[x] = pad_lo[radius + width + x] = np.inf
         pad_hi[x] = pad_hi[radius + width + x] = -np.inf
     first = plane[y0]
-    for x in range(width):  # column extrema over the window's rows
+    for x in range(width):
         pad_lo[_U(radius + x)] = pad_hi[_U(radius + x)] = first[_U(x)]
     for yy in range(y0 + 1, y1):
         row = plane[yy]
@@ -323,16 +327,16 @@ def _screen_channel(plane, history, y, radius, padded, lo, hi, inside):  # pragm
             v, a, b = row[_U(x)], pad_lo[_U(radius + x)], pad_hi[_U(radius + x)]
             pad_lo[_U(radius + x)] = v if v < a else a
             pad_hi[_U(radius + x)] = v if v > b else b
-    lo[:] = pad_lo[:width]
-    hi[:] = pad_hi[:width]
-    for dx in range(1, 2 * radius + 1):  # then along the row
-        for x in range(width):
-            v, a = pad_lo[_U(x + dx)], lo[_U(x)]
-            lo[_U(x)] = v if v < a else a
-            v, b = pad_hi[_U(x + dx)], hi[_U(x)]
-            hi[_U(x)] = v if v > b else b
-    row = history[y]
-    for x in range(width):
+    if row_range(pad_lo, pad_hi, padded[2], padded[3], 2 * radius + 1, 1):  # branches: the loops vectorise
+        _within(history[y], padded[2], padded[3], inside)
+    else:
+        _within(history[y], pad_lo, pad_hi, inside)
+
+
+@numba.njit(inline="always", cache=True)
+def _within(row, lo, hi, inside):  # pragma: no cover - jitted
+    """inside[x] &= lo[x] <= row[x] <= hi[x], x < len(inside)."""
+    for x in range(inside.shape[0]):
         v = row[_U(x)]
         inside[_U(x)] &= np.uint8((v >= lo[_U(x)]) & (v <= hi[_U(x)]))
 
@@ -344,14 +348,12 @@ def _screen_kernel(current, history, valid, radius, masks, screened):  # pragma:
     channels, height, width = current.shape
     per_group = channels // masks.shape[0]
     for y in numba.prange(height):
-        padded = np.empty((2, width + 2 * radius), np.float32)
-        lo = np.empty(width, np.float32)
-        hi = np.empty(width, np.float32)
+        padded = np.empty((4, width + 2 * radius), np.float32)
         inside = np.empty(width, np.uint8)
         for g in range(masks.shape[0]):
             inside[:] = valid[y]
             for c in range(g * per_group, (g + 1) * per_group):
-                _screen_channel(current[c], history[c], y, radius, padded, lo, hi, inside)
+                _screen_channel(current[c], history[c], y, radius, padded, inside)
             masks[g, y] = inside != 0
             for c in range(g * per_group, (g + 1) * per_group):
                 out, kept, fallback = screened[c, y], history[c, y], current[c, y]
@@ -360,12 +362,11 @@ def _screen_kernel(current, history, valid, radius, masks, screened):  # pragma:
 
 
 def _screen_reference(current, history, valid, radius, masks, screened) -> None:
-    """Plain-numpy twin of `_screen_kernel`: window extrema from edge-padded sliding windows (edge copies
-    do not change an extremum). Arguments as `screen_history`; writes masks and screened in place."""
+    """Plain-numpy twin of `_screen_kernel` (window extrema by `range_clamp.local_range_reference`).
+    Arguments as `screen_history`; writes masks and screened in place."""
     channels, height, width = current.shape
-    padded = np.pad(current, ((0, 0), (radius, radius), (radius, radius)), mode="edge")
-    windows = sliding_window_view(padded, (2 * radius + 1, 2 * radius + 1), axis=(1, 2))
-    inside = (history >= windows.min(axis=(-2, -1))) & (history <= windows.max(axis=(-2, -1)))
+    lo, hi = (x.transpose(2, 0, 1) for x in local_range_reference(current.transpose(1, 2, 0), radius))
+    inside = (history >= lo) & (history <= hi)
     groups = masks.shape[0]
     masks[:] = valid & inside.reshape(groups, channels // groups, height, width).all(axis=1)
     screened[:] = np.where(np.repeat(masks, channels // groups, axis=0), history, current)
@@ -394,6 +395,10 @@ def screen_history(
     channels, height, width = current.shape
     if channels % groups:
         raise ValueError(f"{channels} channels do not split into {groups} groups")
+    if history.shape != current.shape or valid.shape != (height, width):
+        raise ValueError(f"screen_history: current {current.shape}, history {history.shape} and valid "
+                         f"{valid.shape} do not agree")  # fmt: skip  # the kernel does not check indices
+    check_radius(radius)
     masks = np.empty((groups, height, width), bool)
     screened = np.empty((channels, height, width), np.float32)
     run = _screen_reference if reference else _screen_kernel

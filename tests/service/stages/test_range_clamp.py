@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from service.stages.range_clamp import (
+    _range_kernel,
     clamp_to_local_range,
     clamp_to_local_range_reference,
     local_range,
@@ -44,7 +45,6 @@ def test_constant_image_is_unchanged():
     np.testing.assert_array_equal(clamp_to_local_range(image, image, 4), image)
 
 
-# (90, 7) r 2: many blocks of 2r+1 rows per band; (33, 40) r 6: bands that end inside a block.
 @pytest.mark.parametrize("shape,radius", [((1, 1), 3), ((3, 5), 1), ((17, 31), 8), ((9, 4), 0), ((40, 3), 5),
                                           ((90, 7), 2), ((33, 40), 6)])  # fmt: skip
 def test_numba_kernel_matches_the_numpy_reference(shape, radius):
@@ -62,3 +62,14 @@ def test_negative_radius_is_refused():
     image = np.zeros((4, 4, 3), np.float32)
     with pytest.raises(ValueError, match="radius must be >= 0, got -1"):
         clamp_to_local_range(image, image, -1)
+
+
+@pytest.mark.parametrize("rows_per_task", [1, 4, 6, 7, 45, 90])
+def test_every_band_split_matches_the_numpy_reference(rows_per_task):
+    """Bands of 1 row, shorter and longer than a block of 2r+1 = 5 rows, of many blocks, and the whole
+    frame: the split the thread count picks on other machines."""
+    image = np.random.default_rng(2).normal(size=(90, 7, 3)).astype(np.float32)
+    lo, hi = np.empty_like(image), np.empty_like(image)
+    _range_kernel(image, image, 2, False, rows_per_task, lo, hi)
+    for fast, slow in zip((lo, hi), local_range_reference(image, 2), strict=True):
+        np.testing.assert_array_equal(fast, slow)

@@ -72,11 +72,14 @@ def test_huge_precisions_and_one_pixel_frames_stay_finite():
     np.testing.assert_allclose(out.color_a, pa, atol=1e-4)
 
 
-# Widths around the kernel's tile (288 - 2 radius = 278 pixels at radius 5), odd heights, frames smaller
-# than the window, radius 0 (the centre alone) and a wide radius.
+# Widths around the kernel's tile (288 - pad - radius = 288 - 16 - 5 = 267 pixels at radius 5), heights
+# past its band of 48 rows (the ring is filled anew), odd heights, frames smaller than the window, radius 0
+# (the centre alone) and a wide radius.
 @pytest.mark.parametrize(
-    "size, radius", [((7, 9), 5), ((3, 2), 5), ((11, 278), 5), ((5, 301), 5), ((4, 6), 0), ((9, 40), 17)]
-)
+    "size, radius",
+    [((7, 9), 5), ((3, 2), 5), ((11, 267), 5), ((5, 268), 5), ((97, 268), 5), ((50, 301), 5), ((100, 30), 5),
+     ((4, 6), 0), ((9, 40), 17), ((130, 20), 9)],
+)  # fmt: skip
 def test_kernel_matches_its_numpy_twin(size, radius):
     pa, pb, albedo, normal, params = _inputs(*size, seed=sum(size))
     pa, pb = 3 * pa, 3 * pb + 0.1
@@ -91,20 +94,22 @@ def test_kernel_matches_its_numpy_twin(size, radius):
     np.testing.assert_allclose(got.weight_b, ref.weight_b, rtol=EXP_RTOL)
 
 
-def test_views_of_network_planes_give_the_same_result():
-    """The pipeline passes views into the (15, H, W) network input; non-contiguous inputs are copied."""
-    pa, pb, albedo, normal, params = _inputs(8, 10, seed=6)
-    stacked = np.concatenate([pa, pb, albedo, normal])
-    views = spatiotemporal_filter(stacked[0:3], stacked[3:6], stacked[6:9], stacked[9:12], params)
-    strided = spatiotemporal_filter(*(np.asfortranarray(a) for a in (pa, pb, albedo, normal, params)))
-    np.testing.assert_array_equal(views.color, spatiotemporal_filter(pa, pb, albedo, normal, params).color)
-    np.testing.assert_array_equal(strided.color, views.color)
-
-
 def test_radius_beyond_the_scratch_is_refused():
     pa, pb, albedo, normal, params = _inputs(2, 2)
     with pytest.raises(ValueError, match=rf"filter radius must be in \[0, {MAX_RADIUS}\], got {MAX_RADIUS + 1}"):
         spatiotemporal_filter(pa, pb, albedo, normal, params, radius=MAX_RADIUS + 1)
+
+
+def test_inputs_of_other_shapes_are_refused_before_the_kernels():
+    """The kernels do not check indices: (H, W, 3) pixels where (3, H, W) planes belong are refused."""
+    pa, pb, albedo, normal, params = _inputs(4, 6)
+    with pytest.raises(ValueError, match="spatiotemporal_filter: inconsistent input shapes"):
+        spatiotemporal_filter(pa, pb, albedo.transpose(1, 2, 0), normal, params)
+    valid = np.ones((4, 6), bool)
+    with pytest.raises(ValueError, match="screen_history: current .* do not agree"):
+        screen_history(pa, pb.transpose(1, 2, 0), valid)
+    with pytest.raises(ValueError, match="radius must be >= 0"):
+        screen_history(pa, pb, valid, radius=-1)
 
 
 def test_screening_rejects_history_outside_the_current_range():
