@@ -33,8 +33,9 @@ def numba_cache_dir(sources: Path, root: Path) -> Path:
 def keep_freed_buffers() -> bool:
     """Make glibc malloc keep freed frame-sized blocks in the heap (mallopt M_MMAP_THRESHOLD = 1 GiB,
     M_TRIM_THRESHOLD = 2 GiB) instead of returning them to the kernel, so the next frame's arrays do not
-    pay thousands of minor page faults on first touch (cross-regression at 1280x720 on 2 cores:
-    251-309 -> 232-244 ms; flr 34 -> 27 ms, median of 5). Memory is reused frame after frame, not returned.
+    pay thousands of minor page faults on first touch (1280x720 on 2 cores, median of 9 steps, two processes
+    each, 2026-11-21: crossregression 85.0-85.4 -> 78.3-83.2 ms, flr 25.9-26.2 -> 24.8-25.0 ms). Memory is
+    reused frame after frame, not returned.
     Returns whether it applied (Linux with glibc only)."""
     if sys.platform != "linux":
         return False

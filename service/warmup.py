@@ -1,6 +1,7 @@
 """Warm-up: run a pipeline on generated frames so its numba kernels compile (or load from the cache) and
-its ONNX model loads before the first real frame. A cold first frame costs tens of seconds (the first
-frame of `make demo` on a fresh machine: 31 s); the HTTP service warms `MCDENOISE_WARMUP` at start.
+its ONNX model loads before the first real frame. A cold first frame costs tens of seconds (`make demo`
+on a fresh clone with an empty cache: 27 s in all, 2026-11-21); the HTTP service warms the shared
+pipelines named in `MCDENOISE_WARMUP` at start.
 """
 
 from __future__ import annotations
@@ -9,8 +10,8 @@ import time
 
 import numpy as np
 
-from service import pipelines
 from service.frame import LAYERS, Frame
+from service.pipelines import Pipeline
 
 WARMUP_SIZE = (37, 70)  # H, W: small, and no multiple of any block size (edge paths compile too)
 
@@ -30,10 +31,10 @@ def warmup_frame(height: int, width: int, seed: int = 0) -> Frame:
     return Frame.from_buffers(buffers)
 
 
-def warm_up(name: str) -> float:
-    """Step pipeline `name` (default options) over two warm-up frames, so temporal pipelines reach their
-    history path too. Returns the wall time in seconds; raises what the pipeline raises."""
-    pipeline = pipelines.get(name)
+def warm_up(pipeline: Pipeline) -> float:
+    """Step `pipeline` over two warm-up frames, so temporal pipelines reach their history path too, and
+    what it loads on first use (crossreg's ONNX model) stays loaded in that object. Returns the wall time
+    in seconds; raises what the pipeline raises."""
     height, width = WARMUP_SIZE
     start = time.perf_counter()
     state = pipeline.start(height, width)

@@ -91,13 +91,13 @@ def synthetic(count: int, seed: int) -> list[Sequence]:
 
 
 def _step_frame(net, optimizer, prepared: Prepared) -> tuple[float, np.ndarray]:
-    """One Adam step on the whole frame; returns (loss, filter output colour (H, W, 3) log1p, detached)."""
+    """One Adam step on the whole frame; returns (loss, filter output colour (3, H, W) log1p, detached)."""
     net.train()
     optimizer.zero_grad(set_to_none=True)
     loss, result = forward(net, samples_to_tensor(prepared.sample()))
     loss.backward()
     optimizer.step()
-    return float(loss.detach()), result.color.detach()[0].permute(1, 2, 0).numpy()
+    return float(loss.detach()), result.color.detach()[0].numpy()
 
 
 def train(sequences: list[Sequence], *, seconds: float, max_steps: int, seed: int) -> tuple[Any, dict[str, Any]]:

@@ -58,7 +58,7 @@ class Services:
         while self.warming:
             name = self.warming[0]
             try:
-                seconds = await loop.run_in_executor(None, warm_up, name)
+                seconds = await loop.run_in_executor(None, warm_up, self.stateless_pipeline(name))
                 log.info("warmed up pipeline %s in %.1f s", name, seconds)
             except Exception:
                 log.exception("warm-up of pipeline %s failed", name)

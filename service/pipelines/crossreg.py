@@ -68,6 +68,11 @@ class History:
 
 
 _INPUT = channel_slices(CROSSREG_INPUTS)
+# The input groups that History.colors keeps and the screening compares, in this order, first in the input
+_SCREENED = ("pilotA", "pilotB", "previous")
+_PILOTS = slice(0, _INPUT["pilotB"].stop)  # pilot A, pilot B
+_HISTORY = slice(0, _INPUT["previous"].stop)  # pilot A, pilot B, previous: History.colors' planes
+assert [_INPUT[name].start for name in _SCREENED] == [0, _INPUT["pilotA"].stop, _INPUT["pilotB"].stop]
 
 
 @dataclass
@@ -83,21 +88,6 @@ class Prepared:
     def plane_group(self, name: str) -> np.ndarray:
         """(c, H, W) float32 view of the input group `name` (layout.CROSSREG_INPUTS)."""
         return self.planes[_INPUT[name]]
-
-    @property
-    def pilot_a(self) -> np.ndarray:
-        """(H, W, 3) float32 view."""
-        return self.plane_group("pilotA").transpose(1, 2, 0)
-
-    @property
-    def pilot_b(self) -> np.ndarray:
-        """(H, W, 3) float32 view."""
-        return self.plane_group("pilotB").transpose(1, 2, 0)
-
-    @property
-    def features(self) -> np.ndarray:
-        """(H, W, 15) float32 view of the network input."""
-        return self.planes.transpose(1, 2, 0)
 
     def sample(self) -> np.ndarray:
         """(H, W, 22) float32 training sample in layout.CROSSREG_SAMPLE order: a view of channel planes
@@ -128,20 +118,20 @@ def prepare_frame(
     groups = {"pilotA": pilot_a, "pilotB": pilot_b, "previous": mean, "albedo": albedo, "normal": normal}
     planes = stack_planes(CROSSREG_INPUTS, groups)
     if history is None:
-        return Prepared(planes, np.zeros(mean.shape[:2], bool), planes[:6])
+        return Prepared(planes, np.zeros(mean.shape[:2], bool), planes[_PILOTS])
     warped, valid = reproject(
         history.colors.transpose(1, 2, 0), frame["motion"], depth=frame.get("depth"), prev_depth=history.depth,
         normal=normal, prev_normal=history.normal, params=REPROJECTION,
     )  # fmt: skip
     warped = warped.transpose(2, 0, 1)  # (9, H, W): the planes of History.colors, warped
-    current = planes[:9]  # pilot A, pilot B, their mean: what each history plane is screened against
+    current = planes[_HISTORY]  # pilot A, pilot B, their mean: what each history plane is screened against
     if screen:  # each previous pilot against its current pilot, the output against the pilots' mean
         masks, screened = screen_history(current, warped, valid, groups=3)
     else:
         masks = np.broadcast_to(valid, (3, *valid.shape))
-        screened = np.where(np.repeat(masks, 3, axis=0), warped, current)
-    planes[_INPUT["previous"]] = screened[6:9]
-    return Prepared(planes, masks[2], screened[:6])
+        screened = np.where(valid, warped, current)
+    planes[_INPUT["previous"]] = screened[_INPUT["previous"]]
+    return Prepared(planes, masks[_SCREENED.index("previous")], screened[_PILOTS])
 
 
 def filter_frame(prepared: Prepared, params: np.ndarray) -> FilterOutput:
@@ -153,8 +143,8 @@ def filter_frame(prepared: Prepared, params: np.ndarray) -> FilterOutput:
 
 
 def next_history(frame: Frame, prepared: Prepared, color: np.ndarray) -> History:
-    """What frame t + 1 needs from frame t; color: (H, W, 3) float32 filter output f(x), log1p radiance."""
-    colors = np.concatenate([prepared.planes[:6], color.transpose(2, 0, 1)], axis=0, dtype=np.float32)
+    """What frame t + 1 needs from frame t; color: (3, H, W) float32 filter output f(x), log1p radiance."""
+    colors = np.concatenate([prepared.planes[_PILOTS], color], axis=0, dtype=np.float32)
     return History(colors, frame["normal"], frame.get("depth"))
 
 
@@ -252,9 +242,9 @@ class CrossregPipeline(Pipeline):
         output = filter_frame(prepared, params)
         if state.trainer is not None:
             state.trainer.submit(prepared.sample(), state.frame_index)
-        color = np.ascontiguousarray(output.color.transpose(1, 2, 0))  # (H, W, 3) log1p
-        state.history = next_history(frame, prepared, color)
-        return {"color": np.maximum(log_to_linear(color), np.float32(0.0))}, state
+        state.history = next_history(frame, prepared, output.color)
+        radiance = np.maximum(log_to_linear(output.color), np.float32(0.0)).transpose(1, 2, 0)
+        return {"color": np.ascontiguousarray(radiance)}, state
 
     @staticmethod
     def _take_published_weights(state: CrossregState) -> None:

@@ -15,4 +15,4 @@ def test_warmup_frame_has_every_layer_valid():
 
 @pytest.mark.parametrize("name", pipelines.names())
 def test_every_pipeline_warms_up_on_the_generated_frames(name):
-    assert warm_up(name) > 0.0
+    warm_up(pipelines.get(name))  # raises what the pipeline raises

@@ -43,7 +43,8 @@ class Settings:
     queue_wait_s: float = 30.0  # how long a streamed frame waits for a free slot before a `busy` error, s
     retry_after_s: int = 1  # Retry-After of a 503 `busy` answer, seconds
     api_key: str = ""  # empty: no auth; one key, or comma-separated keys (one per client)
-    warmup: str = ""  # comma-separated pipelines run on generated frames at start (not ready until done)
+    warmup: str = ""  # comma-separated pipelines run on generated frames at start (not ready until done);
+    # `default` names the API's default pipeline (pipelines.DEFAULT)
 
     def __post_init__(self) -> None:
         for name in ("max_body_mb", "max_width", "max_height", "max_sessions", "retry_after_s"):
@@ -66,10 +67,11 @@ class Settings:
                 )
         if self.api_key and not self.api_keys:
             raise SettingsError(f"{PREFIX}API_KEY holds no key")
-        unknown = [name for name in self.warmup_pipelines if name not in pipelines.names()]
-        if unknown:
-            available = ", ".join(pipelines.names())
-            raise SettingsError(f"{PREFIX}WARMUP: unknown pipeline(s) {', '.join(unknown)}; available: {available}")
+        for name in self.warmup_pipelines:
+            try:
+                pipelines.pipeline_class(name)
+            except pipelines.UnknownPipelineError as error:
+                raise SettingsError(f"{PREFIX}WARMUP: {error}") from None
         # Resolve the automatic values once, so every reader sees the same numbers.
         workers = self.worker_threads or _cpus()
         object.__setattr__(self, "worker_threads", workers)
@@ -86,8 +88,9 @@ class Settings:
 
     @property
     def warmup_pipelines(self) -> tuple[str, ...]:
-        """The pipelines to warm up at start, in order."""
-        return tuple(name.strip() for name in self.warmup.split(",") if name.strip())
+        """The pipelines to warm up at start, in order (`default`: pipelines.DEFAULT)."""
+        names = (name.strip() for name in self.warmup.split(","))
+        return tuple(pipelines.DEFAULT if name == "default" else name for name in names if name)
 
     @property
     def max_body_bytes(self) -> int:

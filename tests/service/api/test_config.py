@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from service import pipelines
 from service.api.core.config import Settings, SettingsError
 
 
@@ -31,7 +32,7 @@ def test_values_from_the_environment():
     ({"MCDENOISE_WORKER_THREADS": "4", "MCDENOISE_MAX_INFLIGHT": "2"},
      "MCDENOISE_MAX_INFLIGHT (2) must be at least MCDENOISE_WORKER_THREADS (4)"),
     ({"MCDENOISE_MAX_BODY_MB": "5000"}, "MCDENOISE_MAX_BODY_MB must be at most 4096, got 5000"),
-    ({"MCDENOISE_WARMUP": "flr, nope"}, "MCDENOISE_WARMUP: unknown pipeline(s) nope; available: bilateral"),
+    ({"MCDENOISE_WARMUP": "flr, nope"}, "MCDENOISE_WARMUP: unknown pipeline 'nope'; available: bilateral"),
 ])
 def test_unsafe_values_are_refused(env, message):
     with pytest.raises(SettingsError) as caught:
@@ -51,3 +52,4 @@ def test_warmup_lists_pipelines_in_order():
     settings = Settings.from_env({"MCDENOISE_WARMUP": " crossregression, flr ,"})
     assert settings.warmup_pipelines == ("crossregression", "flr")
     assert Settings().warmup_pipelines == ()
+    assert Settings.from_env({"MCDENOISE_WARMUP": "default,flr"}).warmup_pipelines == (pipelines.DEFAULT, "flr")

@@ -25,7 +25,8 @@ def test_not_ready_until_the_configured_pipelines_are_warm(make_server, monkeypa
 
     release, calls = threading.Event(), []
 
-    def slow_warm_up(name: str) -> float:
+    def slow_warm_up(pipeline) -> float:
+        name = pipeline.name
         calls.append(name)
         assert release.wait(10)
         if name == "flr":

@@ -17,6 +17,7 @@ from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, channel_slices, tot
 from service.metrics import rel_l2
 from service.online import trainer as trainer_module
 from service.pipelines.crossreg import REPROJECTION, CrossregState, prepare_frame
+from service.stages.cross_regression import cross_regression, pilots_to_radiance
 from service.stages.reprojection import reproject
 
 WORKER_START_S = 90  # spawning a process that imports torch, on 2 busy cores
@@ -55,10 +56,13 @@ def test_odd_size_sequence_keeps_explicit_history(odd_frames):
 
 
 def test_network_input_follows_the_layout_and_history_is_used(odd_frames):
-    prepared = prepare_frame(odd_frames[0], None)
+    frame = odd_frames[0]
+    prepared = prepare_frame(frame, None)
     s = channel_slices(CROSSREG_INPUTS)
-    np.testing.assert_array_equal(prepared.features[..., s["pilotA"]], prepared.pilot_a)
-    np.testing.assert_array_equal(prepared.features[..., s["normal"]], odd_frames[0]["normal"])
+    pilot_a, pilot_b = cross_regression(frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"])
+    np.testing.assert_array_equal(prepared.planes[s["pilotA"]], pilot_a)
+    np.testing.assert_array_equal(prepared.planes[s["pilotB"]], pilot_b)
+    np.testing.assert_array_equal(prepared.planes[s["normal"]], frame["normal"].transpose(2, 0, 1))
     assert not prepared.valid.any()  # no history on the first frame: the filter ignores `previous`
     pipeline = pipelines.get("crossreg")
     _, state = _run(pipeline, odd_frames[:1])
@@ -68,9 +72,7 @@ def test_network_input_follows_the_layout_and_history_is_used(odd_frames):
 
 
 def test_cached_pilots_give_the_same_network_input(odd_frames):
-    """Offline training passes (H, W, 3) pilots it computed once; the result equals computing them here."""
-    from service.stages.cross_regression import cross_regression
-
+    """Offline training passes (3, H, W) pilot planes it computed once; the result equals computing them here."""
     pipeline = pipelines.get("crossreg")
     _, state = _run(pipeline, odd_frames[:1])
     frame = odd_frames[1]
@@ -96,16 +98,14 @@ def test_previous_is_the_screened_history_or_the_pilots_mean(odd_frames, screen)
         np.testing.assert_array_equal(valid, reprojected)
     previous = prepared.plane_group("previous").transpose(1, 2, 0)
     np.testing.assert_array_equal(previous[valid], warped[valid][:, 6:9])
-    mean = 0.5 * (prepared.pilot_a + prepared.pilot_b)
+    pilot_a, pilot_b = (prepared.plane_group(name).transpose(1, 2, 0) for name in ("pilotA", "pilotB"))
+    mean = 0.5 * (pilot_a + pilot_b)
     np.testing.assert_allclose(previous[~valid], mean[~valid], rtol=1e-6)
     sample = prepared.sample()
     s = channel_slices(CROSSREG_SAMPLE)
     np.testing.assert_array_equal(sample[..., s["valid"]][..., 0], valid.astype(np.float32))
-    np.testing.assert_array_equal(sample[..., : total_channels(CROSSREG_INPUTS)], prepared.features)
-    for name, current, planes in (
-        ("previousPilotA", prepared.pilot_a, slice(0, 3)),
-        ("previousPilotB", prepared.pilot_b, slice(3, 6)),
-    ):
+    np.testing.assert_array_equal(sample[..., : total_channels(CROSSREG_INPUTS)], prepared.planes.transpose(1, 2, 0))
+    for name, current, planes in (("previousPilotA", pilot_a, slice(0, 3)), ("previousPilotB", pilot_b, slice(3, 6))):
         label = sample[..., s[name]]
         kept = (label == warped[..., planes]).all(-1) & reprojected
         assert np.all(kept | (label == current).all(-1))  # each pixel: its reprojected or its current pilot
@@ -116,10 +116,8 @@ def test_warm_start_denoises_better_than_the_pilots_alone():
     frames = [Frame.from_buffers(x) for x in layers]
     outs, _ = _run(pipelines.get("crossreg"), frames)
     for frame, out, x in zip(frames[1:], outs[1:], layers[1:], strict=True):
-        prepared = prepare_frame(frame, None)
-        from service.stages.cross_regression import log_to_linear
-
-        pilots = log_to_linear(0.5 * (prepared.pilot_a + prepared.pilot_b)) + x["emission"]
+        pilots = pilots_to_radiance(*cross_regression(frame["colorA"], frame["colorB"], frame["albedo"],
+                                                      frame["normal"])) + x["emission"]  # fmt: skip
         assert rel_l2(out, x["reference"]) < rel_l2(pilots, x["reference"])
 
 
