@@ -4,9 +4,16 @@ there demodulation and remodulation are a division and multiplication by ALBEDO_
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 ALBEDO_EPS = np.float32(1e-2)  # albedo units; as in SVGF-style demodulation, keeps 1/albedo <= 100
+
+
+@numba.njit(inline="always")
+def albedo_factor(albedo):  # pragma: no cover - jitted
+    """The divisor of `demodulate` and factor of `remodulate` for one float32 albedo value, in kernels."""
+    return np.maximum(albedo, np.float32(0.0)) + ALBEDO_EPS
 
 
 def demodulate(color: np.ndarray, albedo: np.ndarray) -> np.ndarray:

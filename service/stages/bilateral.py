@@ -20,6 +20,13 @@ from service.stages.window import Slice2, overlap, window_offsets
 DEPTH_FLOOR = 1e-6  # scene units; depths below this are clamped before the log
 
 
+def log_depth(depth: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """log(max(depth, DEPTH_FLOOR)): depth any shape float32 camera distance, scene units; into `out`
+    (same shape, float32) when given. The depth guide of every filter that takes one."""
+    out = np.maximum(depth, np.float32(DEPTH_FLOOR), out=out)
+    return np.log(out, out=out)
+
+
 @dataclass(frozen=True)
 class BilateralParams:
     radius: int = 6  # window half-size in pixels (Sakai uses 20 at 720p; 6 is their fast setting)
@@ -57,8 +64,7 @@ def guide_features(
     if normal is not None:
         parts.append(normal / np.float32(np.sqrt(params.sigma2_normal)))
     if depth is not None and params.sigma2_log_depth is not None:
-        log_depth = np.log(np.maximum(depth, DEPTH_FLOOR))
-        parts.append(log_depth / np.float32(np.sqrt(params.sigma2_log_depth)))
+        parts.append(log_depth(depth) / np.float32(np.sqrt(params.sigma2_log_depth)))
     return np.ascontiguousarray(np.concatenate(parts, axis=-1), dtype=np.float32)
 
 

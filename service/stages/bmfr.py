@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.stages.albedo import remodulate
-from service.stages.bilateral import DEPTH_FLOOR
+from service.stages.bilateral import log_depth
 from service.stages.local_regression import (
     FIREFLY_K,
     RIDGE_ABSOLUTE,
@@ -76,8 +76,7 @@ def gbuffer_features(albedo: np.ndarray, normal: np.ndarray, depth: np.ndarray |
     channel_planes(albedo, out=planes[0:3])
     channel_planes(normal, out=planes[3:6])
     if depth is not None:
-        np.maximum(depth[..., 0], DEPTH_FLOOR, out=planes[6])
-        np.log(planes[6], out=planes[6])
+        log_depth(depth[..., 0], out=planes[6])
     planes[-2] = np.arange(width, dtype=np.float32)
     planes[-1] = np.arange(height, dtype=np.float32)[:, None]
     return standardise(planes, out=planes)
@@ -90,7 +89,7 @@ def gbuffer_features_reference(albedo: np.ndarray, normal: np.ndarray, depth: np
     y = np.broadcast_to(np.arange(height, dtype=np.float32)[:, None], (1, height, width))
     parts = [to_planes(albedo), to_planes(normal)]
     if depth is not None:
-        parts.append(np.log(np.maximum(to_planes(depth), DEPTH_FLOOR)))
+        parts.append(log_depth(to_planes(depth)))
     parts += [x, y]
     return standardise_reference(np.concatenate(parts, axis=0))
 

@@ -31,12 +31,12 @@ import numpy as np
 
 from service.stages.local_regression import (
     BlockParams,
-    _constants,
-    _Layout,
-    _phase_planes,
+    MomentLayout,
     centre_count,
+    kernel_constants,
     normalise_phases,
     pad_lanes,
+    phase_planes,
     spatial_weights,
     to_planes,
 )
@@ -107,7 +107,7 @@ def pack_cross_reference(
     parts = [np.ones((1, height, width), np.float32), to_planes(normal), to_planes(albedo)]
     for log, variance in ((log_a, variance_a), (log_b, variance_b)):
         parts += [log, variance[None], np.sqrt(variance)[None]]
-    split = _phase_planes(np.concatenate(parts).astype(np.float32), params)  # lanes: centres + 1
+    split = phase_planes(np.concatenate(parts).astype(np.float32), params)  # lanes: centres + 1
     lanes = plane_lanes(width, params)
     out = np.zeros((*split.shape[:3], lanes), np.float32)
     out[..., : min(lanes, split.shape[3])] = split[..., :lanes]
@@ -208,8 +208,8 @@ def _regress(planes: np.ndarray, width: int, guide: int, target: int, params: Bl
     den = np.zeros((s, height, lanes + extra), np.float32)
     ridge = np.array([params.ridge_relative, params.ridge_absolute])
     counts = np.array([centre_count(height, s), centre_count(width, s)], np.int64)
-    _cross_block_kernel(planes, guide, target, spatial_weights(params), params.radius, counts, _constants(), ridge, num,
-                        den)  # fmt: skip
+    _cross_block_kernel(planes, guide, target, spatial_weights(params), params.radius, counts, kernel_constants(),
+                        ridge, num, den)  # fmt: skip
     out = np.empty((3, height, width), np.float32)
     normalise_phases(num, den, pad_lanes(params), out)
     return out
@@ -261,7 +261,7 @@ def _pairs_pass(planes, guide, target, spatial, radius, consts, cy, y0, y1, c, p
     sum w [1, dn] [1, dn]^T (upper triangle row by row) into moments[0:10]. The later passes stream the
     scratch in order instead of gathering from 4 phase planes x 17 rows again."""
     s = planes.shape[0]
-    eps_sigma, eps_variance, floor = consts[0], consts[1], consts[2]  # `local_regression._constants`
+    eps_sigma, eps_variance, floor = consts[0], consts[1], consts[2]  # `local_regression.kernel_constants`
     mask_c = load(planes, (0, MASK, cy, c))
     g0, g1, g2 = _centres3(planes, guide, cy, c)
     var_c, sig_c = load(planes, (0, guide + 3, cy, c)) + eps_variance, load(planes, (0, guide + 4, cy, c)) + eps_sigma
@@ -327,10 +327,10 @@ def _centres3(planes, first, cy, c):  # pragma: no cover
 
 def _moment_entries() -> np.ndarray:
     """(kind, row, column) of each moment in the order the passes store them, which is
-    `local_regression._Layout.moment_entries` of the cross layout (3 guides, 3 shared features, 3 groups
+    `local_regression.MomentLayout.moment_entries` of the cross layout (3 guides, 3 shared features, 3 groups
     of 2, 3 targets): kind 0 for the shared ones (in every channel's system), ch + 1 for channel ch's;
     column FEATURES for the right-hand side."""
-    _, _, dest = _Layout(3, 3, 3, 2, 3).moment_entries()
+    _, _, dest = MomentLayout(3, 3, 3, 2, 3).moment_entries()
     entries = [(0 if kind == 0 else g + 1, p, q if kind < 2 else FEATURES) for kind, g, p, q in dest]
     assert len(entries) == MOMENTS
     return np.array(entries, np.int64)

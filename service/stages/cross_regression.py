@@ -43,6 +43,7 @@ from service.stages.local_regression import (
     pad_lanes,
     to_planes,
 )
+from service.stages.parallel import rows_per_thread
 from service.stages.simd import bits_to_float32, float32_to_bits
 
 LOG_MAX = 88.0  # |log value| limit of `log_to_linear`: expm1(88) = 1.65e38, two of them still below float32 max
@@ -326,7 +327,7 @@ def pack_buffers(
     height, width = shapes[0][:2]
     out = empty_planes(height, width, params)
     f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (color_a, color_b, albedo, normal)]
-    rows = max(1, -(-height // numba.get_num_threads()))  # a task per thread: the fewest logs taken twice
+    rows = rows_per_thread(height)  # the fewest logs taken twice
     k = np.float32(1.0 if firefly_k is None else firefly_k)  # unused when the clamp is off
     _pack_buffers_kernel(*f32, k, firefly_k is not None, rows, pad_lanes(params), out)
     return out

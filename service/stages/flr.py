@@ -25,7 +25,7 @@ import numba
 import numpy as np
 
 from service.stages.albedo import remodulate
-from service.stages.bilateral import DEPTH_FLOOR
+from service.stages.bilateral import log_depth
 from service.stages.local_regression import (
     FIREFLY_K,
     RIDGE_RELATIVE,
@@ -41,6 +41,7 @@ from service.stages.local_regression import (
     standardise,
     to_planes,
 )
+from service.stages.parallel import rows_per_thread
 from service.stages.window import overlap
 
 RIDGE_ABSOLUTE_FLR = 1e-4  # slope ridge floor, in units of a standardised guide's frame variance
@@ -91,8 +92,7 @@ def gbuffer_guides(
         channel_planes(normal, out=planes[: normal.shape[2]])
         q = normal.shape[2]
     if depth is not None:
-        np.maximum(depth[..., 0], DEPTH_FLOOR, out=planes[q])
-        np.log(planes[q], out=planes[q])
+        log_depth(depth[..., 0], out=planes[q])
         q += 1
     if ao is not None:
         planes[q] = ao[..., 0]
@@ -107,7 +107,7 @@ def gbuffer_guides_reference(
     if normal is not None:
         parts.append(normal)
     if depth is not None:
-        parts.append(np.log(np.maximum(depth, DEPTH_FLOOR)))
+        parts.append(log_depth(depth))
     if ao is not None:
         parts.append(ao)
     if not parts:
@@ -383,7 +383,7 @@ def _solve_cells_kernel(sums, pick, ridge_relative, ridge_absolute, coefs):
             for lane in range(w):
                 mean_y[k, lane] = cell[1 + q + k, lane] * inv[lane]
         for i in range(q):
-            for j in range(q):
+            for j in range(i + 1):  # the lower triangle: all `cholesky_ridge_solve` reads
                 src = cell[pick[i, j]]
                 for lane in range(w):
                     cov[i, j, lane] = src[lane] * inv[lane] - mean_x[i, lane] * mean_x[j, lane]
@@ -430,7 +430,7 @@ def apply_coefficients(x: np.ndarray, coefs: np.ndarray, scale: int, albedo: np.
     x0, x1, fx = _bilinear_taps(width, ws, scale)
     out = np.empty((height, width, c), np.float32)
     factor = out if albedo is None else np.ascontiguousarray(albedo, dtype=np.float32)
-    rows_per_task = -(-height // numba.get_num_threads())
+    rows_per_task = rows_per_thread(height)
     # Unsigned column indices: numba skips the negative-index fix-up (LLVM still keeps gathers scalar on znver).
     _apply_kernel(x, np.ascontiguousarray(coefs, dtype=np.float32), *ty, x0.astype(np.uint32),
                   x1.astype(np.uint32), fx, rows_per_task, factor, albedo is not None, out)  # fmt: skip

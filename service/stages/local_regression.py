@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from service.stages.albedo import ALBEDO_EPS, demodulate, remodulate
+from service.stages.albedo import albedo_factor, demodulate, remodulate
+from service.stages.parallel import rows_per_thread
 from service.stages.simd import bits_to_float32, float32_to_bits
 from service.stages.window import overlap, window_offsets
 
@@ -143,7 +144,8 @@ def solve_ridge(
 def cholesky_ridge_solve(a, b, k, m, ridge_relative, ridge_absolute, constant, weight_sum, n):
     """numba-callable core of `solve_ridge`: n systems at once, the system index last so every step
     vectorises across systems. In place: a (k, k, L) float64 scratch holding X^T W X of system l in
-    a[:, :, l] (overwritten); b (k, m, L) float64 holding X^T W Y -> beta; lanes l < n <= L are solved.
+    a[:, :, l] (only its lower triangle and diagonal are read; overwritten); b (k, m, L) float64 holding
+    X^T W Y -> beta; lanes l < n <= L are solved.
     constant, weight_sum (L,) float64 (read only when not constant): see `solve_ridge`. The diagonal of
     `a` ends up holding 1 / L_jj: one division per pivot. `solve_ridge_reference` is the numpy twin."""
     scale = np.empty(n)
@@ -383,13 +385,13 @@ def block_solve(
     feature order [1, shared..., grouped...]. packed: `pack_planes(terms, target, params)`, if at hand.
     """
     hc, wc, g, k1, m = _moment_shape(terms, target, params)
-    layout = _Layout.of(terms, target.shape[0])
+    layout = MomentLayout.of(terms, target.shape[0])
     fa, fb, dest = layout.moment_entries()
     acc = np.zeros((hc, len(fa), wc), np.float32)
     _block_moments_kernel(
         pack_planes(terms, target, params) if packed is None else packed, layout.counts(),
         np.asarray(terms.scaled, np.bool_),
-        spatial_weights(params), params.radius, params.sparsity, _constants(), fa, fb, acc,
+        spatial_weights(params), params.radius, params.sparsity, kernel_constants(), fa, fb, acc,
     )  # fmt: skip
     gram_entry = np.zeros((g, k1, k1), np.int64)  # which accumulator holds each gram / rhs element
     rhs_entry = np.zeros((g, k1, m), np.int64)
@@ -410,7 +412,7 @@ def _moments_solve_kernel(acc, gram_entry, rhs_entry, ridge_relative, ridge_abso
     centres solved together as the lanes of `cholesky_ridge_solve`."""
     hc, _, wc = acc.shape
     g, k1, m = rhs_entry.shape
-    unused = np.empty(wc)  # weight sums: the constant column holds them
+    unused = np.empty(0)  # weight sums: the constant column holds them
     for a in numba.prange(hc):
         x = np.empty((k1, k1, wc))
         y = np.empty((k1, m, wc))
@@ -510,7 +512,7 @@ LANE_CHUNK = 512  # centres processed together: a whole centre row up to 2048 px
 # sum over pairs of w * F[fa] * F[fb], a prediction sum over k of beta_k * F[k].
 
 
-class _Layout:
+class MomentLayout:
     """Plane and feature-row indices of a block regression: d weight guides, ks shared features, g groups
     of kg grouped features, c target channels (`of` reads them from a PairTerms)."""
 
@@ -519,7 +521,7 @@ class _Layout:
         self.m = c // g
 
     @classmethod
-    def of(cls, terms: PairTerms, channels: int) -> _Layout:
+    def of(cls, terms: PairTerms, channels: int) -> MomentLayout:
         return cls(terms.weight_guide.shape[0], terms.shared.shape[0], *terms.grouped.shape[:2], channels)
 
     def counts(self) -> np.ndarray:
@@ -570,7 +572,8 @@ class _Layout:
         return np.array(ch, np.int64), np.array(rows, np.int64), np.array(cols, np.int64)
 
 
-def _constants() -> np.ndarray:
+def kernel_constants() -> np.ndarray:
+    """[EPS_SIGMA, EPS_VARIANCE, WEIGHT_FLOOR] float32, the constants the regression kernels take."""
     return np.array([EPS_SIGMA, EPS_VARIANCE, WEIGHT_FLOOR], np.float32)
 
 
@@ -580,7 +583,7 @@ def pad_lanes(params: BlockParams) -> int:
 
 def pack_planes(terms: PairTerms, target: np.ndarray | None, params: BlockParams) -> np.ndarray:
     """The kernels' input: every plane of `terms` (and `target`) packed and split into phase planes."""
-    parts = _Layout.of(terms, 0 if target is None else target.shape[0]).parts(terms, target)
+    parts = MomentLayout.of(terms, 0 if target is None else target.shape[0]).parts(terms, target)
     s, pad = params.sparsity, pad_lanes(params)
     height, width = terms.sigma.shape
     out = np.empty((s, sum(part.shape[0] for part in parts), height, centre_count(width, s) + 2 * pad + 1), np.float32)
@@ -593,7 +596,7 @@ def pack_planes(terms: PairTerms, target: np.ndarray | None, params: BlockParams
 
 @numba.njit(parallel=True, cache=True)
 def _phase_copy_kernel(src, first, pad, out):
-    """Planes src (k, H, W) into out[:, first : first + k] of `_phase_planes`' layout, zeros around."""
+    """Planes src (k, H, W) into out[:, first : first + k] of `phase_planes`' layout, zeros around."""
     count, height, width = src.shape
     s, lanes = out.shape[0], out.shape[3]
     for y in numba.prange(height):
@@ -609,7 +612,7 @@ def _phase_copy_kernel(src, first, pad, out):
                     dst[j] = 0.0
 
 
-def _phase_planes(planes: np.ndarray, params: BlockParams) -> np.ndarray:
+def phase_planes(planes: np.ndarray, params: BlockParams) -> np.ndarray:
     """Plain-numpy twin of `pack_planes`' phase split: (P, H, W) -> (S, P, H, Wc + 2 pad + 1) float32,
     S = sparsity: pixel x = S q + phase lands at [phase, :, :, q + pad], pad = ceil(radius / S); zeros
     outside the frame (the mask plane is 0 there)."""
@@ -725,7 +728,7 @@ def block_reconstruct(
     hc, wc, g, _, m = beta.shape
     height, width = terms.sigma.shape
     s = params.sparsity
-    layout = _Layout.of(terms, g * m)
+    layout = MomentLayout.of(terms, g * m)
     layout.c = 0  # the kernel reads no target planes
     ch, rows, cols = layout.prediction_entries()
     planes = pack_planes(terms, None, params) if packed is None else packed
@@ -733,7 +736,7 @@ def block_reconstruct(
     den = np.zeros((s, height, planes.shape[3]), np.float32)
     coefs = np.ascontiguousarray(beta.reshape(hc, wc, -1).transpose(0, 2, 1))  # (Hc, G*K1*M, Wc)
     _block_reconstruct_kernel(planes, layout.counts(), np.asarray(terms.scaled, np.bool_), spatial_weights(params),
-                              params.radius, s, _constants(), coefs, ch, rows, cols, num, den)  # fmt: skip
+                              params.radius, s, kernel_constants(), coefs, ch, rows, cols, num, den)  # fmt: skip
     out = np.empty((g * m, height, width), np.float32)
     normalise_phases(num, den, pad_lanes(params), out)
     return out
@@ -951,17 +954,16 @@ def channel_planes_reference(
 
 @numba.njit(parallel=True, cache=True)
 def _channel_planes_kernel(image, albedo, divide, out):
-    """out[m, y, x] = image[y, x, m], divided by max(albedo[y, x, m], 0) + ALBEDO_EPS when `divide`."""
+    """out[m, y, x] = image[y, x, m], divided by `albedo_factor(albedo[y, x, m])` when `divide`."""
     height, width, channels = image.shape
-    zero = np.float32(0.0)
     for y in numba.prange(height):
         src, factor = image[y].reshape(width * channels), albedo[y].reshape(width * channels)
         if channels == 3 and divide:  # a constant stride: LLVM vectorises the strided loads together (3x faster)
             d0, d1, d2 = out[0, y], out[1, y], out[2, y]
             for x in range(width):
-                d0[x] = src[3 * x] / (np.maximum(factor[3 * x], zero) + ALBEDO_EPS)
-                d1[x] = src[3 * x + 1] / (np.maximum(factor[3 * x + 1], zero) + ALBEDO_EPS)
-                d2[x] = src[3 * x + 2] / (np.maximum(factor[3 * x + 2], zero) + ALBEDO_EPS)
+                d0[x] = src[3 * x] / albedo_factor(factor[3 * x])
+                d1[x] = src[3 * x + 1] / albedo_factor(factor[3 * x + 1])
+                d2[x] = src[3 * x + 2] / albedo_factor(factor[3 * x + 2])
         elif channels == 3:
             d0, d1, d2 = out[0, y], out[1, y], out[2, y]
             for x in range(width):
@@ -973,24 +975,23 @@ def _channel_planes_kernel(image, albedo, divide, out):
                 dst = out[m, y]
                 for x in range(width):
                     i = x * channels + m
-                    dst[x] = src[i] / (np.maximum(factor[i], zero) + ALBEDO_EPS) if divide else src[i]
+                    dst[x] = src[i] / albedo_factor(factor[i]) if divide else src[i]
 
 
 @numba.njit(inline="always")
 def interleave_row(line, albedo, modulate, out):
     """out[x, m] = line[m, x]: a row of planes (C, W) float32 into a row of pixels (W, C), times
-    max(albedo[x, m], 0) + ALBEDO_EPS when `modulate` (`albedo.remodulate`, fused into the store).
+    `albedo_factor(albedo[x, m])` when `modulate` (`albedo.remodulate`, fused into the store).
     For 3 channels the flag is tested outside the loops: tested inside, it kept them from vectorising."""
     channels, width = line.shape
     dst, factor = out.reshape(width * channels), albedo.reshape(width * channels)
-    zero = np.float32(0.0)
     if channels == 3:  # a constant stride: the strided stores vectorise together
         s0, s1, s2 = line[0], line[1], line[2]
         if modulate:
             for x in range(width):
-                dst[3 * x] = s0[x] * (np.maximum(factor[3 * x], zero) + ALBEDO_EPS)
-                dst[3 * x + 1] = s1[x] * (np.maximum(factor[3 * x + 1], zero) + ALBEDO_EPS)
-                dst[3 * x + 2] = s2[x] * (np.maximum(factor[3 * x + 2], zero) + ALBEDO_EPS)
+                dst[3 * x] = s0[x] * albedo_factor(factor[3 * x])
+                dst[3 * x + 1] = s1[x] * albedo_factor(factor[3 * x + 1])
+                dst[3 * x + 2] = s2[x] * albedo_factor(factor[3 * x + 2])
         else:
             for x in range(width):
                 dst[3 * x] = s0[x]
@@ -1001,7 +1002,7 @@ def interleave_row(line, albedo, modulate, out):
             src = line[m]
             for x in range(width):
                 i = x * channels + m
-                dst[i] = src[x] * (np.maximum(factor[i], zero) + ALBEDO_EPS) if modulate else src[x]
+                dst[i] = src[x] * albedo_factor(factor[i]) if modulate else src[x]
 
 
 # ------------------------------------------------------------------- flat weights: exact box sums
@@ -1024,8 +1025,8 @@ def box_regression(
     and shared between centres: the window's 2r+1 rows are nb = (2r+1) // s bands of s rows plus the
     first (2r+1) mod s rows of the next band, and a band serves nb consecutive centre rows, so every
     pixel's products are summed once; columns likewise, each frame row split into its s phases (columns
-    j s + t) so that a column band's sum is a sum of contiguous vectors. The systems are solved 8 or more
-    at a time (`cholesky_ridge_solve`), and eq. 5 becomes a box sum of the centres' coefficients:
+    j s + t) so that a column band's sum is a sum of contiguous vectors. The systems of up to BOX_TILE
+    centres are solved at a time (`cholesky_ridge_solve`), and eq. 5 becomes a box sum of the centres' coefficients:
     out_i = mean over c of (alpha_c - beta_c . z_c) + x_i . mean of beta_c. The constant pair weight
     (1 + WEIGHT_FLOOR) cancels in both.
 
@@ -1046,7 +1047,7 @@ def box_regression(
     s = params.sparsity
     centre_rows = centre_count(height, s)
     coefs = np.empty((centre_rows, centre_count(width, s), target.shape[0], 1 + k))
-    rows_per_task = -(-centre_rows // numba.get_num_threads())  # one band of centre rows per thread
+    rows_per_task = rows_per_thread(centre_rows)
     _box_solve_kernel(features, target, params.radius, s, float(params.ridge_relative),
                       float(params.ridge_absolute), rows_per_task, coefs)  # fmt: skip
     out = np.empty((height, width, target.shape[0]), np.float32)
@@ -1129,7 +1130,7 @@ def _window_sums(head, full, a, nb, nl, win, sums):
 
 @numba.njit(inline="always")
 def _centre_systems(sums, z, index, nl, gram, rhs):
-    """gram[p, q, l], rhs[p, m, l] of centre l from its raw window sums and features z[:, l] (z[0] = 0)."""
+    """gram[q, p, l] (q >= p), rhs[p, m, l] of centre l from its raw window sums and features z[:, l] (z[0] = 0)."""
     k1, c = gram.shape[0], rhs.shape[1]
     s00 = sums[0]
     for p in range(k1):
@@ -1138,8 +1139,7 @@ def _centre_systems(sums, z, index, nl, gram, rhs):
             spq, s0q, zq = sums[index[p, q]], sums[index[0, q]], z[q]
             for lane in range(nl):
                 v = spq[lane] - zp[lane] * s0q[lane] - zq[lane] * s0p[lane] + zp[lane] * zq[lane] * s00[lane]
-                gram[p, q, lane] = v
-                gram[q, p, lane] = v
+                gram[q, p, lane] = v  # the lower triangle: all `cholesky_ridge_solve` reads
         for m in range(c):
             spm, s0m = sums[index[p, k1 + m]], sums[index[0, k1 + m]]
             for lane in range(nl):
@@ -1185,7 +1185,7 @@ def _box_solve_kernel(x, y, radius, sparsity, ridge_relative, ridge_absolute, ro
         win = np.empty((2, ne, nx))
         sums = np.empty((ne, nl))
         z = np.zeros((k1, nl))
-        ones = np.ones(nl)  # weight sums, unread: the constant column holds them
+        unused = np.empty(0)  # weight sums: the constant column holds them
         gram = np.empty((k1, k1, nl))
         rhs = np.empty((k1, c, nl))
         for j in range(a0, a1 + nb):
@@ -1207,7 +1207,7 @@ def _box_solve_kernel(x, y, radius, sparsity, ridge_relative, ridge_absolute, ro
                 for lane in range(nl):
                     z[1 + i, lane] = src[(b0 + lane) * s]
             _centre_systems(sums, z, index, nl, gram, rhs)
-            cholesky_ridge_solve(gram, rhs, k1, c, ridge_relative, ridge_absolute, True, ones, nl)
+            cholesky_ridge_solve(gram, rhs, k1, c, ridge_relative, ridge_absolute, True, unused, nl)
             for m in range(c):
                 for lane in range(nl):
                     gamma = rhs[0, m, lane]

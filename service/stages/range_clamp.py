@@ -21,6 +21,8 @@ from collections.abc import Callable
 import numba
 import numpy as np
 
+from service.stages.parallel import rows_per_thread
+
 Reduce = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
@@ -55,7 +57,7 @@ def local_range(image: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]
     check_radius(radius)
     image = np.ascontiguousarray(image, dtype=np.float32)
     lo, hi = np.empty_like(image), np.empty_like(image)
-    _range_kernel(image, image, int(radius), False, _rows_per_task(image), lo, hi)
+    _range_kernel(image, image, int(radius), False, rows_per_thread(image.shape[0]), lo, hi)
     return lo, hi
 
 
@@ -78,7 +80,7 @@ def clamp_to_local_range(output: np.ndarray, image: np.ndarray, radius: int) -> 
     image = np.ascontiguousarray(image, dtype=np.float32)
     output = np.ascontiguousarray(output, dtype=np.float32)
     out = np.empty_like(output)
-    _range_kernel(image, output, int(radius), True, _rows_per_task(image), out, out)
+    _range_kernel(image, output, int(radius), True, rows_per_thread(image.shape[0]), out, out)
     return out
 
 
@@ -86,11 +88,6 @@ def clamp_to_local_range_reference(output: np.ndarray, image: np.ndarray, radius
     """Plain-numpy twin of `clamp_to_local_range`."""
     lo, hi = local_range_reference(image, radius)
     return np.clip(output, lo, hi).astype(np.float32)
-
-
-def _rows_per_task(image: np.ndarray) -> int:
-    """Output rows per task of `_range_kernel`: one band per thread (each band reads 2r rows of halo)."""
-    return -(-image.shape[0] // numba.get_num_threads())
 
 
 @numba.njit(inline="always")
