@@ -215,7 +215,7 @@ def _regress(planes: np.ndarray, width: int, guide: int, target: int, params: Bl
     return out
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _cross_block_kernel(planes, guide, target, spatial, radius, counts, consts, ridge, num, den):  # pragma: no cover
     """Every centre row's regression and its weighted predictions into num (S, 3, H, L'), den (S, H, L'),
     which have more lanes than the planes (L' > L, see `_regress`).

@@ -175,7 +175,7 @@ def _log_row(flat, y, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
         d2[x] = line[3 * x + 2]
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _pilots_kernel(pilot_a, pilot_b, out):  # pragma: no cover - jitted
     """pilot_a, pilot_b (C, H, W) -> out (H, W, C): 0.5 (e(a) + e(b)), e the signed expm1 of values clipped
     to +-LOG_MAX, a task per row, the row interleaved by `interleave_row` (its albedo is unused)."""
@@ -256,7 +256,7 @@ def pixel_variance_reference(log_planes: np.ndarray) -> np.ndarray:
     return np.einsum("chw,chw->hw", diff, diff).astype(np.float32)
 
 
-@numba.njit(fastmath=True)
+@numba.njit(fastmath=True, error_model="numpy")
 def _variance_row(planes, y, height, acc, total):  # pragma: no cover - jitted
     """Row y of `pixel_variance_reference` of an H-row frame into total (W,) float32: 3-pixel row sums of
     the valid rows, minus the pixel, per channel. Frame row yy lies at planes[:, yy % P], planes (C, P, W)
@@ -333,7 +333,7 @@ def pack_buffers(
     return out
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _pack_buffers_kernel(color_a, color_b, albedo, normal, k, clamp, rows, pad, out):  # pragma: no cover
     """color_a, color_b, albedo, normal (H, W, 3) -> out, a task per `rows` consecutive frame rows. A task
     keeps each buffer's log rows y - 1, y, y + 1 (`_log_row`) in a ring of three, frame row yy in slot

@@ -185,7 +185,7 @@ def cell_sums_reference(x: np.ndarray, y: np.ndarray, scale: int) -> np.ndarray:
     return np.ascontiguousarray(sums.transpose(1, 0, 2))
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _cell_sums_kernel(x, y, scale, out):
     """Per cell row: every moment's product summed over the cell row's pixel rows into a (E, W) buffer
     (contiguous along x, so it vectorises), then over each cell's `scale` columns: `scale` shifted adds
@@ -284,7 +284,7 @@ def _gaussian_taps(sigma: float, truncate: float) -> np.ndarray:
     return np.exp(-0.5 * (d / sigma) ** 2).astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _blur_kernel(src, taps, rows, out):
     """src, rows, out: (h, E, w). rows[y] = sum over |d| <= R of taps[|d|] src[y + d] (inside only), then
     out[:, :, x] likewise over rows[:, :, x + d]: both passes on contiguous vectors."""
@@ -358,7 +358,7 @@ def solve_cells_reference(sums: np.ndarray, q: int, c: int, params: FlrParams) -
     return np.ascontiguousarray(coefs.transpose(0, 2, 3, 1), dtype=np.float32)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _solve_cells_kernel(sums, pick, ridge_relative, ridge_absolute, coefs):
     """Per cell row, its cells as the lanes, in float64: weighted means and covariances from the sums
     (order of `_moment_index`), cov(x, x) a = cov(x, y) with the slope ridge (`cholesky_ridge_solve`,
@@ -464,7 +464,7 @@ def _upsample_row(coefs, a, x0, x1, fx, dst):
                 row[xx] = lo + fx[xx] * (src[x1[xx]] - lo)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _apply_kernel(x, coefs, y0, y1, fy, x0, x1, fx, rows_per_task, albedo, modulate, out):
     """out: (H, W, C). A task per `rows_per_task` pixel rows: each cell row's coefficients are upsampled
     along x once (two slots: the cell rows above and below the current pixel row), then per pixel row

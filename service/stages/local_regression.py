@@ -190,7 +190,7 @@ def cholesky_ridge_solve(a, b, k, m, ridge_relative, ridge_absolute, constant, w
 SOLVE_LANES = 64  # systems `_solve_kernel` solves together
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _solve_kernel(gram, rhs, ridge_relative, ridge_absolute, constant, sums, out):
     count, k, m = rhs.shape
     for first in numba.prange((count + SOLVE_LANES - 1) // SOLVE_LANES):
@@ -326,7 +326,7 @@ def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K) -> np.nd
     return np.where(np.isfinite(lo), out, planes).astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False)
+@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
 def _clamp_kernel(planes, k, out):
     channels, height, width = planes.shape
     for row in numba.prange(channels * height):  # a task per row of a channel
@@ -406,7 +406,7 @@ def block_solve(
     return beta
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _moments_solve_kernel(acc, gram_entry, rhs_entry, ridge_relative, ridge_absolute, beta):
     """acc (Hc, entries, Wc) float32 moments -> beta (Hc, Wc, G, K1, M): per centre row and group, its
     centres solved together as the lanes of `cholesky_ridge_solve`."""
@@ -594,7 +594,7 @@ def pack_planes(terms: PairTerms, target: np.ndarray | None, params: BlockParams
     return out
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _phase_copy_kernel(src, first, pad, out):
     """Planes src (k, H, W) into out[:, first : first + k] of `phase_planes`' layout, zeros around."""
     count, height, width = src.shape
@@ -672,7 +672,7 @@ def _pair_rows(planes, counts, scaled, consts, sw, phase, y, cy, lo, pad, rows, 
             out[j] = pix[j]
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _block_moments_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, fa, fb, acc):
     """Moments of every centre row's lanes into acc (Hc, entries, Wc): entry e is sum w * F[fa[e]] * F[fb[e]],
     one pass per entry (the cross-regression has its own fused kernel, `cross_block`)."""
@@ -742,7 +742,7 @@ def block_reconstruct(
     return out
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def normalise_phases(num, den, pad, out):
     """Back from the phase planes, eq. 5's division: out[c, y, x] = num[p, c, y, q] / den[p, y, q] with
     p = x % S, q = pad + x // S (0 where no weight arrived). num (S, C, H, L), den (S, H, L), out (C, H, W)."""
@@ -782,7 +782,7 @@ def block_reconstruct_reference(terms: PairTerms, beta: np.ndarray, params: Bloc
     return num / den
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _block_reconstruct_kernel(planes, counts, scaled, spatial, radius, sparsity, consts, coefs, ch, frow, col, num,
                               den):  # fmt: skip
     """Weighted predictions of every centre into num (S, C, H, lanes) and weights into den (S, H, lanes)."""
@@ -888,7 +888,7 @@ def standardise_reference(planes: np.ndarray) -> np.ndarray:
 STANDARDISE_BLOCK = 1 << 16  # values per task of `_standardise_kernel`
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _standardise_kernel(flat, out):
     """flat, out: (K, N) float32, N >= 1. Per row, float64 sums of d = x - x0 and d^2 over blocks (x0: the
     row's first value, so the variance loses nothing to cancellation), then (x - mean) / std."""
@@ -952,7 +952,7 @@ def channel_planes_reference(
     return out
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _channel_planes_kernel(image, albedo, divide, out):
     """out[m, y, x] = image[y, x, m], divided by `albedo_factor(albedo[y, x, m])` when `divide`."""
     height, width, channels = image.shape
@@ -1146,7 +1146,7 @@ def _centre_systems(sums, z, index, nl, gram, rhs):
                 rhs[p, m, lane] = spm[lane] - zp[lane] * s0m[lane]
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _box_solve_kernel(x, y, radius, sparsity, ridge_relative, ridge_absolute, rows_per_task, coefs):
     """coefs[a, b, m] = [alpha_m - beta_m . z, beta_m (K)] of centre (a s, b s), float64. A task per
     `rows_per_task` centre rows x BOX_TILE centre columns; band j (frame rows j s - r ..) is summed in two
@@ -1217,7 +1217,7 @@ def _box_solve_kernel(x, y, radius, sparsity, ridge_relative, ridge_absolute, ro
                     coefs[a, b0 + lane, m, 0] = gamma
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _centre_runs(size, count, radius, sparsity):
     """Along an axis of `size` pixels with `count` centres: the centres [lo, hi) whose window holds each
     pixel, grouped into runs of pixels with the same range. Returns (run of each pixel (size,) uint32,
@@ -1237,7 +1237,7 @@ def _centre_runs(size, count, radius, sparsity):
     return run, lo[: n + 1], hi[: n + 1], start[: n + 2]
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _box_reconstruct_kernel(x, coefs, radius, sparsity, albedo, modulate, out):
     """out[y, x, m] (H, W, C) = mean over the centres whose window holds the pixel of gamma_m + beta_m . x
     (times the albedo factor when `modulate`: `interleave_row`). The centres' mean coefficients are
@@ -1458,7 +1458,7 @@ def _add_row(cols, t, keep, second, sign, width, pad):
             c1[x] += sign * a * a
 
 
-@numba.njit(parallel=True, cache=True, fastmath=True)
+@numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _cluster_kernel(planes, s, radius, k, clip, margin, out):
     """Three sweeps over all channels: t (float32, fast log); box sums of [t, t^2] -> mean, std -> keep
     mask; box sums of [keep, t keep, t^2 keep] -> clipped mean, std -> clip. Box sums: float64 running

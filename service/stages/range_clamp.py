@@ -166,7 +166,7 @@ def _emit(lo, hi, output, clamp, lo_out, hi_out):
         hi_out.reshape(n)[:] = hi[:n]
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _range_kernel(image, output, radius, clamp, rows_per_task, lo_out, hi_out):
     """clamp: lo_out[y] = clip(output[y], lo, hi); else lo_out, hi_out = lo, hi. Per band of output rows,
     the window's rows by van Herk / Gil-Werman: frame rows in blocks of g = 2r+1 starting at the band's

@@ -190,7 +190,7 @@ def _finish(
     weight_b[y, t0 : t0 + count] = sums_wb[:count]
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
 def _filter_kernel(
     pilot_a, pilot_b, albedo, normal, params, previous, valid, radius, color, color_a, color_b, weight_a, weight_b
 ):  # pragma: no cover - jitted
@@ -341,7 +341,7 @@ def _within(row, lo, hi, inside):  # pragma: no cover - jitted
         inside[_U(x)] &= np.uint8((v >= lo[_U(x)]) & (v <= hi[_U(x)]))
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _screen_kernel(current, history, valid, radius, masks, screened):  # pragma: no cover - jitted
     """Rows in parallel, every channel's window extrema, the comparison and the selection fused (1D row
     views and unsigned indices, so the loops vectorize); arguments as `_screen_reference`."""
