@@ -1,4 +1,4 @@
-"""The cross-regression's block regression (Choi 2024 eqs. 3-7) as one fused SIMD kernel per buffer.
+"""The cross-regression's block regression (Choi 2024 eqs. 3-7) as one fused SIMD kernel for both buffers.
 
 `regress_packed` gives the same two pilots as `local_regression.block_regression` on
 `cross_regression.buffer_terms` (whose plain-numpy twin, `block_regression(..., reference=True)`, is the
@@ -11,17 +11,23 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
   service packs straight from the radiance (`cross_regression.pack_buffers`, which takes the logs and
   variances on the way and writes each row with `pack_row`); `pack_cross_reference` is the numpy
   packing from given logs and variances.
-- Per group of LANES centres, one pass reads the window from the planes once and writes each pair's
-  terms (weight, eq. 7; normal, scaled colour (eq. 6) and albedo differences; target colour) to a
-  scratch in pair order, summing the 10 moments of the shared normal features on the way; three more
-  passes (one per colour channel) stream that scratch and sum the channel's 17 moments. Every
-  accumulator is a Vec held in a register: no per-moment store, which is what bounds a
-  loop-vectorised kernel. (Gathering from the 4 phase planes x 17 rows in every pass instead cost
-  ~15% more.)
-- The 61 moments are solved right there, in float64 on `simd.VecD` vectors (`_cholesky_solve`, the
-  operations of `local_regression.cholesky_ridge_solve`), and a last pass adds each centre's weighted
-  predictions (eq. 5), from the same scratch, into a one-row tile that stays in L1 and then into the
-  numerator and denominator planes. Centre rows whose windows overlap are never run at the same time.
+- Both regressions run in one kernel (pilot_a: buffer A's features and weights fitted to buffer B's
+  colours; pilot_b the reverse). Per group of LANES centres and window row, one pass reads the row from
+  the planes once and writes each pair's terms for both (per buffer the weight, eq. 7, the colour scale of
+  eq. 6 and the log colour differences; the normal and albedo differences, shared) to a scratch in pair
+  order; passes over that row's terms (~17 KB, still in L1) add the 10 moments of the shared normal
+  features and each colour channel's 17 moments of each regression. Every accumulator is a Vec held in a
+  register within a pass: no per-moment store per pair, which is what bounds a loop-vectorised kernel.
+  The target colour enters relative to its centre value, which is the other buffer's colour difference
+  already in the scratch. The ridge leaves the constant feature alone, so this is the same fit with the
+  intercept less that value, added back after the solve.
+  (Sharing the terms of both regressions and summing each window row while in L1: at 720p -18% against
+  two kernels that wrote and re-read a window's scratch per buffer, same-process A/B.)
+- The 61 moments of each regression are solved right there, in float64 on `simd.VecD` vectors
+  (`_cholesky_solve`, the operations of `local_regression.cholesky_ridge_solve`), and a last pass adds
+  each centre's weighted predictions of both regressions (eq. 5), from the window's scratch, into a
+  one-row tile that stays in L1 and then into the numerator and denominator planes. Centre rows whose
+  windows overlap are never run at the same time.
 """
 
 from __future__ import annotations
@@ -61,10 +67,11 @@ MASK, NORMAL, ALBEDO, BUFFER_A, BUFFER_B = 0, 1, 4, 7, 12
 PLANES = 17
 MOMENTS = 61  # 10 of the shared features (constant, normal) + 17 per colour channel
 FEATURES = 6  # per colour channel: constant, 3 normal differences, scaled colour difference, albedo difference
-# Rows of the per-pair scratch (`_pairs_pass`): weight, normal difference (3), then per colour channel
-# the scaled colour difference u, the albedo difference a and the target colour t.
-WEIGHT, DN, U, A, T = 0, 1, 4, 7, 10
-PAIR_ROWS = 13
+# Rows of the per-pair scratch (`_pairs_pass`), shared by both regressions: per buffer the weight and the
+# colour scale, then per buffer and colour channel the log colour difference, then the normal and albedo
+# differences (3 each).
+WEIGHT, SCALE, D, DN, DA = 0, 2, 4, 10, 13
+PAIR_ROWS = 16
 
 
 def regress_packed(planes: np.ndarray, width: int, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
@@ -75,7 +82,19 @@ def regress_packed(planes: np.ndarray, width: int, params: BlockParams) -> tuple
     params: window radius, sparsity and ridge (`sigma_position` as in `spatial_weights`).
     Returns (pilot_a, pilot_b), (3, H, W) float32 log colour: pilot_a regresses buffer B's log colour on
     buffer A's features and weights, pilot_b buffer A's on buffer B's."""
-    return _regress(planes, width, BUFFER_A, BUFFER_B, params), _regress(planes, width, BUFFER_B, BUFFER_A, params)
+    s, _, height, lanes = planes.shape
+    # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_predict_pass` adds
+    # them in whole vectors from there, so the sums carry that many lanes (rounded to vectors) more.
+    extra = -(-(2 * pad_lanes(params) + LANES) // LANES) * LANES
+    num = np.zeros((2, s, 3, height, lanes + extra), np.float32)  # per regression (0: pilot_a, 1: pilot_b)
+    den = np.zeros((2, s, height, lanes + extra), np.float32)
+    ridge = np.array([params.ridge_relative, params.ridge_absolute])
+    counts = np.array([centre_count(height, s), centre_count(width, s)], np.int64)
+    _cross_block_kernel(planes, spatial_weights(params), params.radius, counts, kernel_constants(), ridge, num, den)
+    pilots = np.empty((2, 3, height, width), np.float32)
+    for b in range(2):
+        normalise_phases(num[b], den[b], pad_lanes(params), pilots[b])
+    return pilots[0], pilots[1]
 
 
 def empty_planes(height: int, width: int, params: BlockParams) -> np.ndarray:
@@ -197,28 +216,11 @@ def _split4x3(row, i, out, plane, y, q):  # pragma: no cover
     store(out, (3, plane + 2, y, q), load_phase(row, (i,), 12, 11))
 
 
-def _regress(planes: np.ndarray, width: int, guide: int, target: int, params: BlockParams) -> np.ndarray:
-    """One pilot from the packed planes of a frame `width` pixels wide: the buffer at plane `guide` gives
-    features and weights, the one at `target` the colours. Returns (3, H, W) float32."""
-    s, _, height, lanes = planes.shape
-    # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_predict_pass` adds
-    # them in whole vectors from there, so the sums carry that many lanes (rounded to vectors) more.
-    extra = -(-(2 * pad_lanes(params) + LANES) // LANES) * LANES
-    num = np.zeros((s, 3, height, lanes + extra), np.float32)
-    den = np.zeros((s, height, lanes + extra), np.float32)
-    ridge = np.array([params.ridge_relative, params.ridge_absolute])
-    counts = np.array([centre_count(height, s), centre_count(width, s)], np.int64)
-    _cross_block_kernel(planes, guide, target, spatial_weights(params), params.radius, counts, kernel_constants(),
-                        ridge, num, den)  # fmt: skip
-    out = np.empty((3, height, width), np.float32)
-    normalise_phases(num, den, pad_lanes(params), out)
-    return out
-
-
 @numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
-def _cross_block_kernel(planes, guide, target, spatial, radius, counts, consts, ridge, num, den):  # pragma: no cover
-    """Every centre row's regression and its weighted predictions into num (S, 3, H, L'), den (S, H, L'),
-    which have more lanes than the planes (L' > L, see `_regress`).
+def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, num, den):  # pragma: no cover
+    """Every centre row's two regressions and their weighted predictions into num (2, S, 3, H, L'), den
+    (2, S, H, L'), first index the regression (0: buffer A's features and weights fitted to buffer B's
+    colours, 1: the reverse); L' > L, see `regress_packed`.
 
     Centre rows go in chunks of `rows` consecutive ones, which span more than a window: chunks two apart
     never add into the same pixel, so the even chunks run in parallel, then the odd ones. Within a chunk
@@ -234,87 +236,128 @@ def _cross_block_kernel(planes, guide, target, spatial, radius, counts, consts, 
     for parity in range(2):
         for i in numba.prange((chunks - parity + 1) // 2):
             first = (parity + 2 * i) * rows
-            pairs = np.empty((side * side, PAIR_ROWS, LANES), np.float32)  # ~220 KB: L2
-            moments = np.empty((MOMENTS, LANES), np.float32)
+            pairs = np.empty((side * side, PAIR_ROWS, LANES), np.float32)  # ~300 KB: L2
+            moments = np.empty((2, MOMENTS, LANES), np.float32)
             gram = np.empty((3, FEATURES, FEATURES, LANES))
             rhs = np.empty((3, FEATURES, LANES))
-            coefs = np.empty((3 * FEATURES, LANES), np.float32)
-            tile = np.empty((s, 4, num.shape[3] - planes.shape[3]), np.float32)  # see _regress
+            coefs = np.empty((2, 3 * FEATURES, LANES), np.float32)
+            tile = np.empty((2, s, 4, num.shape[4] - planes.shape[3]), np.float32)  # see regress_packed
+            zero = splat(np.float32(0.0))
             for q in range(0, wc, LANES):
                 c = pad + q
                 for r in range(first, min(first + rows, hc)):
                     cy = r * s
                     y0, y1 = max(cy - radius, 0), min(cy + radius + 1, height)
-                    _pairs_pass(planes, guide, target, spatial, radius, consts, cy, y0, y1, c, pairs, moments)
-                    for ch in range(3):
-                        _channel_pass(ch, pairs[: (y1 - y0) * side], moments)
-                    _solve(moments, ridge, gram, rhs, coefs)
+                    for e in range(MOMENTS):
+                        store(moments, (0, e, 0), zero)
+                        store(moments, (1, e, 0), zero)
+                    for y in range(y0, y1):  # a window row's terms (~17 KB) are summed while still in L1
+                        row = pairs[(y - y0) * side : (y - y0 + 1) * side]
+                        _pairs_pass(planes, spatial, radius, consts, cy, y, c, row)
+                        for b in range(2):
+                            _shared_pass(b, row, moments[b])
+                            for ch in range(3):
+                                _channel_pass(b, ch, row, moments[b])
+                    for b in range(2):
+                        _solve(moments[b], ridge, gram, rhs, coefs[b])
+                        target = BUFFER_B if b == 0 else BUFFER_A
+                        for ch in range(3):  # the target was fitted relative to its centre value: add it back
+                            k = ch * FEATURES
+                            store(coefs, (b, k, 0), load(coefs, (b, k, 0)) + load(planes, (0, target + ch, cy, c)))
                     _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den)
 
 
 @numba.njit(inline="always", fastmath=True)
-def _pairs_pass(planes, guide, target, spatial, radius, consts, cy, y0, y1, c, pairs, moments):  # pragma: no cover
-    """The window (rows y0 ... y1 - 1) of LANES centres, read from the planes once: every pair's terms into
-    pairs (offsets, PAIR_ROWS, LANES): the weight (eq. 7, times the spatial factor, plus WEIGHT_FLOOR, 0
-    outside the frame), the normal difference dn and per colour channel u = (y_i - y_c) / (sigma_i +
-    sigma_c + eps) (eq. 6), the albedo difference and the target colour; and the shared moments
-    sum w [1, dn] [1, dn]^T (upper triangle row by row) into moments[0:10]. The later passes stream the
-    scratch in order instead of gathering from 4 phase planes x 17 rows again."""
+def _pairs_pass(planes, spatial, radius, consts, cy, y, c, pairs):  # pragma: no cover
+    """Window row y of LANES centres (centre row cy, lanes c ...), read from the planes once for both
+    regressions: every pair's terms into pairs (2 radius + 1, PAIR_ROWS, LANES), by offset: per buffer the
+    weight (eq. 7, times the spatial factor, plus WEIGHT_FLOOR, 0 outside the frame), the colour scale
+    1 / (sigma_i + sigma_c + eps) of eq. 6 and the log colour differences y_i - y_c; the normal and albedo
+    differences. The later passes stream the scratch in order instead of gathering from 4 phase planes x
+    17 rows again."""
     s = planes.shape[0]
     eps_sigma, eps_variance, floor = consts[0], consts[1], consts[2]  # `local_regression.kernel_constants`
     mask_c = load(planes, (0, MASK, cy, c))
-    g0, g1, g2 = _centres3(planes, guide, cy, c)
-    var_c, sig_c = load(planes, (0, guide + 3, cy, c)) + eps_variance, load(planes, (0, guide + 4, cy, c)) + eps_sigma
+    ga0, ga1, ga2 = _centres3(planes, BUFFER_A, cy, c)
+    gb0, gb1, gb2 = _centres3(planes, BUFFER_B, cy, c)
+    var_a, sig_a = load(planes, (0, BUFFER_A + 3, cy, c)), load(planes, (0, BUFFER_A + 4, cy, c))
+    var_b, sig_b = load(planes, (0, BUFFER_B + 3, cy, c)), load(planes, (0, BUFFER_B + 4, cy, c))
+    var_a, sig_a, var_b, sig_b = var_a + eps_variance, sig_a + eps_sigma, var_b + eps_variance, sig_b + eps_sigma
     n0, n1, n2 = _centres3(planes, NORMAL, cy, c)
     a0, a1, a2 = _centres3(planes, ALBEDO, cy, c)
-    zero = splat(np.float32(0.0))
-    m = (zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
-    for y in range(y0, y1):
-        o = (y - y0) * (2 * radius + 1)
-        p, x = (-radius) % s, c + (-radius) // s
-        for dx in range(-radius, radius + 1):
-            d0 = load(planes, (p, guide, y, x)) - g0
-            d1 = load(planes, (p, guide + 1, y, x)) - g1
-            d2 = load(planes, (p, guide + 2, y, x)) - g2
-            ratio = (d0 * d0 + d1 * d1 + d2 * d2) / (load(planes, (p, guide + 3, y, x)) + var_c)
-            sw = spatial[y - cy + radius, dx + radius]
-            w = (exp_neg(ratio) * sw + floor) * (load(planes, (p, MASK, y, x)) * mask_c)
-            scale = np.float32(1.0) / (load(planes, (p, guide + 4, y, x)) + sig_c)
-            e0 = load(planes, (p, NORMAL, y, x)) - n0
-            e1 = load(planes, (p, NORMAL + 1, y, x)) - n1
-            e2 = load(planes, (p, NORMAL + 2, y, x)) - n2
-            for row, value in ((WEIGHT, w), (DN, e0), (DN + 1, e1), (DN + 2, e2), (U, d0 * scale),
-                               (U + 1, d1 * scale), (U + 2, d2 * scale), (A, load(planes, (p, ALBEDO, y, x)) - a0),
-                               (A + 1, load(planes, (p, ALBEDO + 1, y, x)) - a1),
-                               (A + 2, load(planes, (p, ALBEDO + 2, y, x)) - a2), (T, load(planes, (p, target, y, x))),
-                               (T + 1, load(planes, (p, target + 1, y, x))),
-                               (T + 2, load(planes, (p, target + 2, y, x)))):  # fmt: skip
-                store(pairs, (o, row, 0), value)
-            w0, w1, w2 = w * e0, w * e1, w * e2
-            m = (m[0] + w, m[1] + w0, m[2] + w1, m[3] + w2, m[4] + w0 * e0, m[5] + w0 * e1, m[6] + w0 * e2,
-                 m[7] + w1 * e1, m[8] + w1 * e2, m[9] + w2 * e2)  # fmt: skip
-            o, p = o + 1, p + 1
-            if p == s:
-                p, x = 0, x + 1
+    one = np.float32(1.0)
+    p, x = (-radius) % s, c + (-radius) // s
+    for o in range(2 * radius + 1):
+        sw = spatial[y - cy + radius, o]
+        mask = load(planes, (p, MASK, y, x)) * mask_c
+        da0 = load(planes, (p, BUFFER_A, y, x)) - ga0
+        da1 = load(planes, (p, BUFFER_A + 1, y, x)) - ga1
+        da2 = load(planes, (p, BUFFER_A + 2, y, x)) - ga2
+        db0 = load(planes, (p, BUFFER_B, y, x)) - gb0
+        db1 = load(planes, (p, BUFFER_B + 1, y, x)) - gb1
+        db2 = load(planes, (p, BUFFER_B + 2, y, x)) - gb2
+        ratio_a = (da0 * da0 + da1 * da1 + da2 * da2) / (load(planes, (p, BUFFER_A + 3, y, x)) + var_a)
+        ratio_b = (db0 * db0 + db1 * db1 + db2 * db2) / (load(planes, (p, BUFFER_B + 3, y, x)) + var_b)
+        store(pairs, (o, WEIGHT, 0), (exp_neg(ratio_a) * sw + floor) * mask)
+        store(pairs, (o, WEIGHT + 1, 0), (exp_neg(ratio_b) * sw + floor) * mask)
+        store(pairs, (o, SCALE, 0), one / (load(planes, (p, BUFFER_A + 4, y, x)) + sig_a))
+        store(pairs, (o, SCALE + 1, 0), one / (load(planes, (p, BUFFER_B + 4, y, x)) + sig_b))
+        store(pairs, (o, D, 0), da0)
+        store(pairs, (o, D + 1, 0), da1)
+        store(pairs, (o, D + 2, 0), da2)
+        store(pairs, (o, D + 3, 0), db0)
+        store(pairs, (o, D + 4, 0), db1)
+        store(pairs, (o, D + 5, 0), db2)
+        store(pairs, (o, DN, 0), load(planes, (p, NORMAL, y, x)) - n0)
+        store(pairs, (o, DN + 1, 0), load(planes, (p, NORMAL + 1, y, x)) - n1)
+        store(pairs, (o, DN + 2, 0), load(planes, (p, NORMAL + 2, y, x)) - n2)
+        store(pairs, (o, DA, 0), load(planes, (p, ALBEDO, y, x)) - a0)
+        store(pairs, (o, DA + 1, 0), load(planes, (p, ALBEDO + 1, y, x)) - a1)
+        store(pairs, (o, DA + 2, 0), load(planes, (p, ALBEDO + 2, y, x)) - a2)
+        p += 1
+        if p == s:
+            p, x = 0, x + 1
+
+
+@numba.njit(inline="always", fastmath=True)
+def _shared_pass(b, pairs, moments):  # pragma: no cover
+    """Regression b's moments of the shared features over the pairs, added to moments[0:10]:
+    sum w [1, dn] [1, dn]^T, the upper triangle row by row."""
+    m = (load(moments, (0, 0)), load(moments, (1, 0)), load(moments, (2, 0)), load(moments, (3, 0)),
+         load(moments, (4, 0)), load(moments, (5, 0)), load(moments, (6, 0)), load(moments, (7, 0)),
+         load(moments, (8, 0)), load(moments, (9, 0)))  # fmt: skip
+    for o in range(pairs.shape[0]):
+        w = load(pairs, (o, WEIGHT + b, 0))
+        e0, e1, e2 = load(pairs, (o, DN, 0)), load(pairs, (o, DN + 1, 0)), load(pairs, (o, DN + 2, 0))
+        w0, w1, w2 = w * e0, w * e1, w * e2
+        m = (m[0] + w, m[1] + w0, m[2] + w1, m[3] + w2, m[4] + w0 * e0, m[5] + w0 * e1, m[6] + w0 * e2,
+             m[7] + w1 * e1, m[8] + w1 * e2, m[9] + w2 * e2)  # fmt: skip
     for e in range(10):
         store(moments, (e, 0), m[e])
 
 
 @numba.njit(inline="always", fastmath=True)
-def _channel_pass(ch, pairs, moments):  # pragma: no cover
-    """Colour channel ch's 17 moments from the pair terms into moments[10 + 17 ch ...]: sum w u [1, dn, u],
-    w a [1, dn, u, a] and the right-hand side sum w t [1, dn, u, a]."""
-    zero = splat(np.float32(0.0))
-    m = (zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
+def _channel_pass(b, ch, pairs, moments):  # pragma: no cover
+    """Regression b's colour channel ch: its 17 moments over the pairs, added to moments[10 + 17 ch ...]:
+    sum w u [1, dn, u], w a [1, dn, u, a] and the right-hand side sum w t [1, dn, u, a], with u the scaled
+    colour difference of buffer b (eq. 6) and t the other buffer's colour relative to its centre value (the
+    same fit, the intercept less that value: `_cross_block_kernel` adds it back)."""
+    k = 10 + 17 * ch
+    m = (load(moments, (k, 0)), load(moments, (k + 1, 0)), load(moments, (k + 2, 0)), load(moments, (k + 3, 0)),
+         load(moments, (k + 4, 0)), load(moments, (k + 5, 0)), load(moments, (k + 6, 0)), load(moments, (k + 7, 0)),
+         load(moments, (k + 8, 0)), load(moments, (k + 9, 0)), load(moments, (k + 10, 0)),
+         load(moments, (k + 11, 0)), load(moments, (k + 12, 0)), load(moments, (k + 13, 0)),
+         load(moments, (k + 14, 0)), load(moments, (k + 15, 0)), load(moments, (k + 16, 0)))  # fmt: skip
+    guide, target = D + 3 * b + ch, D + 3 * (1 - b) + ch
     for o in range(pairs.shape[0]):
-        w, u, a = load(pairs, (o, WEIGHT, 0)), load(pairs, (o, U + ch, 0)), load(pairs, (o, A + ch, 0))
+        w, a = load(pairs, (o, WEIGHT + b, 0)), load(pairs, (o, DA + ch, 0))
+        u = load(pairs, (o, guide, 0)) * load(pairs, (o, SCALE + b, 0))
         e0, e1, e2 = load(pairs, (o, DN, 0)), load(pairs, (o, DN + 1, 0)), load(pairs, (o, DN + 2, 0))
-        wu, wa, wt = w * u, w * a, w * load(pairs, (o, T + ch, 0))
+        wu, wa, wt = w * u, w * a, w * load(pairs, (o, target, 0))
         m = (m[0] + wu, m[1] + wu * e0, m[2] + wu * e1, m[3] + wu * e2, m[4] + wu * u,
              m[5] + wa, m[6] + wa * e0, m[7] + wa * e1, m[8] + wa * e2, m[9] + wa * u, m[10] + wa * a,
              m[11] + wt, m[12] + wt * e0, m[13] + wt * e1, m[14] + wt * e2, m[15] + wt * u,
              m[16] + wt * a)  # fmt: skip
-    k = 10 + 17 * ch
     for e in range(17):
         store(moments, (k + e, 0), m[e])
 
@@ -400,37 +443,42 @@ def _cholesky_solve(a, b, ridge_relative, ridge_absolute, h):  # pragma: no cove
 
 @numba.njit(inline="always", fastmath=True)
 def _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den):  # pragma: no cover
-    """Eq. 5's sums: num[channel] += w (alpha + beta . x) and den += w at every pixel of the window, the
-    pair terms x from the scratch of `_pairs_pass`; s the sparsity (phase planes). Each window row is
-    summed in tile (S, 4, TW) float32 (channels, then the weight; lane j is plane lane c - pad + j),
-    which stays in L1, and then added to num and den in TW / LANES vectors per plane: adding every pair
-    straight into the planes missed L1 on most of them (~25% of the kernel's time at 720p)."""
+    """Eq. 5's sums of both regressions b: num[b, channel] += w_b (alpha + beta . x_b) and den[b] += w_b at
+    every pixel of the window (rows y0 ... y1 - 1), the pair terms from the scratch of `_pairs_pass`, coefs
+    (2, 3 FEATURES, LANES); s the sparsity (phase planes). Each window row is summed in tile (2, S, 4, TW)
+    float32 (channels, then the weight; lane j is plane lane c - pad + j), which stays in L1, and then added
+    to num and den in TW / LANES vectors per plane: adding every pair straight into the planes missed L1 on
+    most of them (~25% of the kernel's time at 720p). Both regressions in one pass read the shared terms
+    once."""
     first = c - (-(-radius // s))  # plane lane of the window's leftmost pixels (tile lane 0)
     zero = splat(np.float32(0.0))
     o = 0
     for y in range(y0, y1):
-        for p in range(s):
-            for k in range(4):
-                for v in range(0, tile.shape[2], LANES):
-                    store(tile, (p, k, v), zero)
+        for b in range(2):
+            for p in range(s):
+                for k in range(4):
+                    for v in range(0, tile.shape[3], LANES):
+                        store(tile, (b, p, k, v), zero)
         p, j = (-radius) % s, 0
         for _ in range(2 * radius + 1):  # phases interleaved: a vector is re-read s offsets after its store
-            w = load(pairs, (o, WEIGHT, 0))
             e0, e1, e2 = load(pairs, (o, DN, 0)), load(pairs, (o, DN + 1, 0)), load(pairs, (o, DN + 2, 0))
-            for ch in range(3):
-                k = ch * FEATURES
-                pred = load(coefs, (k, 0)) + load(coefs, (k + 1, 0)) * e0 + load(coefs, (k + 2, 0)) * e1
-                pred += load(coefs, (k + 3, 0)) * e2
-                pred += load(coefs, (k + 4, 0)) * load(pairs, (o, U + ch, 0))
-                pred += load(coefs, (k + 5, 0)) * load(pairs, (o, A + ch, 0))
-                store(tile, (p, ch, j), load(tile, (p, ch, j)) + w * pred)
-            store(tile, (p, 3, j), load(tile, (p, 3, j)) + w)
+            for b in range(2):
+                w, scale = load(pairs, (o, WEIGHT + b, 0)), load(pairs, (o, SCALE + b, 0))
+                for ch in range(3):
+                    k = ch * FEATURES
+                    pred = load(coefs, (b, k, 0)) + load(coefs, (b, k + 1, 0)) * e0 + load(coefs, (b, k + 2, 0)) * e1
+                    pred += load(coefs, (b, k + 3, 0)) * e2
+                    pred += load(coefs, (b, k + 4, 0)) * (load(pairs, (o, D + 3 * b + ch, 0)) * scale)
+                    pred += load(coefs, (b, k + 5, 0)) * load(pairs, (o, DA + ch, 0))
+                    store(tile, (b, p, ch, j), load(tile, (b, p, ch, j)) + w * pred)
+                store(tile, (b, p, 3, j), load(tile, (b, p, 3, j)) + w)
             o, p = o + 1, p + 1
             if p == s:
                 p, j = 0, j + 1
-        for p in range(s):
-            for v in range(0, tile.shape[2], LANES):
-                x = first + v
-                for ch in range(3):
-                    store(num, (p, ch, y, x), load(num, (p, ch, y, x)) + load(tile, (p, ch, v)))
-                store(den, (p, y, x), load(den, (p, y, x)) + load(tile, (p, 3, v)))
+        for b in range(2):
+            for p in range(s):
+                for v in range(0, tile.shape[3], LANES):
+                    x = first + v
+                    for ch in range(3):
+                        store(num, (b, p, ch, y, x), load(num, (b, p, ch, y, x)) + load(tile, (b, p, ch, v)))
+                    store(den, (b, p, y, x), load(den, (b, p, y, x)) + load(tile, (b, p, 3, v)))
