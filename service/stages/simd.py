@@ -16,6 +16,7 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
     v = splat(x)                  # Vec with every lane float32(x); splat_d(x): VecD, float64(x)
     v = load_phase(array, (i, j), n, p)  # every n-th value from array[i, j + p] on (n, p literal ints,
                                   # p < n): lane q is array[i, j + n q + p]; one wide load and a shuffle
+    store_phases(array, (i, j), v0, v1, v2, v3)  # the reverse at n = 4: array[i, j + 4 q + p] = v_p[q]
     v + w, v - w, v * w, v / w    # same-type vectors; either side may also be a Python/numpy number
     vmax(v, w), floor(v), sqrt(v), exp_neg(v)
     d = widen(v, half)            # VecD of lanes half * LANES/2 ... of the Vec v
@@ -142,6 +143,32 @@ def load_phase(typingctx, array, index, stride, phase):
         return builder.shuffle_vector(values, ir.Constant(wide, ir.Undefined), mask)
 
     return vector(array, index, stride, phase), codegen
+
+
+@intrinsic
+def store_phases(typingctx, array, index, v0, v1, v2, v3):
+    """The inverse of `load_phase` at stride 4: lane q of v_p to array[index] + 4 q + p, for the 4 LANES
+    values from array[index] on (four vectors of the array's type). Two shuffles and one wide store: phase
+    planes back to pixels without scattered scalar stores."""
+    vector = _vector_of(array)
+    _check_index(array, index)
+    if any(v != vector for v in (v0, v1, v2, v3)):
+        raise numba.TypingError(f"simd.store_phases: needs four {vector} vectors")
+    count = vector.count
+    halves = ir.Constant(ir.VectorType(_INT32, 2 * count), list(range(2 * count)))  # concatenation
+    # out[4 q + p] = v_p[q]: from (v0, v2) for even p, (v1, v3) for odd p, the second of each pair at + count
+    order = [k for q in range(count) for k in (q, 2 * count + q, count + q, 3 * count + q)]
+    wide = ir.VectorType(vector.llvm.element, 4 * count)
+
+    def codegen(context, builder, sig, args):
+        ptr = _pointer(context, builder, array, args[0], args[1], index.types, vector)
+        even = builder.shuffle_vector(args[2], args[4], halves)
+        odd = builder.shuffle_vector(args[3], args[5], halves)
+        values = builder.shuffle_vector(even, odd, ir.Constant(ir.VectorType(_INT32, 4 * count), order))
+        builder.store(values, builder.bitcast(ptr, wide.as_pointer()), align=4)
+        return context.get_dummy_value()
+
+    return types.void(array, index, v0, v1, v2, v3), codegen
 
 
 def _fill(builder, vector: VecType, value):

@@ -15,11 +15,13 @@ from service.stages.local_regression import (
     clamp_outlier_clusters,
     clamp_outlier_clusters_reference,
     neighbour_mean,
+    normalise_phases,
     plain_terms,
     solve_ridge,
     solve_ridge_reference,
     standardise,
 )
+from service.stages.simd import LANES
 
 PARITY_RTOL = 2e-4  # numba (fast exp, other summation order) vs numpy, float32
 
@@ -293,3 +295,22 @@ def test_radiance_scale_is_the_median_of_the_subsample(shape):
     expected = max(float(np.median(np.abs(planes[:, ::4, ::4]).astype(np.float64))), 1e-6)
     assert radiance_scale(planes) == pytest.approx(expected, rel=1e-7)
     assert radiance_scale(np.zeros(shape, np.float32)) == 1e-6
+
+
+@pytest.mark.parametrize("sparsity, width", [(4, 4 * LANES * 2 + 5), (4, 3), (3, 40), (1, 7)])
+def test_normalise_phases_divides_and_unsplits_every_pixel(sparsity, width):
+    """Whole blocks (as vectors at sparsity 4) and the tail: pixel x = S q + p from lane pad + q of phase p;
+    no weight gives 0."""
+    rng = np.random.default_rng(9)
+    pad, height = 2, 3
+    lanes = -(-width // sparsity) + 2 * pad + LANES
+    num = rng.standard_normal((sparsity, 2, height, lanes)).astype(np.float32)
+    den = rng.random((sparsity, height, lanes)).astype(np.float32) + 0.5
+    den[0, 1, pad] = 0.0  # pixel (1, 0): no weight arrived
+    num[0, :, 1, pad] = 0.0
+    out = np.full((2, height, width), np.nan, np.float32)
+    normalise_phases(num, den, pad, out)
+    x = np.arange(width)
+    p, q = x % sparsity, pad + x // sparsity
+    expected = num[p, :, :, q] / np.where(den > 0, den, 1.0)[p, :, q][:, None]  # (W, C, H); 0 / 1 without weight
+    np.testing.assert_allclose(out, np.moveaxis(expected, 0, -1), rtol=1e-6)

@@ -15,6 +15,7 @@ from service.stages.simd import (
     splat_d,
     sqrt,
     store,
+    store_phases,
     vmax,
     widen,
 )
@@ -106,6 +107,21 @@ def test_load_phase_needs_a_literal_phase_below_the_stride():
 
     with pytest.raises(numba.TypingError, match="simd.load_phase: needs literal ints 0 <= phase < stride"):
         bad(np.zeros(8 * LANES, np.float32), np.zeros(LANES, np.float32))
+
+
+@numba.njit
+def _round_trip(src, x, out):
+    store_phases(out, (1, x), load_phase(src, (x,), 4, 0), load_phase(src, (x,), 4, 1), load_phase(src, (x,), 4, 2),
+                 load_phase(src, (x,), 4, 3))  # fmt: skip
+
+
+def test_store_phases_undoes_load_phase_and_writes_only_its_values():
+    for dtype, lanes in ((np.float32, LANES), (np.float64, HALF)):
+        src = np.arange(4 * lanes + 3, dtype=dtype) + 1
+        out = np.zeros((2, 4 * lanes + 3), dtype)
+        _round_trip(src, 3, out)
+        np.testing.assert_array_equal(out[1, 3:], src[3:])
+        assert not out[0].any() and not out[1, :3].any()
 
 
 @numba.njit(fastmath=True)
