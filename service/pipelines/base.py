@@ -19,6 +19,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from service.frame import RADIANCE_LAYERS, Frame, FrameError
+from service.stages.emission import add_emission
 
 
 @dataclass
@@ -90,10 +91,12 @@ class Pipeline(ABC):
             reads = ("color", *self.requires, *self.optional)
             frame = frame.replace(**{k: frame[k] - emission for k in RADIANCE_LAYERS if k in frame and k in reads})
         buffers, state = self.denoise(frame, state)
+        checked = {}  # name -> finite, where the emission pass already looked
         if emission is not None:
-            buffers["color"] = buffers["color"] + emission
+            buffers["color"], checked["color"] = add_emission(buffers["color"], emission)
         for name, value in buffers.items():
-            if not np.isfinite(value).all():  # a guard: stages are tested never to get here
+            finite = checked[name] if name in checked else np.isfinite(value).all()
+            if not finite:  # a guard: stages are tested never to get here
                 raise FloatingPointError(f"pipeline '{self.name}' produced non-finite '{name}'")
         state.frame_index += 1
         return Frame(buffers, dict(frame.nonfinite)), state
