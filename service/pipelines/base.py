@@ -91,12 +91,11 @@ class Pipeline(ABC):
             reads = ("color", *self.requires, *self.optional)
             frame = frame.replace(**{k: frame[k] - emission for k in RADIANCE_LAYERS if k in frame and k in reads})
         buffers, state = self.denoise(frame, state)
-        checked = {}  # name -> finite, where the emission pass already looked
+        finite = {}  # name -> True where the emission pass already found every value finite
         if emission is not None:
-            buffers["color"], checked["color"] = add_emission(buffers["color"], emission)
+            buffers["color"], finite["color"] = add_emission(buffers["color"], emission)
         for name, value in buffers.items():
-            finite = checked[name] if name in checked else np.isfinite(value).all()
-            if not finite:  # a guard: stages are tested never to get here
+            if not finite.get(name) and not np.isfinite(value).all():  # a guard: stages are tested never to get here
                 raise FloatingPointError(f"pipeline '{self.name}' produced non-finite '{name}'")
         state.frame_index += 1
         return Frame(buffers, dict(frame.nonfinite)), state

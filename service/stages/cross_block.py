@@ -53,6 +53,7 @@ from service.stages.simd import (
     load,
     load_phase,
     narrow,
+    phase_blocks,
     splat,
     splat_d,
     sqrt,
@@ -83,9 +84,10 @@ def regress_packed(planes: np.ndarray, width: int, params: BlockParams) -> tuple
     Returns (pilot_a, pilot_b), (3, H, W) float32 log colour: pilot_a regresses buffer B's log colour on
     buffer A's features and weights, pilot_b buffer A's on buffer B's."""
     s, _, height, lanes = planes.shape
+    pad = pad_lanes(params)
     # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_predict_pass` adds
     # them in whole vectors from there, so the sums carry that many lanes (rounded to vectors) more.
-    extra = -(-(2 * pad_lanes(params) + LANES) // LANES) * LANES
+    extra = -(-(2 * pad + LANES) // LANES) * LANES
     num = np.zeros((2, s, 3, height, lanes + extra), np.float32)  # per regression (0: pilot_a, 1: pilot_b)
     den = np.zeros((2, s, height, lanes + extra), np.float32)
     ridge = np.array([params.ridge_relative, params.ridge_absolute])
@@ -93,7 +95,7 @@ def regress_packed(planes: np.ndarray, width: int, params: BlockParams) -> tuple
     _cross_block_kernel(planes, spatial_weights(params), params.radius, counts, kernel_constants(), ridge, num, den)
     pilots = np.empty((2, 3, height, width), np.float32)
     for b in range(2):
-        normalise_phases(num[b], den[b], pad_lanes(params), pilots[b])
+        normalise_phases(num[b], den[b], pad, pilots[b])
     return pilots[0], pilots[1]
 
 
@@ -148,7 +150,7 @@ def pack_row(log_a, log_b, r, var_a, var_b, albedo, normal, pad, out, y):  # pra
             row = out[p, k, y]
             row[:pad] = 0.0
             row[pad + count :] = 0.0
-    done = width // (4 * LANES) * 4 * LANES if s == 4 else 0  # pixels in whole blocks
+    done = phase_blocks(width, s)
     for x in range(0, done, 4 * LANES):
         _split_block(log_a, log_b, r, var_a, var_b, albedo, normal, x, out, y, pad + x // 4)
     for p in range(s):

@@ -27,7 +27,7 @@ import numpy as np
 
 from service.stages.albedo import albedo_factor, demodulate, remodulate
 from service.stages.parallel import rows_per_thread
-from service.stages.simd import LANES, bits_to_float32, float32_to_bits, load, store_phases
+from service.stages.simd import LANES, bits_to_float32, float32_to_bits, load, phase_blocks, store_phases
 from service.stages.window import overlap, window_offsets
 
 RIDGE_RELATIVE = 1e-3  # Tikhonov: fraction of each feature's own weighted second moment added to its diagonal
@@ -750,12 +750,11 @@ def normalise_phases(num, den, pad, out):
     the other pixels one value at a time (at 1280x720, 3 channels, 2 threads: 1.7 -> 1.1 ms)."""
     s = num.shape[0]
     channels, height, width = out.shape
-    done = width // (4 * LANES) * 4 * LANES if s == 4 else 0  # pixels in whole blocks
+    done = phase_blocks(width, s)
     for y in numba.prange(height):
         inv = np.empty((s, num.shape[3]), np.float32)
         for p in range(min(s, width)):  # phase by phase: no division per pixel
-            count = (width - p + s - 1) // s
-            for j in range(count):
+            for j in range((width - p + s - 1) // s):
                 d = den[p, y, pad + j]
                 inv[p, j] = np.float32(1.0) / d if d > 0 else np.float32(1.0)
         for c in range(channels):

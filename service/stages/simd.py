@@ -17,6 +17,7 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
     v = load_phase(array, (i, j), n, p)  # every n-th value from array[i, j + p] on (n, p literal ints,
                                   # p < n): lane q is array[i, j + n q + p]; one wide load and a shuffle
     store_phases(array, (i, j), v0, v1, v2, v3)  # the reverse at n = 4: array[i, j + 4 q + p] = v_p[q]
+    phase_blocks(width, sparsity)  # the pixels of a row that those two move as whole blocks
     v + w, v - w, v * w, v / w    # same-type vectors; either side may also be a Python/numpy number
     vmax(v, w), floor(v), sqrt(v), exp_neg(v)
     d = widen(v, half)            # VecD of lanes half * LANES/2 ... of the Vec v
@@ -169,6 +170,13 @@ def store_phases(typingctx, array, index, v0, v1, v2, v3):
         return context.get_dummy_value()
 
     return types.void(array, index, v0, v1, v2, v3), codegen
+
+
+@numba.njit(inline="always")
+def phase_blocks(width, sparsity):
+    """Pixels at the start of a row of `width` that fill whole blocks of 4 LANES, which `load_phase` and
+    `store_phases` split into and join from 4 phase vectors: sparsity 4 only (the paper's), 0 otherwise."""
+    return width // (4 * LANES) * 4 * LANES if sparsity == 4 else 0
 
 
 def _fill(builder, vector: VecType, value):

@@ -124,3 +124,22 @@ def test_input_repairs_are_reported_on_the_output():
 def test_start_refuses_empty_size():
     with pytest.raises(ValueError, match="at least 1x1"):
         pipelines.get("bilateral").start(0, 5)
+
+
+@pytest.mark.parametrize("with_emission", [False, True])
+def test_a_non_finite_output_is_refused(with_emission):
+    """The step's guard, whether the emission pass or the plain scan looks at the colour."""
+    from service.pipelines.base import Pipeline
+
+    class Broken(Pipeline):
+        name, summary, requires, optional = "broken", "returns a NaN", (), ("emission",)
+
+        def denoise(self, frame, state):
+            color = frame["color"].copy()
+            color[3, 4, 2] = np.nan
+            return {"color": color}, state
+
+    one = np.ones((4, 5, 3), np.float32)
+    frame = Frame.from_buffers({"color": one, **({"emission": one} if with_emission else {})})
+    with pytest.raises(FloatingPointError, match="pipeline 'broken' produced non-finite 'color'"):
+        Broken().step(frame, Broken().start(4, 5))
