@@ -61,6 +61,10 @@ def configure() -> None:
             cache_home = None
         if cache_home is not None:
             os.environ["NUMBA_CACHE_DIR"] = str(numba_cache_dir(STAGES, cache_home / "mcdenoise"))
+            numba = sys.modules.get("numba")
+            if numba is not None:  # imported before `service`, it has read its environment already: without
+                # this the kernels would load from numba's default caches, possibly built from older helpers
+                numba.config.CACHE_DIR = os.environ["NUMBA_CACHE_DIR"]
     explicit_malloc = {"MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"} & set(os.environ)
     if os.environ.get("MCDENOISE_MALLOC_KEEP", "1") != "0" and not explicit_malloc:
         keep_freed_buffers()

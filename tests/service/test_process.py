@@ -32,3 +32,17 @@ def test_import_sets_defaults_but_an_explicit_environment_wins(tmp_path):
 
 def test_keep_freed_buffers_applies_on_glibc():
     assert keep_freed_buffers() is (sys.platform == "linux" and platform.libc_ver()[0] == "glibc")
+
+
+def test_the_kernels_cache_in_the_versioned_folder_even_when_numba_came_first(tmp_path):
+    # numba reads NUMBA_CACHE_DIR when it is imported; imported before `service`, its default caches
+    # (beside the sources, keyed on each kernel's own file only) would serve kernels built from old helpers
+    code = (
+        "import numba, service\n"
+        "from service.stages.emission import _add_kernel\n"
+        "print(_add_kernel._cache._cache_path)"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip().startswith(str(tmp_path / "mcdenoise" / "numba-"))
