@@ -82,20 +82,28 @@ def regress_packed(planes: np.ndarray, width: int, params: BlockParams) -> tuple
     params: window radius, sparsity and ridge (`sigma_position` as in `spatial_weights`).
     Returns (pilot_a, pilot_b), (3, H, W) float32 log colour: pilot_a regresses buffer B's log colour on
     buffer A's features and weights, pilot_b buffer A's on buffer B's."""
+    num, den = regress_sums(planes, width, params)
+    pilots = np.empty((2, 3, planes.shape[2], width), np.float32)
+    for b in range(2):
+        normalise_phases(num[b], den[b], pad_lanes(params), pilots[b])
+    return pilots[0], pilots[1]
+
+
+def regress_sums(planes: np.ndarray, width: int, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 5's sums of both regressions before the division (`regress_packed`'s arguments): num
+    (2, S, 3, H, L') and den (2, S, H, L') float32 phase planes, first index the regression (0: pilot_a,
+    1: pilot_b), pixel x of row y at [.., x % S, .., y, pad + x // S] (`normalise_phases` divides them),
+    L' >= L."""
     s, _, height, lanes = planes.shape
-    pad = pad_lanes(params)
     # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_predict_pass` adds
     # them in whole vectors from there, so the sums carry that many lanes (rounded to vectors) more.
-    extra = -(-(2 * pad + LANES) // LANES) * LANES
-    num = np.zeros((2, s, 3, height, lanes + extra), np.float32)  # per regression (0: pilot_a, 1: pilot_b)
-    den = np.zeros((2, s, height, lanes + extra), np.float32)
+    extra = -(-(2 * pad_lanes(params) + LANES) // LANES) * LANES
+    num = np.empty((2, s, 3, height, lanes + extra), np.float32)  # zeroed by the kernel, in parallel
+    den = np.empty((2, s, height, lanes + extra), np.float32)
     ridge = np.array([params.ridge_relative, params.ridge_absolute])
     counts = np.array([centre_count(height, s), centre_count(width, s)], np.int64)
     _cross_block_kernel(planes, spatial_weights(params), params.radius, counts, kernel_constants(), ridge, num, den)
-    pilots = np.empty((2, 3, height, width), np.float32)
-    for b in range(2):
-        normalise_phases(num[b], den[b], pad, pilots[b])
-    return pilots[0], pilots[1]
+    return num, den
 
 
 def empty_planes(height: int, width: int, params: BlockParams) -> np.ndarray:
@@ -222,8 +230,8 @@ def _split4x3(row, i, out, plane, y, q):  # pragma: no cover
 @numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, num, den):  # pragma: no cover
     """Every centre row's two regressions and their weighted predictions into num (2, S, 3, H, L'), den
-    (2, S, H, L'), first index the regression (0: buffer A's features and weights fitted to buffer B's
-    colours, 1: the reverse); L' > L, see `regress_packed`.
+    (2, S, H, L'), zeroed first (rows in parallel), first index the regression (0: buffer A's features and
+    weights fitted to buffer B's colours, 1: the reverse); L' > L, see `regress_sums`.
 
     Centre rows go in chunks of `rows` consecutive ones, which span more than a window: chunks two apart
     never add into the same pixel, so the even chunks run in parallel, then the odd ones. Within a chunk
@@ -236,6 +244,9 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, num, den
     rows = (2 * radius) // s + 1
     chunks = -(-hc // rows)
     side = 2 * radius + 1
+    for y in numba.prange(height):
+        num[:, :, :, y] = 0.0
+        den[:, :, y] = 0.0
     for parity in range(2):
         for i in numba.prange((chunks - parity + 1) // 2):
             first = (parity + 2 * i) * rows
@@ -244,7 +255,7 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, num, den
             gram = np.empty((3, FEATURES, FEATURES, LANES))
             rhs = np.empty((3, FEATURES, LANES))
             coefs = np.empty((2, 3 * FEATURES, LANES), np.float32)
-            tile = np.empty((2, s, 4, num.shape[4] - planes.shape[3]), np.float32)  # see regress_packed
+            tile = np.empty((2, s, 4, num.shape[4] - planes.shape[3]), np.float32)  # see regress_sums
             zero = splat(np.float32(0.0))
             for q in range(0, wc, LANES):
                 c = pad + q

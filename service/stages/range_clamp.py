@@ -151,8 +151,9 @@ def row_range(lo, hi, spare_lo, spare_hi, g, shift):
 
 
 @numba.njit(inline="always")
-def _emit(lo, hi, output, clamp, lo_out, hi_out):
-    """One row, (W, C): lo_out = clip(output, lo, hi) when `clamp`, else lo_out, hi_out = lo, hi."""
+def emit_range_row(lo, hi, output, clamp, lo_out, hi_out):
+    """One row of n = W C values: lo_out = clip(output, lo, hi) when `clamp`, else lo_out, hi_out = lo, hi
+    (lo, hi: at least n values; output, lo_out, hi_out: (W, C) or (n,))."""
     n = lo_out.size
     dst = lo_out.reshape(n)
     if clamp:
@@ -166,44 +167,56 @@ def _emit(lo, hi, output, clamp, lo_out, hi_out):
         hi_out.reshape(n)[:] = hi[:n]
 
 
+@numba.njit(inline="always")
+def window_range(flat, channels, y, y0, radius, scans, rows):
+    """The min and max over the window of `radius` around every value of row y of flat (H, n) float32,
+    n = W C interleaved (C = channels): frame rows y - r ... y + r, clipped to the frame, and r pixels either
+    side in the same channel. A band of rows y0, y0 + 1, ... is taken in order, one call per row: frame rows
+    go in blocks of g = 2r+1 from the band's first window on (van Herk / Gil-Werman), and a window starting
+    at row offset o of block k is the backward scan of block k at o and the forward scan of block k+1 at
+    o - 1 (3 min/max per value), the scans made at o = 0 and kept in scans (4, g, n) float32 (backward lo,
+    hi, forward lo, hi). Then along the row (`row_range`) in rows (4, n + 2 C r) float32 (lo, hi, spare lo,
+    spare hi). Returns True when the result, lo and hi at [0, n), is in
+    rows[2], rows[3], False when in rows[0], rows[1] (the caller branches: a chosen name would keep its
+    loops from vectorising)."""
+    n, g = flat.shape[1], 2 * radius + 1
+    pad = radius * channels  # +inf / -inf columns each side of a padded row
+    k, o = (y - y0) // g, (y - y0) % g
+    if o == 0:
+        first = y0 - radius + k * g
+        _block_scan(flat, first, g, True, scans[0], scans[1])
+        _block_scan(flat, first + g, g, False, scans[2], scans[3])
+    row_lo, row_hi = rows[0], rows[1]
+    mid_lo, mid_hi = row_lo[pad : pad + n], row_hi[pad : pad + n]
+    a_lo, a_hi = scans[0, o], scans[1, o]
+    if o == 0:
+        mid_lo[:] = a_lo
+        mid_hi[:] = a_hi
+    else:
+        b_lo, b_hi = scans[2, o - 1], scans[3, o - 1]
+        for j in range(n):
+            mid_lo[j] = a_lo[j] if a_lo[j] < b_lo[j] else b_lo[j]
+            mid_hi[j] = a_hi[j] if a_hi[j] > b_hi[j] else b_hi[j]
+    row_lo[:pad] = np.inf  # the padding, which the last row's passes overwrote
+    row_lo[pad + n :] = np.inf
+    row_hi[:pad] = -np.inf
+    row_hi[pad + n :] = -np.inf
+    return row_range(row_lo, row_hi, rows[2], rows[3], g, channels)
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _range_kernel(image, output, radius, clamp, rows_per_task, lo_out, hi_out):
-    """clamp: lo_out[y] = clip(output[y], lo, hi); else lo_out, hi_out = lo, hi. Per band of output rows,
-    the window's rows by van Herk / Gil-Werman: frame rows in blocks of g = 2r+1 starting at the band's
-    first window; a window starting at row offset o of block k is the backward scan of block k at o and
-    the forward scan of block k+1 at o - 1 (3 min/max per value). Then along the row (`row_range`)."""
+    """clamp: lo_out[y] = clip(output[y], lo, hi); else lo_out, hi_out = lo, hi; lo and hi the window range
+    of each row (`window_range`), a band of rows_per_task rows per task."""
     height, width, channels = image.shape
-    n, g = width * channels, 2 * radius + 1
+    n = width * channels
     flat = image.reshape(height, n)
-    pad = radius * channels  # +inf / -inf columns each side of a padded row
     for task in numba.prange(-(-height // rows_per_task)):
         y0 = task * rows_per_task
-        y1 = min(height, y0 + rows_per_task)
-        back_lo, back_hi = np.empty((g, n), np.float32), np.empty((g, n), np.float32)
-        fore_lo, fore_hi = np.empty((g, n), np.float32), np.empty((g, n), np.float32)
-        row_lo, row_hi = np.empty(n + 2 * pad, np.float32), np.empty(n + 2 * pad, np.float32)
-        spare_lo, spare_hi = np.empty(n + 2 * pad, np.float32), np.empty(n + 2 * pad, np.float32)
-        for k in range(-(-(y1 - y0) // g)):
-            first = y0 - radius + k * g
-            _block_scan(flat, first, g, True, back_lo, back_hi)
-            _block_scan(flat, first + g, g, False, fore_lo, fore_hi)
-            for o in range(min(g, y1 - y0 - k * g)):
-                y = y0 + k * g + o
-                mid_lo, mid_hi = row_lo[pad : pad + n], row_hi[pad : pad + n]
-                a_lo, a_hi = back_lo[o], back_hi[o]
-                if o == 0:
-                    mid_lo[:] = a_lo
-                    mid_hi[:] = a_hi
-                else:
-                    b_lo, b_hi = fore_lo[o - 1], fore_hi[o - 1]
-                    for j in range(n):
-                        mid_lo[j] = a_lo[j] if a_lo[j] < b_lo[j] else b_lo[j]
-                        mid_hi[j] = a_hi[j] if a_hi[j] > b_hi[j] else b_hi[j]
-                row_lo[:pad] = np.inf  # the padding, which the last row's passes overwrote
-                row_lo[pad + n :] = np.inf
-                row_hi[:pad] = -np.inf
-                row_hi[pad + n :] = -np.inf
-                if row_range(row_lo, row_hi, spare_lo, spare_hi, g, channels):  # branches, not a chosen
-                    _emit(spare_lo, spare_hi, output[y], clamp, lo_out[y], hi_out[y])  # name: vectorises
-                else:
-                    _emit(row_lo, row_hi, output[y], clamp, lo_out[y], hi_out[y])
+        scans = np.empty((4, 2 * radius + 1, n), np.float32)
+        rows = np.empty((4, n + 2 * radius * channels), np.float32)
+        for y in range(y0, min(height, y0 + rows_per_task)):
+            if window_range(flat, channels, y, y0, radius, scans, rows):
+                emit_range_row(rows[2], rows[3], output[y], clamp, lo_out[y], hi_out[y])
+            else:
+                emit_range_row(rows[0], rows[1], output[y], clamp, lo_out[y], hi_out[y])
