@@ -1,7 +1,8 @@
 """`crossregression`: cross-regression alone (Choi et al. 2024, the ablation of their Fig. 8).
 
 Stages: cross-regression of the two half buffers in log space (service/stages/cross_regression.py)
--> the two pilot estimates back to linear radiance -> their mean. No network, no temporal filter: the
+-> the two pilot estimates back to linear radiance -> their mean -> clipped to the noisy frame's range over
+the regression window (the last three in one pass, `cross_regression_radiance`). No network, no temporal filter: the
 input that the online denoiser (`crossreg`) refines, useful on its own as a fast, detail-preserving
 spatial filter for frames that carry colorA/colorB.
 """
@@ -15,9 +16,8 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
-from service.stages.cross_regression import CrossRegressionParams, cross_regression, pilots_to_radiance
+from service.stages.cross_regression import CrossRegressionParams, cross_regression_radiance
 from service.stages.local_regression import FIREFLY_K
-from service.stages.range_clamp import clamp_to_local_range
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,8 @@ class CrossRegressionPipeline(Pipeline):
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         opt = self.options
         params = CrossRegressionParams(opt.window, opt.sparsity, opt.firefly_k)
-        pilots = cross_regression(frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], params)
-        color = pilots_to_radiance(*pilots)  # the pilots' mean, linear radiance (H, W, 3)
-        color = clamp_to_local_range(color, frame["color"], opt.window // 2)  # no extrapolated energy
+        # the pilots' mean in linear radiance, clipped to the noisy range over the window (no extrapolated energy)
+        color = cross_regression_radiance(
+            frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], frame["color"], params
+        )
         return {"color": color}, state

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from service.stages.cross_block import empty_planes, pack_row, regress_packed
+from service.stages.cross_block import empty_planes, pack_row, regress_packed, regress_sums
 from service.stages.local_regression import (
     FIREFLY_K,
     RIDGE_ABSOLUTE,
@@ -40,10 +40,12 @@ from service.stages.local_regression import (
     from_planes,
     interleave_row,
     neighbour_mean,
+    normalise_row,
     pad_lanes,
     to_planes,
 )
 from service.stages.parallel import rows_per_thread
+from service.stages.range_clamp import emit_range_row, window_range
 from service.stages.simd import bits_to_float32, float32_to_bits
 
 LOG_MAX = 88.0  # |log value| limit of `log_to_linear`: expm1(88) = 1.65e38, two of them still below float32 max
@@ -177,19 +179,25 @@ def _log_row(flat, y, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _pilots_kernel(pilot_a, pilot_b, out):  # pragma: no cover - jitted
-    """pilot_a, pilot_b (C, H, W) -> out (H, W, C): 0.5 (e(a) + e(b)), e the signed expm1 of values clipped
-    to +-LOG_MAX, a task per row, the row interleaved by `interleave_row` (its albedo is unused)."""
+    """pilot_a, pilot_b (C, H, W) -> out (H, W, C): `_linear_mean` of each row, a task per row, the row
+    interleaved by `interleave_row` (its albedo is unused)."""
     channels, height, width = pilot_a.shape
-    limit, half = np.float32(LOG_MAX), np.float32(0.5)
     for y in numba.prange(height):
         line = np.empty((channels, width), np.float32)
         for m in range(channels):
-            a, b, dst = pilot_a[m, y], pilot_b[m, y], line[m]
-            for x in range(width):
-                ea = _expm1_nonneg(min(abs(a[x]), limit))
-                eb = _expm1_nonneg(min(abs(b[x]), limit))
-                dst[x] = half * ((-ea if a[x] < 0 else ea) + (-eb if b[x] < 0 else eb))
+            _linear_mean(pilot_a[m, y], pilot_b[m, y], line[m])
         interleave_row(line, out[y], False, out[y])
+
+
+@numba.njit(inline="always")
+def _linear_mean(a, b, dst):  # pragma: no cover - jitted
+    """dst = 0.5 (e(a) + e(b)) for rows a, b, dst (W,) float32 (dst may be a or b): e the signed expm1
+    (`_expm1_nonneg`) of log values clipped to +-LOG_MAX."""
+    limit, half = np.float32(LOG_MAX), np.float32(0.5)
+    for x in range(dst.shape[0]):
+        ea = _expm1_nonneg(min(abs(a[x]), limit))
+        eb = _expm1_nonneg(min(abs(b[x]), limit))
+        dst[x] = half * ((-ea if a[x] < 0 else ea) + (-eb if b[x] < 0 else eb))
 
 
 # musl src/math/log1pf.c (from FreeBSD s_log1pf.c): ln 2 split in two, and the minimax polynomial
@@ -355,6 +363,61 @@ def _pack_buffers_kernel(color_a, color_b, albedo, normal, k, clamp, rows, pad, 
                 _variance_row(ring_a, y, height, acc, var_a)
                 _variance_row(ring_b, y, height, acc, var_b)
                 pack_row(ring_a, ring_b, y % 3, var_a, var_b, albedo[y], normal[y], pad, out, y)
+
+
+def cross_regression_radiance(
+    color_a: np.ndarray,
+    color_b: np.ndarray,
+    albedo: np.ndarray,
+    normal: np.ndarray,
+    noisy: np.ndarray,
+    params: CrossRegressionParams | None = None,
+) -> np.ndarray:
+    """The pipeline `crossregression`'s image: the two pilots of `cross_regression` (same arguments), their
+    mean in linear radiance (`pilots_to_radiance`), clipped per pixel and channel to the range of `noisy`
+    over the regression window (`range_clamp.clamp_to_local_range`, radius window // 2: no energy that
+    the input cannot explain). The last three steps run as one numba pass over the regression's sums.
+
+    noisy: (H, W, 3) float32 the frame's radiance (the two halves' mean). Returns (H, W, 3) float32 linear
+    HDR radiance, the same values as that chain of the separate functions."""
+    params = params or CrossRegressionParams()
+    noisy = np.ascontiguousarray(noisy, dtype=np.float32)
+    if noisy.shape != np.shape(color_a):
+        raise ValueError(f"cross_regression_radiance: noisy {noisy.shape} != the halves {np.shape(color_a)}")
+    block = params.block()
+    planes = pack_buffers(color_a, color_b, albedo, normal, params.firefly_k, block)
+    num, den = regress_sums(planes, noisy.shape[1], block)
+    out = np.empty(noisy.shape, np.float32)
+    _finish_kernel(num, den, pad_lanes(block), noisy, params.window // 2, rows_per_thread(noisy.shape[0]), out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _finish_kernel(num, den, pad, noisy, radius, rows_per_task, out):  # pragma: no cover - jitted
+    """The sums num (2, S, 3, H, L'), den (2, S, H, L') of `cross_block.regress_sums` -> out (H, W, 3): per
+    row, both pilots (`normalise_row`), their `_linear_mean`, interleaved, clipped to the window range of
+    noisy (H, W, 3) (`window_range`); a band of rows_per_task rows per task."""
+    height, width, channels = noisy.shape
+    n = width * channels
+    flat = noisy.reshape(height, n)
+    for task in numba.prange(-(-height // rows_per_task)):
+        y0 = task * rows_per_task
+        scans = np.empty((4, 2 * radius + 1, n), np.float32)
+        rows = np.empty((4, n + 2 * radius * channels), np.float32)
+        inv = np.empty((num.shape[1], num.shape[4]), np.float32)
+        pilots = np.empty((2, channels, 1, width), np.float32)
+        line = pilots[0].reshape((channels, width))
+        mean = np.empty(n, np.float32)
+        for y in range(y0, min(height, y0 + rows_per_task)):
+            normalise_row(num[0], den[0], pad, y, inv, pilots[0], 0)
+            normalise_row(num[1], den[1], pad, y, inv, pilots[1], 0)
+            for m in range(channels):
+                _linear_mean(pilots[0, m, 0], pilots[1, m, 0], pilots[0, m, 0])
+            interleave_row(line, mean, False, mean)
+            if window_range(flat, channels, y, y0, radius, scans, rows):
+                emit_range_row(rows[2], rows[3], mean, True, out[y], out[y])
+            else:
+                emit_range_row(rows[0], rows[1], mean, True, out[y], out[y])
 
 
 def cross_regression(

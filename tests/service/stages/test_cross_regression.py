@@ -6,6 +6,7 @@ from service.stages.cross_regression import (
     LOG_MAX,
     CrossRegressionParams,
     cross_regression,
+    cross_regression_radiance,
     linear_to_log,
     log_planes_reference,
     log_to_linear,
@@ -15,6 +16,7 @@ from service.stages.cross_regression import (
     pixel_variance_reference,
 )
 from service.stages.local_regression import FIREFLY_K, BlockParams, from_planes, pad_lanes
+from service.stages.range_clamp import clamp_to_local_range
 from service.stages.simd import LANES
 
 PARITY_ATOL = 1e-3  # log units: numba (fast exp, other summation order) vs numpy, float32
@@ -176,6 +178,28 @@ def test_pack_buffers_refuses_layers_of_other_shapes():
     color = np.ones((4, 6, 3), np.float32)
     with pytest.raises(ValueError, match=r"pack_buffers: expected four \(H, W, 3\) layers of one shape, got "):
         pack_buffers(color, color[:, :5], color, color, FIREFLY_K, BlockParams())
+
+
+@pytest.mark.parametrize("size", PACK_SIZES)
+@pytest.mark.parametrize("window", [17, 7])
+def test_cross_regression_radiance_is_the_chain_of_its_stages(size, window):
+    rng = np.random.default_rng(11)
+    color_a, color_b = (rng.exponential(1.0, (*size, 3)).astype(np.float32) for _ in range(2))
+    color_a[0, 0] = [1e6, -2.0, 0.0]  # a firefly and negative radiance
+    albedo, normal = _gbuffers(*size, rng)
+    noisy = 0.5 * (color_a + color_b)
+    params = CrossRegressionParams(window=window)
+    fused = cross_regression_radiance(color_a, color_b, albedo, normal, noisy, params)
+    pilots = cross_regression(color_a, color_b, albedo, normal, params)
+    chain = clamp_to_local_range(pilots_to_radiance(*pilots), noisy, window // 2)
+    np.testing.assert_array_equal(fused, chain)  # the same float32 operations, fused
+    assert fused.dtype == np.float32 and np.isfinite(fused).all()
+
+
+def test_cross_regression_radiance_refuses_a_noisy_frame_of_another_size():
+    color = np.ones((4, 6, 3), np.float32)
+    with pytest.raises(ValueError, match=r"cross_regression_radiance: noisy \(4, 5, 3\) != the halves \(4, 6, 3\)"):
+        cross_regression_radiance(color, color, color, color, color[:, :5])
 
 
 @pytest.mark.parametrize("size", ODD_SIZES)
