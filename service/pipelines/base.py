@@ -19,7 +19,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from service.frame import RADIANCE_LAYERS, Frame, FrameError
-from service.stages.emission import add_emission
+from service.stages.emission import add_emission, subtract_emission
 
 
 @dataclass
@@ -89,7 +89,9 @@ class Pipeline(ABC):
             # `color` always (the frame contract fills it in, every pipeline may read it); the halves only
             # where the pipeline declares them: each subtraction is a full-frame pass.
             reads = ("color", *self.requires, *self.optional)
-            frame = frame.replace(**{k: frame[k] - emission for k in RADIANCE_LAYERS if k in frame and k in reads})
+            names = [k for k in RADIANCE_LAYERS if k in frame and k in reads]  # "color" at least
+            split = subtract_emission([frame[k] for k in names], emission)
+            frame = frame.replace(**dict(zip(names, split, strict=True)))
         buffers, state = self.denoise(frame, state)
         finite = {}  # name -> True where the emission pass already found every value finite
         if emission is not None:

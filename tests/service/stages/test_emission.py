@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from service.stages.emission import add_emission
+from service.stages.emission import add_emission, subtract_emission
 
 
 def _layers(rng, shape):
@@ -32,3 +32,23 @@ def test_other_layouts_are_converted_and_mismatched_shapes_refused():
     np.testing.assert_array_equal(add_emission(transposed, emission.astype(np.float64))[0], color + emission)
     with pytest.raises(ValueError, match="emission: the colour"):
         add_emission(color[:5], emission)
+
+
+@pytest.mark.parametrize("count", [1, 2, 3])
+@pytest.mark.parametrize("shape", [(1, 1, 3), (151, 203, 3)])
+def test_subtract_matches_numpy_for_each_layer(count, shape):
+    rng = np.random.default_rng(3)
+    *layers, emission = [rng.standard_normal(shape).astype(np.float32) * 10 for _ in range(count + 1)]
+    split = subtract_emission(layers, emission)
+    assert len(split) == count
+    for layer, less in zip(layers, split, strict=True):
+        assert less.dtype == np.float32 and less.flags.c_contiguous
+        np.testing.assert_array_equal(less, layer - emission)
+
+
+def test_subtract_refuses_mismatched_shapes_and_layer_counts():
+    color, emission = _layers(np.random.default_rng(4), (6, 5, 3))
+    with pytest.raises(ValueError, match=r"emission: a radiance layer \(5, 5, 3\) does not match the emission"):
+        subtract_emission([color, color[:5]], emission)
+    with pytest.raises(ValueError, match="emission: takes 1 to 3 layers, got 4"):
+        subtract_emission([color] * 4, emission)
