@@ -28,6 +28,7 @@ import numba
 import numpy as np
 
 from service.stages.cross_block import empty_planes, pack_row, regress_packed, regress_sums
+from service.stages.fill import filled
 from service.stages.local_regression import (
     FIREFLY_K,
     RIDGE_ABSOLUTE,
@@ -137,8 +138,8 @@ def _log_row(flat, y, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
     height, n = flat.shape
     width = n // 3
     src = flat[y]
-    lo = np.full(n, np.inf, np.float32)
-    hi = np.full(n, -np.inf, np.float32)
+    lo = filled(n, np.inf, np.float32)
+    hi = filled(n, -np.inf, np.float32)
     for yy in range(max(0, y - 1), min(height, y + 2) if clamp else 0):
         row = flat[yy]
         if yy != y:  # the row above or below: the neighbours left, right and in line

@@ -26,6 +26,7 @@ import numpy as np
 
 from service.stages.albedo import remodulate
 from service.stages.bilateral import log_depth
+from service.stages.fill import filled
 from service.stages.local_regression import (
     FIREFLY_K,
     RIDGE_RELATIVE,
@@ -474,7 +475,7 @@ def _apply_kernel(x, coefs, y0, y1, fy, x0, x1, fx, rows_per_task, albedo, modul
     c = coefs.shape[2]
     for task in numba.prange(-(-height // rows_per_task)):
         rows = np.empty((2, 1 + q, c, width), np.float32)
-        held = np.full(2, -1, np.int64)  # cell row in each slot
+        held = filled(2, -1, np.int64)  # cell row in each slot
         line = np.empty((c, width), np.float32)
         for yy in range(task * rows_per_task, min(height, task * rows_per_task + rows_per_task)):
             for a, other in ((y0[yy], y1[yy]), (y1[yy], y0[yy])):

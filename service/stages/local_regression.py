@@ -26,6 +26,7 @@ import numba
 import numpy as np
 
 from service.stages.albedo import albedo_factor, demodulate, remodulate
+from service.stages.fill import filled
 from service.stages.parallel import rows_per_thread
 from service.stages.simd import LANES, bits_to_float32, float32_to_bits, load, phase_blocks, store_phases
 from service.stages.window import overlap, window_offsets
@@ -331,8 +332,8 @@ def _clamp_kernel(planes, k, out):
     channels, height, width = planes.shape
     for row in numba.prange(channels * height):  # a task per row of a channel
         c, y = row // height, row % height
-        lo = np.full(width, np.inf, np.float32)
-        hi = np.full(width, -np.inf, np.float32)
+        lo = filled(width, np.inf, np.float32)
+        hi = filled(width, -np.inf, np.float32)
         for yy in range(max(0, y - 1), min(height, y + 2)):
             src = planes[c, yy]
             for dx in range(-1, 2):

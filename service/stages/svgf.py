@@ -23,6 +23,7 @@ import numpy as np
 from numba import njit, prange
 
 from service.stages.atrous import LUMINANCE_WEIGHTS, EdgeGuides, edge_aware_filter, luminance
+from service.stages.fill import filled
 
 ALPHA_COLOR = 0.2  # Schied 2017 sec. 4.1: blend weight of the new frame in the colour history
 ALPHA_MOMENTS = 0.2  # Schied 2017 sec. 4.2: blend weight of the new frame in the moment history
@@ -183,7 +184,7 @@ def _clamp_kernel(prev_color, prev_moments, color, radius, spread):
                         column_sum2[i] += other[i] * other[i]
         box = column_sum.copy()
         box2 = column_sum2.copy()
-        count = np.ones(3 * width, np.float32)
+        count = filled(3 * width, 1.0, np.float32)
         for shift in range(1, radius + 1):
             for dx in (-shift, shift):
                 x0, x1 = 3 * max(0, -dx), 3 * min(width, width - dx)
