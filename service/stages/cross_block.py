@@ -53,6 +53,7 @@ from service.stages.simd import (
     load,
     load_phase,
     narrow,
+    phase_blocks,
     splat,
     splat_d,
     sqrt,
@@ -157,9 +158,7 @@ def pack_row(log_a, log_b, r, var_a, var_b, albedo, normal, pad, out, y):  # pra
             row = out[p, k, y]
             row[:pad] = 0.0
             row[pad + count :] = 0.0
-    # simd.phase_blocks(width, s), written out: with that call here, or with `done` passed in, numba compiled
-    # the packing kernel ~50% slower (1280x720, 2 threads: 7.0 -> 10.5 ms; identical output).
-    done = width // (4 * LANES) * 4 * LANES if s == 4 else 0
+    done = phase_blocks(width, s)
     for x in range(0, done, 4 * LANES):
         _split_block(log_a, log_b, r, var_a, var_b, albedo, normal, x, out, y, pad + x // 4)
     for p in range(s):
