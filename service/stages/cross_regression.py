@@ -46,7 +46,7 @@ from service.stages.local_regression import (
     to_planes,
 )
 from service.stages.parallel import rows_per_thread
-from service.stages.range_clamp import emit_range_row, window_range
+from service.stages.range_clamp import emit_range_row, range_scratch, window_range
 from service.stages.simd import bits_to_float32, float32_to_bits
 
 LOG_MAX = 88.0  # |log value| limit of `log_to_linear`: expm1(88) = 1.65e38, two of them still below float32 max
@@ -403,8 +403,7 @@ def _finish_kernel(num, den, pad, noisy, radius, rows_per_task, out):  # pragma:
     flat = noisy.reshape(height, n)
     for task in numba.prange(-(-height // rows_per_task)):
         y0 = task * rows_per_task
-        scans = np.empty((4, 2 * radius + 1, n), np.float32)
-        rows = np.empty((4, n + 2 * radius * channels), np.float32)
+        scans, rows = range_scratch(radius, width, channels)
         inv = np.empty((num.shape[1], num.shape[4]), np.float32)
         pilots = np.empty((2, channels, 1, width), np.float32)
         line = pilots[0].reshape((channels, width))

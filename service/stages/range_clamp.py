@@ -168,6 +168,13 @@ def emit_range_row(lo, hi, output, clamp, lo_out, hi_out):
 
 
 @numba.njit(inline="always")
+def range_scratch(radius, width, channels):
+    """New float32 scratch (scans, rows) for `window_range` on rows of `width` pixels of `channels`."""
+    n = width * channels
+    return np.empty((4, 2 * radius + 1, n), np.float32), np.empty((4, n + 2 * radius * channels), np.float32)
+
+
+@numba.njit(inline="always")
 def window_range(flat, channels, y, y0, radius, scans, rows):
     """The min and max over the window of `radius` around every value of row y of flat (H, n) float32,
     n = W C interleaved (C = channels): frame rows y - r ... y + r, clipped to the frame, and r pixels either
@@ -176,7 +183,7 @@ def window_range(flat, channels, y, y0, radius, scans, rows):
     at row offset o of block k is the backward scan of block k at o and the forward scan of block k+1 at
     o - 1 (3 min/max per value), the scans made at o = 0 and kept in scans (4, g, n) float32 (backward lo,
     hi, forward lo, hi). Then along the row (`row_range`) in rows (4, n + 2 C r) float32 (lo, hi, spare lo,
-    spare hi). Returns True when the result, lo and hi at [0, n), is in
+    spare hi), both from `range_scratch`. Returns True when the result, lo and hi at [0, n), is in
     rows[2], rows[3], False when in rows[0], rows[1] (the caller branches: a chosen name would keep its
     loops from vectorising)."""
     n, g = flat.shape[1], 2 * radius + 1
@@ -209,12 +216,10 @@ def _range_kernel(image, output, radius, clamp, rows_per_task, lo_out, hi_out):
     """clamp: lo_out[y] = clip(output[y], lo, hi); else lo_out, hi_out = lo, hi; lo and hi the window range
     of each row (`window_range`), a band of rows_per_task rows per task."""
     height, width, channels = image.shape
-    n = width * channels
-    flat = image.reshape(height, n)
+    flat = image.reshape(height, width * channels)
     for task in numba.prange(-(-height // rows_per_task)):
         y0 = task * rows_per_task
-        scans = np.empty((4, 2 * radius + 1, n), np.float32)
-        rows = np.empty((4, n + 2 * radius * channels), np.float32)
+        scans, rows = range_scratch(radius, width, channels)
         for y in range(y0, min(height, y0 + rows_per_task)):
             if window_range(flat, channels, y, y0, radius, scans, rows):
                 emit_range_row(rows[2], rows[3], output[y], clamp, lo_out[y], hi_out[y])
