@@ -87,7 +87,7 @@ class Pipeline(ABC):
         emission = frame.get("emission")
         if emission is not None:
             # `color` always (the frame contract fills it in, every pipeline may read it); the halves only
-            # where the pipeline declares them: each subtraction is a full-frame pass.
+            # where the pipeline declares them: each layer subtracted is a full frame read and written.
             reads = ("color", *self.requires, *self.optional)
             names = [k for k in RADIANCE_LAYERS if k in frame and k in reads]  # "color" at least
             split = subtract_emission([frame[k] for k in names], emission)

@@ -1,10 +1,10 @@
 """`crossregression`: cross-regression alone (Choi et al. 2024, the ablation of their Fig. 8).
 
 Stages: cross-regression of the two half buffers in log space (service/stages/cross_regression.py)
--> the two pilot estimates back to linear radiance -> their mean -> clipped to the noisy frame's range over
-the regression window (the last three in one pass, `cross_regression_radiance`). No network, no temporal filter: the
-input that the online denoiser (`crossreg`) refines, useful on its own as a fast, detail-preserving
-spatial filter for frames that carry colorA/colorB.
+-> the two pilot estimates back to linear radiance -> their mean -> clipped to the noisy frame's range
+over the regression window (the last three in one pass, `cross_regression_radiance`). No network, no
+temporal filter: the input that the online denoiser (`crossreg`) refines, useful on its own as a fast,
+detail-preserving spatial filter for frames that carry colorA/colorB.
 """
 
 from __future__ import annotations

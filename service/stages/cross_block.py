@@ -487,8 +487,8 @@ def _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den):  # pragma
 def _predict_row(b, s, radius, pairs, coefs, tile):  # pragma: no cover
     """One window row of `_predict_pass` for regression b: pairs (2 radius + 1, PAIR_ROWS, LANES), that row's
     terms; its predictions and weights added into tile[b]. One regression at a time, so that its 18
-    coefficients stay in registers across the row (both at once reloaded them from L1 for every pair:
-    720p, 2 threads, -2 to -4 ms of ~46 for both pilots; one thread 92.5 -> 83.3 ms, same-process A/B).
+    coefficients stay in registers across the row (both at once reloaded them from L1 for every pair;
+    both pilots at 720p, same-process A/B: one thread 104.9 -> 97.7 ms, two threads 48.9 -> 48.0 ms).
     Phases interleaved: a tile vector is re-read s offsets after its store."""
     k0 = (load(coefs, (b, 0, 0)), load(coefs, (b, 1, 0)), load(coefs, (b, 2, 0)), load(coefs, (b, 3, 0)),
           load(coefs, (b, 4, 0)), load(coefs, (b, 5, 0)))  # fmt: skip

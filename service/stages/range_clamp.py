@@ -183,7 +183,7 @@ def window_range(flat, channels, y, y0, radius, scans, rows):
     at row offset o of block k is the backward scan of block k at o (made at o = 0, kept in scans (2, g, n)
     float32: lo, hi) and the running min / max of block k+1's rows up to o - 1, which each call extends by
     the window's new last row (rows[4], rows[5]; a forward scan of g rows kept as well put twice the
-    scratch in L2: 1280x720, radius 8, 2.4 -> 1.9 ms). Then along the row (`row_range`) in rows[0:4]
+    scratch in L2: 1280x720, radius 8, 2.3-2.4 -> 1.8-1.9 ms). Then along the row (`row_range`) in rows[0:4]
     (lo, hi, spare lo, spare hi); rows: (6, n + 2 C r) float32, both from `range_scratch`. Returns True
     when the result, lo and hi at [0, n), is in rows[2], rows[3], False when in rows[0], rows[1] (the
     caller branches: a chosen name would keep its loops from vectorising)."""
