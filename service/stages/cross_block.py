@@ -99,7 +99,7 @@ def regress_sums(planes: np.ndarray, width: int, params: BlockParams) -> tuple[n
     # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_predict_pass` adds
     # them in whole vectors from there, so the sums carry that many lanes (rounded to vectors) more.
     extra = -(-(2 * pad_lanes(params) + LANES) // LANES) * LANES
-    num = np.empty((2, s, 3, height, lanes + extra), np.float32)  # zeroed by the kernel, in parallel
+    num = np.empty((2, s, 3, height, lanes + extra), np.float32)  # zeroed by the kernel, just before first use
     den = np.empty((2, s, height, lanes + extra), np.float32)
     ridge = np.array([params.ridge_relative, params.ridge_absolute])
     counts = np.array([centre_count(height, s), centre_count(width, s)], np.int64)
@@ -229,23 +229,25 @@ def _split4x3(row, i, out, plane, y, q):  # pragma: no cover
 @numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
 def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, num, den):  # pragma: no cover
     """Every centre row's two regressions and their weighted predictions into num (2, S, 3, H, L'), den
-    (2, S, H, L'), zeroed first (rows in parallel), first index the regression (0: buffer A's features and
-    weights fitted to buffer B's colours, 1: the reverse); L' > L, see `regress_sums`.
+    (2, S, H, L'), first index the regression (0: buffer A's features and weights fitted to buffer B's
+    colours, 1: the reverse); L' > L, see `regress_sums`.
 
     Centre rows go in chunks of `rows` consecutive ones, which span more than a window: chunks two apart
     never add into the same pixel, so the even chunks run in parallel, then the odd ones. Within a chunk
     each group of LANES centre columns goes down the rows, so that a window shares all but s pixel rows
     with the last one, still in L2 (at 720p ~25% faster than running rows a window apart over the whole
-    width, which reread every window from memory)."""
+    width, which reread every window from memory).
+
+    The even chunks zero the sums just before their first use: each its rows up to the next even chunk's
+    first window row, which covers the rows that only the odd chunks reach, the lanes of each group as it
+    starts. (Zeroing the whole sums first, in parallel, sent them to memory before the first addition read
+    them back: at 720p 1.3-1.7 ms slower, same-process A/B.)"""
     s, height = planes.shape[0], planes.shape[2]
     hc, wc = counts[0], counts[1]
     pad = -(-radius // s)
     rows = (2 * radius) // s + 1
     chunks = -(-hc // rows)
     side = 2 * radius + 1
-    for y in numba.prange(height):
-        num[:, :, :, y] = 0.0
-        den[:, :, y] = 0.0
     for parity in range(2):
         for i in numba.prange((chunks - parity + 1) // 2):
             first = (parity + 2 * i) * rows
@@ -256,8 +258,15 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, num, den
             coefs = np.empty((2, 3 * FEATURES, LANES), np.float32)
             tile = np.empty((2, s, 4, num.shape[4] - planes.shape[3]), np.float32)  # see regress_sums
             zero = splat(np.float32(0.0))
+            z0 = max(first * s - radius, 0)
+            z1 = height if first + 2 * rows >= hc else (first + 2 * rows) * s - radius
+            zeroed = 0
             for q in range(0, wc, LANES):
                 c = pad + q
+                if parity == 0:  # this group adds into lanes q ... q + TW - 1 (tile width TW)
+                    end = num.shape[4] if q + LANES >= wc else q + tile.shape[3]
+                    _zero_lanes(num, den, z0, z1, zeroed, end)
+                    zeroed = end
                 for r in range(first, min(first + rows, hc)):
                     cy = r * s
                     y0, y1 = max(cy - radius, 0), min(cy + radius + 1, height)
@@ -278,6 +287,17 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, num, den
                             k = ch * FEATURES
                             store(coefs, (b, k, 0), load(coefs, (b, k, 0)) + load(planes, (0, target + ch, cy, c)))
                     _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den)
+
+
+@numba.njit(inline="always")
+def _zero_lanes(num, den, y0, y1, x0, x1):  # pragma: no cover
+    """Zero lanes x0 ... x1 - 1 of rows y0 ... y1 - 1 of the sums num (2, S, 3, H, L') and den (2, S, H, L')."""
+    for y in range(y0, y1):
+        for b in range(num.shape[0]):
+            for p in range(num.shape[1]):
+                for ch in range(num.shape[2]):
+                    num[b, p, ch, y, x0:x1] = 0.0
+                den[b, p, y, x0:x1] = 0.0
 
 
 @numba.njit(inline="always", fastmath=True)

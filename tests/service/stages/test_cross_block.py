@@ -9,6 +9,7 @@ from service.stages.cross_block import (
     _cholesky_solve,
     pack_cross_reference,
     regress_packed,
+    regress_sums,
 )
 from service.stages.cross_regression import buffer_terms, linear_to_log, pixel_variance_reference
 from service.stages.local_regression import (
@@ -64,6 +65,32 @@ def test_regress_packed_matches_the_numpy_reference(size, params):
     for out, ref in zip(_run(inputs, params), _reference(inputs, params), strict=True):
         assert out.shape == (3, *size) and out.dtype == np.float32
         np.testing.assert_allclose(out, ref, rtol=PARITY_RTOL, atol=PARITY_RTOL * np.abs(ref).max())
+
+
+@pytest.mark.parametrize(
+    "params", [BlockParams(), BlockParams(radius=5, sparsity=3), BlockParams(radius=2, sparsity=1)],
+    ids=["paper", "sparsity3", "dense"],
+)
+def test_regress_sums_sets_every_sum_itself(params, monkeypatch):
+    """The kernel zeroes the sums it returns (each chunk its rows, each lane group its lanes, as it starts):
+    the same sums come back when the memory handed out for them is full of NaN. Several chunks of both
+    parities and several lane groups."""
+    inputs = _buffers(np.random.default_rng(8), 90, 4 * LANES * 3 + 7)
+    planes = pack_cross_reference(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"],
+                                  from_planes(inputs["albedo"]), from_planes(inputs["normal"]), params)  # fmt: skip
+    clean = regress_sums(planes, inputs["a"].shape[2], params)
+    empty = np.empty
+
+    def nan_empty(*args, **kwargs):
+        out = empty(*args, **kwargs)
+        out.fill(np.nan)
+        return out
+
+    monkeypatch.setattr(np, "empty", nan_empty)
+    dirty = regress_sums(planes, inputs["a"].shape[2], params)
+    monkeypatch.undo()
+    for got, want in zip(dirty, clean, strict=True):
+        np.testing.assert_array_equal(got, want)
 
 
 def test_pilot_a_is_fitted_to_buffer_b():
