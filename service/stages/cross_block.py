@@ -90,11 +90,14 @@ def regress_packed(planes: np.ndarray, width: int, params: BlockParams) -> tuple
     return pilots[0], pilots[1]
 
 
-def regress_sums(planes: np.ndarray, width: int, params: BlockParams) -> tuple[np.ndarray, np.ndarray]:
+def regress_sums(
+    planes: np.ndarray, width: int, params: BlockParams, tasks: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 5's sums of both regressions before the division (`regress_packed`'s arguments): num
     (2, S, 3, H, L') and den (2, S, H, L') float32 phase planes, first index the regression (0: pilot_a,
     1: pilot_b), pixel x of row y at [.., x % S, .., y, pad + x // S] (`normalise_phases` divides them),
-    L' >= L."""
+    L' >= L. tasks: bands of centre rows run in parallel (`centre_bands`), default one per numba thread;
+    the sums do not depend on it."""
     s, _, height, lanes = planes.shape
     # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_predict_pass` adds
     # them in whole vectors from there, so the sums carry that many lanes (rounded to vectors) more.
@@ -103,8 +106,29 @@ def regress_sums(planes: np.ndarray, width: int, params: BlockParams) -> tuple[n
     den = np.empty((2, s, height, lanes + extra), np.float32)
     ridge = np.array([params.ridge_relative, params.ridge_absolute])
     counts = np.array([centre_count(height, s), centre_count(width, s)], np.int64)
-    _cross_block_kernel(planes, spatial_weights(params), params.radius, counts, kernel_constants(), ridge, num, den)
+    bands = centre_bands(int(counts[0]), params, numba.get_num_threads() if tasks is None else tasks)
+    spatial = spatial_weights(params)
+    _cross_block_kernel(planes, spatial, params.radius, counts, kernel_constants(), ridge, bands, num, den)
     return num, den
+
+
+def centre_bands(centre_rows: int, params: BlockParams, tasks: int) -> np.ndarray:
+    """The centre rows 0 ... centre_rows - 1 as at most `tasks` bands (B, 2) int64 of [first, end) rows, in
+    order, as even as may be, with a gap of `band_gap` rows between neighbours: bands whose windows never
+    share a pixel row, however far each has got, and each at least as long as a gap (so that the gaps'
+    windows never share one either). One band when the rows are too few for two."""
+    gap = band_gap(params)
+    count = max(1, min(tasks, (centre_rows + gap) // (2 * gap + 1)))
+    sizes = np.full(count, (centre_rows - (count - 1) * gap) // count, np.int64)
+    sizes[: (centre_rows - (count - 1) * gap) % count] += 1
+    first = np.concatenate([[0], np.cumsum(sizes + gap)[:-1]])
+    return np.stack([first, first + sizes], axis=1)
+
+
+def band_gap(params: BlockParams) -> int:
+    """The fewest centre rows between two bands whose windows share no pixel row: the next band's first
+    window row, s (end + gap) - radius, lies past the last one of this band, s (end - 1) + radius."""
+    return -(-(2 * params.radius + 1) // params.sparsity) - 1
 
 
 def empty_planes(height: int, width: int, params: BlockParams) -> np.ndarray:
@@ -227,66 +251,96 @@ def _split4x3(row, i, out, plane, y, q):  # pragma: no cover
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
-def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, num, den):  # pragma: no cover
+def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, num, den):  # pragma: no cover
     """Every centre row's two regressions and their weighted predictions into num (2, S, 3, H, L'), den
     (2, S, H, L'), first index the regression (0: buffer A's features and weights fitted to buffer B's
-    colours, 1: the reverse); L' > L, see `regress_sums`.
+    colours, 1: the reverse); L' > L, see `regress_sums`. bands (B, 2): `centre_bands`.
 
-    Centre rows go in chunks of `rows` consecutive ones, which span more than a window: chunks two apart
-    never add into the same pixel, so the even chunks run in parallel, then the odd ones. Within a chunk
-    each group of LANES centre columns goes down the rows, so that a window shares all but s pixel rows
-    with the last one, still in L2 (at 720p ~25% faster than running rows a window apart over the whole
-    width, which reread every window from memory).
+    The bands run in parallel, each one chunk of `rows` centre rows after the other, top to bottom; within
+    a chunk each group of LANES centre columns goes down the rows (`_group_rows`), so that a window shares
+    all but s pixel rows with the last one, still in L2 (at 720p ~25% faster than running rows a window
+    apart over the whole width, which reread every window from memory), and a chunk finds the sums of the
+    rows it shares with the one before still in cache. (Even and then odd chunks in parallel, the layout
+    before, found them in memory: at 720p 0.8-1.9 ms slower, the median of 25 paired runs in each of two
+    same-process A/Bs.)
+    Then the gaps between the bands, which share rows with both (~0.8 ms at 720p, 2 threads): their lane
+    groups in parallel, groups TW / LANES apart at a time (tile width TW: such groups share no lane).
 
-    The even chunks zero the sums just before their first use: each its rows up to the next even chunk's
-    first window row, which covers the rows that only the odd chunks reach, the lanes of each group as it
-    starts. (Zeroing the whole sums first, in parallel, sent them to memory before the first addition read
-    them back: at 720p 1.3-1.7 ms slower, same-process A/B.)"""
+    Each chunk zeroes the sums of the rows that it is the first to reach (the band's last chunk: up to the
+    next band's first window row, which covers the gap's rows) just before first use, the lanes of each
+    group as it starts. (Zeroing all the sums first, in parallel, sent them to memory before the first
+    addition read them back: at 720p 1.3-1.7 ms slower, same-process A/B.)"""
     s, height = planes.shape[0], planes.shape[2]
-    hc, wc = counts[0], counts[1]
-    pad = -(-radius // s)
-    rows = (2 * radius) // s + 1
-    chunks = -(-hc // rows)
-    side = 2 * radius + 1
-    for parity in range(2):
-        for i in numba.prange((chunks - parity + 1) // 2):
-            first = (parity + 2 * i) * rows
-            pairs = np.empty((side * side, PAIR_ROWS, LANES), np.float32)  # ~300 KB: L2
-            moments = np.empty((2, MOMENTS, LANES), np.float32)
-            gram = np.empty((3, FEATURES, FEATURES, LANES))
-            rhs = np.empty((3, FEATURES, LANES))
-            coefs = np.empty((2, 3 * FEATURES, LANES), np.float32)
-            tile = np.empty((2, s, 4, num.shape[4] - planes.shape[3]), np.float32)  # see regress_sums
-            zero = splat(np.float32(0.0))
-            z0 = max(first * s - radius, 0)
-            z1 = height if first + 2 * rows >= hc else (first + 2 * rows) * s - radius
+    wc = counts[1]
+    rows = (2 * radius) // s + 1  # a window's worth (two: no clear change at 720p)
+    width = num.shape[4] - planes.shape[3]  # tile width TW, see regress_sums
+    for band in numba.prange(bands.shape[0]):
+        scratch = _scratch(radius, s, width)
+        start, end = bands[band, 0], bands[band, 1]
+        for first in range(start, end, rows):
+            last = min(first + rows, end)
+            z0 = max(first * s - radius, 0) if first == start else min((first - 1) * s + radius + 1, height)
+            z1 = min((last - 1) * s + radius + 1, height)
+            if last == end:
+                z1 = height if band + 1 == bands.shape[0] else bands[band + 1, 0] * s - radius
             zeroed = 0
             for q in range(0, wc, LANES):
-                c = pad + q
-                if parity == 0:  # this group adds into lanes q ... q + TW - 1 (tile width TW)
-                    end = num.shape[4] if q + LANES >= wc else q + tile.shape[3]
-                    _zero_lanes(num, den, z0, z1, zeroed, end)
-                    zeroed = end
-                for r in range(first, min(first + rows, hc)):
-                    cy = r * s
-                    y0, y1 = max(cy - radius, 0), min(cy + radius + 1, height)
-                    for e in range(MOMENTS):
-                        store(moments, (0, e, 0), zero)
-                        store(moments, (1, e, 0), zero)
-                    for y in range(y0, y1):  # a window row's terms (~17 KB) are summed while still in L1
-                        row = pairs[(y - y0) * side : (y - y0 + 1) * side]
-                        _pairs_pass(planes, spatial, radius, consts, cy, y, c, row)
-                        for b in range(2):
-                            _shared_pass(b, row, moments[b])
-                            for ch in range(3):
-                                _channel_pass(b, ch, row, moments[b])
-                    for b in range(2):
-                        _solve(moments[b], ridge, gram, rhs, coefs[b])
-                        target = BUFFER_B if b == 0 else BUFFER_A
-                        for ch in range(3):  # the target was fitted relative to its centre value: add it back
-                            k = ch * FEATURES
-                            store(coefs, (b, k, 0), load(coefs, (b, k, 0)) + load(planes, (0, target + ch, cy, c)))
-                    _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den)
+                lanes = num.shape[4] if q + LANES >= wc else q + width  # this group adds into lanes q ... q + TW - 1
+                _zero_lanes(num, den, z0, z1, zeroed, lanes)
+                zeroed = lanes
+                _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch, num, den)
+    colours, parts = width // LANES, bands.shape[0]
+    groups = -(-wc // LANES)
+    for colour in range(colours):
+        for item in numba.prange((bands.shape[0] - 1) * parts):  # a gap's groups of this colour, in parts
+            gap, part = item // parts, item % parts
+            scratch = _scratch(radius, s, width)
+            for g in range(colour + colours * part, groups, colours * parts):
+                _group_rows(planes, spatial, radius, consts, ridge, g * LANES, bands[gap, 1], bands[gap + 1, 0],
+                            scratch, num, den)  # fmt: skip
+
+
+@numba.njit(inline="always")
+def _scratch(radius, s, width):  # pragma: no cover
+    """`_group_rows`' scratch: (pairs (side^2, PAIR_ROWS, LANES) ~300 KB at radius 8, moments (2, MOMENTS,
+    LANES), gram (3, FEATURES, FEATURES, LANES) float64, rhs (3, FEATURES, LANES) float64, coefs
+    (2, 3 FEATURES, LANES), tile (2, S, 4, width)), float32 unless said."""
+    side = 2 * radius + 1
+    return (np.empty((side * side, PAIR_ROWS, LANES), np.float32), np.empty((2, MOMENTS, LANES), np.float32),
+            np.empty((3, FEATURES, FEATURES, LANES)), np.empty((3, FEATURES, LANES)),
+            np.empty((2, 3 * FEATURES, LANES), np.float32), np.empty((2, s, 4, width), np.float32))  # fmt: skip
+
+
+@numba.njit(inline="always", fastmath=True)
+def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch, num, den):  # pragma: no cover
+    """Centre columns q ... q + LANES - 1 (a lane group) of centre rows first ... last - 1, one row after the
+    other: both regressions' moments (`_pairs_pass`, `_shared_pass`, `_channel_pass`), their solves and
+    predictions (`_predict_pass`) into num and den. scratch: `_scratch`."""
+    pairs, moments, gram, rhs, coefs, tile = scratch
+    s, height = planes.shape[0], planes.shape[2]
+    c = -(-radius // s) + q  # plane lane of the first centre
+    side = 2 * radius + 1
+    zero = splat(np.float32(0.0))
+    for r in range(first, last):
+        cy = r * s
+        y0, y1 = max(cy - radius, 0), min(cy + radius + 1, height)
+        for e in range(MOMENTS):
+            store(moments, (0, e, 0), zero)
+            store(moments, (1, e, 0), zero)
+        for y in range(y0, y1):  # a window row's terms (~17 KB) are summed while still in L1
+            row = pairs[(y - y0) * side : (y - y0 + 1) * side]
+            _pairs_pass(planes, spatial, radius, consts, cy, y, c, row)
+            for b in range(2):
+                _shared_pass(b, row, moments[b])
+                for ch in range(3):
+                    _channel_pass(b, ch, row, moments[b])
+        for b in range(2):
+            _solve(moments[b], ridge, gram, rhs, coefs[b])
+            target = BUFFER_B if b == 0 else BUFFER_A
+            for ch in range(3):  # the target was fitted relative to its centre value: add it back
+                k = ch * FEATURES
+                store(coefs, (b, k, 0), load(coefs, (b, k, 0)) + load(planes, (0, target + ch, cy, c)))
+        _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den)
 
 
 @numba.njit(inline="always")

@@ -7,6 +7,8 @@ from service.stages.cross_block import (
     FEATURES,
     MASK,
     _cholesky_solve,
+    band_gap,
+    centre_bands,
     pack_cross_reference,
     regress_packed,
     regress_sums,
@@ -67,18 +69,24 @@ def test_regress_packed_matches_the_numpy_reference(size, params):
         np.testing.assert_allclose(out, ref, rtol=PARITY_RTOL, atol=PARITY_RTOL * np.abs(ref).max())
 
 
-@pytest.mark.parametrize(
-    "params", [BlockParams(), BlockParams(radius=5, sparsity=3), BlockParams(radius=2, sparsity=1)],
-    ids=["paper", "sparsity3", "dense"],
-)
-def test_regress_sums_sets_every_sum_itself(params, monkeypatch):
-    """The kernel zeroes the sums it returns (each chunk its rows, each lane group its lanes, as it starts):
-    the same sums come back when the memory handed out for them is full of NaN. Several chunks of both
-    parities and several lane groups."""
+SUMS_PARAMS = [BlockParams(), BlockParams(radius=5, sparsity=3), BlockParams(radius=2, sparsity=1),
+               BlockParams(radius=3, sparsity=4)]  # fmt: skip
+
+
+def _packed(inputs: dict[str, np.ndarray], params: BlockParams) -> np.ndarray:
+    return pack_cross_reference(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"],
+                                from_planes(inputs["albedo"]), from_planes(inputs["normal"]), params)  # fmt: skip
+
+
+@pytest.mark.parametrize("params", SUMS_PARAMS, ids=["paper", "sparsity3", "dense", "narrow"])
+@pytest.mark.parametrize("tasks", [1, 3])
+def test_regress_sums_sets_every_sum_itself(params, tasks, monkeypatch):
+    """The kernel zeroes the sums it returns (each chunk the rows it reaches first, each lane group its lanes,
+    as it starts): the same sums come back when the memory handed out for them is full of NaN. Several
+    chunks, bands and lane groups."""
     inputs = _buffers(np.random.default_rng(8), 90, 4 * LANES * 3 + 7)
-    planes = pack_cross_reference(inputs["a"], inputs["var_a"], inputs["b"], inputs["var_b"],
-                                  from_planes(inputs["albedo"]), from_planes(inputs["normal"]), params)  # fmt: skip
-    clean = regress_sums(planes, inputs["a"].shape[2], params)
+    planes = _packed(inputs, params)
+    clean = regress_sums(planes, inputs["a"].shape[2], params, tasks)
     empty = np.empty
 
     def nan_empty(*args, **kwargs):
@@ -87,10 +95,39 @@ def test_regress_sums_sets_every_sum_itself(params, monkeypatch):
         return out
 
     monkeypatch.setattr(np, "empty", nan_empty)
-    dirty = regress_sums(planes, inputs["a"].shape[2], params)
+    dirty = regress_sums(planes, inputs["a"].shape[2], params, tasks)
     monkeypatch.undo()
     for got, want in zip(dirty, clean, strict=True):
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("params", SUMS_PARAMS, ids=["paper", "sparsity3", "dense", "narrow"])
+def test_regress_sums_do_not_depend_on_the_bands(params):
+    """1 to 5 bands (and their gaps, run after them) give the same sums up to float32 summation order."""
+    inputs = _buffers(np.random.default_rng(9), 150, 2 * LANES * 3 + 5)
+    planes = _packed(inputs, params)
+    one = regress_sums(planes, inputs["a"].shape[2], params, 1)
+    for tasks in (2, 3, 5):
+        for got, want in zip(regress_sums(planes, inputs["a"].shape[2], params, tasks), one, strict=True):
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("params", SUMS_PARAMS, ids=["paper", "sparsity3", "dense", "narrow"])
+@pytest.mark.parametrize("centre_rows", [1, 2, 9, 10, 37, 180])
+@pytest.mark.parametrize("tasks", [1, 2, 3, 16])
+def test_centre_bands_keep_their_windows_apart(params, centre_rows, tasks):
+    """Bands tile the centre rows in order with gaps of band_gap rows; no two bands' windows, nor two gaps',
+    share a pixel row; as many bands as tasks when the rows allow."""
+    s, r, gap = params.sparsity, params.radius, band_gap(params)
+    bands = centre_bands(centre_rows, params, tasks)
+    assert bands.dtype == np.int64 and bands[0, 0] == 0 and bands[-1, 1] == centre_rows
+    assert 1 <= len(bands) <= tasks and np.all(bands[:, 1] > bands[:, 0])
+    np.testing.assert_array_equal(bands[1:, 0] - bands[:-1, 1], gap)
+    assert np.all(s * bands[1:, 0] - r > s * (bands[:-1, 1] - 1) + r)  # bands: no shared window row
+    assert np.all(s * bands[1:-1, 1] - r > s * (bands[1:-1, 0] - 1) + r)  # gaps: none either
+    if len(bands) < tasks:
+        assert centre_rows < (len(bands) + 1) * (2 * gap + 1) - gap  # one more band would be shorter than a gap
+    assert np.ptp(bands[:, 1] - bands[:, 0]) <= 1
 
 
 def test_pilot_a_is_fitted_to_buffer_b():
