@@ -261,15 +261,15 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, n
     all but s pixel rows with the last one, still in L2 (at 720p ~25% faster than running rows a window
     apart over the whole width, which reread every window from memory), and a chunk finds the sums of the
     rows it shares with the one before still in cache. (Even and then odd chunks in parallel, the layout
-    before, found them in memory: at 720p 0.8-1.9 ms slower, the median of 25 paired runs in each of two
-    same-process A/Bs.)
+    before, found them in memory: with the zeroing below, the kernel at 720p was 2.0 and 3.6 ms faster than
+    that, the medians of 21 paired runs in two same-process A/Bs, one in each compile order.)
     Then the gaps between the bands, which share rows with both (~0.8 ms at 720p, 2 threads): their lane
     groups in parallel, groups TW / LANES apart at a time (tile width TW: such groups share no lane).
 
     Each chunk zeroes the sums of the rows that it is the first to reach (the band's last chunk: up to the
     next band's first window row, which covers the gap's rows) just before first use, the lanes of each
     group as it starts. (Zeroing all the sums first, in parallel, sent them to memory before the first
-    addition read them back: at 720p 1.3-1.7 ms slower, same-process A/B.)"""
+    addition read them back: at 720p 0.7 and 2.3 ms slower, same-process A/Bs in both compile orders.)"""
     s, height = planes.shape[0], planes.shape[2]
     wc = counts[1]
     rows = (2 * radius) // s + 1  # a window's worth (two: no clear change at 720p)
