@@ -263,7 +263,8 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, n
     rows it shares with the one before still in cache. (Even and then odd chunks in parallel, the layout
     before, found them in memory: with the zeroing below, the kernel at 720p was 2.0 and 3.6 ms faster than
     that, the medians of 21 paired runs in two same-process A/Bs, one in each compile order.)
-    Then the gaps between the bands, which share rows with both (~0.8 ms at 720p, 2 threads): their lane
+    Then the gaps between the bands, which share rows with both (~0.8 ms at 720p, 2 threads, minima of one
+    A/B): their lane
     groups in parallel, groups TW / LANES apart at a time (tile width TW: such groups share no lane).
 
     Each chunk zeroes the sums of the rows that it is the first to reach (the band's last chunk: up to the
@@ -273,42 +274,42 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, n
     s, height = planes.shape[0], planes.shape[2]
     wc = counts[1]
     rows = (2 * radius) // s + 1  # a window's worth (two: no clear change at 720p)
-    width = num.shape[4] - planes.shape[3]  # tile width TW, see regress_sums
+    tw = num.shape[4] - planes.shape[3]  # tile width TW, see regress_sums
     for band in numba.prange(bands.shape[0]):
-        scratch = _scratch(radius, s, width)
+        scratch = _scratch(radius, s, tw)
         start, end = bands[band, 0], bands[band, 1]
+        z1 = max(start * s - radius, 0)  # pixel rows zeroed so far end here
         for first in range(start, end, rows):
             last = min(first + rows, end)
-            z0 = max(first * s - radius, 0) if first == start else min((first - 1) * s + radius + 1, height)
-            z1 = min((last - 1) * s + radius + 1, height)
+            z0, z1 = z1, min((last - 1) * s + radius + 1, height)
             if last == end:
                 z1 = height if band + 1 == bands.shape[0] else bands[band + 1, 0] * s - radius
             zeroed = 0
             for q in range(0, wc, LANES):
-                lanes = num.shape[4] if q + LANES >= wc else q + width  # this group adds into lanes q ... q + TW - 1
+                lanes = num.shape[4] if q + LANES >= wc else q + tw  # this group adds into lanes q ... q + TW - 1
                 _zero_lanes(num, den, z0, z1, zeroed, lanes)
                 zeroed = lanes
                 _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch, num, den)
-    colours, parts = width // LANES, bands.shape[0]
+    colours, parts = tw // LANES, bands.shape[0]
     groups = -(-wc // LANES)
     for colour in range(colours):
         for item in numba.prange((bands.shape[0] - 1) * parts):  # a gap's groups of this colour, in parts
             gap, part = item // parts, item % parts
-            scratch = _scratch(radius, s, width)
+            scratch = _scratch(radius, s, tw)
             for g in range(colour + colours * part, groups, colours * parts):
                 _group_rows(planes, spatial, radius, consts, ridge, g * LANES, bands[gap, 1], bands[gap + 1, 0],
                             scratch, num, den)  # fmt: skip
 
 
 @numba.njit(inline="always")
-def _scratch(radius, s, width):  # pragma: no cover
+def _scratch(radius, s, tw):  # pragma: no cover
     """`_group_rows`' scratch: (pairs (side^2, PAIR_ROWS, LANES) ~300 KB at radius 8, moments (2, MOMENTS,
     LANES), gram (3, FEATURES, FEATURES, LANES) float64, rhs (3, FEATURES, LANES) float64, coefs
-    (2, 3 FEATURES, LANES), tile (2, S, 4, width)), float32 unless said."""
+    (2, 3 FEATURES, LANES), tile (2, S, 4, tw)), float32 unless said."""
     side = 2 * radius + 1
     return (np.empty((side * side, PAIR_ROWS, LANES), np.float32), np.empty((2, MOMENTS, LANES), np.float32),
             np.empty((3, FEATURES, FEATURES, LANES)), np.empty((3, FEATURES, LANES)),
-            np.empty((2, 3 * FEATURES, LANES), np.float32), np.empty((2, s, 4, width), np.float32))  # fmt: skip
+            np.empty((2, 3 * FEATURES, LANES), np.float32), np.empty((2, s, 4, tw), np.float32))  # fmt: skip
 
 
 @numba.njit(inline="always", fastmath=True)
