@@ -316,7 +316,12 @@ def _scratch(radius, s, tw):  # pragma: no cover
 def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch, num, den):  # pragma: no cover
     """Centre columns q ... q + LANES - 1 (a lane group) of centre rows first ... last - 1, one row after the
     other: both regressions' moments (`_pairs_pass`, `_shared_pass`, `_channel_pass`), their solves and
-    predictions (`_predict_pass`) into num and den. scratch: `_scratch`."""
+    predictions (`_predict_pass`) into num and den. scratch: `_scratch`.
+
+    The passes take whole scratch arrays and a first index (window row o0 of pairs, regression b), never a
+    slice: numba counts the references of every view it makes, an atomic increment and decrement by call
+    per view, and views of pairs and moments per window row cost the kernel at 720p 1.0 and 1.3 ms (2
+    threads, same-process A/Bs in both compile orders, paired medians of 15)."""
     pairs, moments, gram, rhs, coefs, tile = scratch
     s, height = planes.shape[0], planes.shape[2]
     c = -(-radius // s) + q  # plane lane of the first centre
@@ -329,14 +334,14 @@ def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch,
             store(moments, (0, e, 0), zero)
             store(moments, (1, e, 0), zero)
         for y in range(y0, y1):  # a window row's terms (~17 KB) are summed while still in L1
-            row = pairs[(y - y0) * side : (y - y0 + 1) * side]
-            _pairs_pass(planes, spatial, radius, consts, cy, y, c, row)
+            o0 = (y - y0) * side
+            _pairs_pass(planes, spatial, radius, consts, cy, y, c, pairs, o0)
             for b in range(2):
-                _shared_pass(b, row, moments[b])
+                _shared_pass(b, pairs, o0, side, moments)
                 for ch in range(3):
-                    _channel_pass(b, ch, row, moments[b])
+                    _channel_pass(b, ch, pairs, o0, side, moments)
         for b in range(2):
-            _solve(moments[b], ridge, gram, rhs, coefs[b])
+            _solve(moments, b, ridge, gram, rhs, coefs)
             target = BUFFER_B if b == 0 else BUFFER_A
             for ch in range(3):  # the target was fitted relative to its centre value: add it back
                 k = ch * FEATURES
@@ -356,9 +361,10 @@ def _zero_lanes(num, den, y0, y1, x0, x1):  # pragma: no cover
 
 
 @numba.njit(inline="always", fastmath=True)
-def _pairs_pass(planes, spatial, radius, consts, cy, y, c, pairs):  # pragma: no cover
+def _pairs_pass(planes, spatial, radius, consts, cy, y, c, pairs, o0):  # pragma: no cover
     """Window row y of LANES centres (centre row cy, lanes c ...), read from the planes once for both
-    regressions: every pair's terms into pairs (2 radius + 1, PAIR_ROWS, LANES), by offset: per buffer the
+    regressions: every pair's terms into pairs[o0 + o] (pairs (side^2, PAIR_ROWS, LANES), o the offset in the
+    row, side = 2 radius + 1): per buffer the
     weight (eq. 7, times the spatial factor, plus WEIGHT_FLOOR, 0 outside the frame), the colour scale
     1 / (sigma_i + sigma_c + eps) of eq. 6 and the log colour differences y_i - y_c; the normal and albedo
     differences. The later passes stream the scratch in order instead of gathering from 4 phase planes x
@@ -386,58 +392,61 @@ def _pairs_pass(planes, spatial, radius, consts, cy, y, c, pairs):  # pragma: no
         db2 = load(planes, (p, BUFFER_B + 2, y, x)) - gb2
         ratio_a = (da0 * da0 + da1 * da1 + da2 * da2) / (load(planes, (p, BUFFER_A + 3, y, x)) + var_a)
         ratio_b = (db0 * db0 + db1 * db1 + db2 * db2) / (load(planes, (p, BUFFER_B + 3, y, x)) + var_b)
-        store(pairs, (o, WEIGHT, 0), (exp_neg(ratio_a) * sw + floor) * mask)
-        store(pairs, (o, WEIGHT + 1, 0), (exp_neg(ratio_b) * sw + floor) * mask)
-        store(pairs, (o, SCALE, 0), one / (load(planes, (p, BUFFER_A + 4, y, x)) + sig_a))
-        store(pairs, (o, SCALE + 1, 0), one / (load(planes, (p, BUFFER_B + 4, y, x)) + sig_b))
-        store(pairs, (o, D, 0), da0)
-        store(pairs, (o, D + 1, 0), da1)
-        store(pairs, (o, D + 2, 0), da2)
-        store(pairs, (o, D + 3, 0), db0)
-        store(pairs, (o, D + 4, 0), db1)
-        store(pairs, (o, D + 5, 0), db2)
-        store(pairs, (o, DN, 0), load(planes, (p, NORMAL, y, x)) - n0)
-        store(pairs, (o, DN + 1, 0), load(planes, (p, NORMAL + 1, y, x)) - n1)
-        store(pairs, (o, DN + 2, 0), load(planes, (p, NORMAL + 2, y, x)) - n2)
-        store(pairs, (o, DA, 0), load(planes, (p, ALBEDO, y, x)) - a0)
-        store(pairs, (o, DA + 1, 0), load(planes, (p, ALBEDO + 1, y, x)) - a1)
-        store(pairs, (o, DA + 2, 0), load(planes, (p, ALBEDO + 2, y, x)) - a2)
+        store(pairs, (o0 + o, WEIGHT, 0), (exp_neg(ratio_a) * sw + floor) * mask)
+        store(pairs, (o0 + o, WEIGHT + 1, 0), (exp_neg(ratio_b) * sw + floor) * mask)
+        store(pairs, (o0 + o, SCALE, 0), one / (load(planes, (p, BUFFER_A + 4, y, x)) + sig_a))
+        store(pairs, (o0 + o, SCALE + 1, 0), one / (load(planes, (p, BUFFER_B + 4, y, x)) + sig_b))
+        store(pairs, (o0 + o, D, 0), da0)
+        store(pairs, (o0 + o, D + 1, 0), da1)
+        store(pairs, (o0 + o, D + 2, 0), da2)
+        store(pairs, (o0 + o, D + 3, 0), db0)
+        store(pairs, (o0 + o, D + 4, 0), db1)
+        store(pairs, (o0 + o, D + 5, 0), db2)
+        store(pairs, (o0 + o, DN, 0), load(planes, (p, NORMAL, y, x)) - n0)
+        store(pairs, (o0 + o, DN + 1, 0), load(planes, (p, NORMAL + 1, y, x)) - n1)
+        store(pairs, (o0 + o, DN + 2, 0), load(planes, (p, NORMAL + 2, y, x)) - n2)
+        store(pairs, (o0 + o, DA, 0), load(planes, (p, ALBEDO, y, x)) - a0)
+        store(pairs, (o0 + o, DA + 1, 0), load(planes, (p, ALBEDO + 1, y, x)) - a1)
+        store(pairs, (o0 + o, DA + 2, 0), load(planes, (p, ALBEDO + 2, y, x)) - a2)
         p += 1
         if p == s:
             p, x = 0, x + 1
 
 
 @numba.njit(inline="always", fastmath=True)
-def _shared_pass(b, pairs, moments):  # pragma: no cover
-    """Regression b's moments of the shared features over the pairs, added to moments[0:10]:
-    sum w [1, dn] [1, dn]^T, the upper triangle row by row."""
-    m = (load(moments, (0, 0)), load(moments, (1, 0)), load(moments, (2, 0)), load(moments, (3, 0)),
-         load(moments, (4, 0)), load(moments, (5, 0)), load(moments, (6, 0)), load(moments, (7, 0)),
-         load(moments, (8, 0)), load(moments, (9, 0)))  # fmt: skip
-    for o in range(pairs.shape[0]):
+def _shared_pass(b, pairs, o0, side, moments):  # pragma: no cover
+    """Regression b's moments of the shared features over pairs[o0 ... o0 + side - 1] (one window row),
+    added to moments[b, 0:10] (moments (2, MOMENTS, LANES)): sum w [1, dn] [1, dn]^T, the upper triangle
+    row by row."""
+    m = (load(moments, (b, 0, 0)), load(moments, (b, 1, 0)), load(moments, (b, 2, 0)), load(moments, (b, 3, 0)),
+         load(moments, (b, 4, 0)), load(moments, (b, 5, 0)), load(moments, (b, 6, 0)), load(moments, (b, 7, 0)),
+         load(moments, (b, 8, 0)), load(moments, (b, 9, 0)))  # fmt: skip
+    for o in range(o0, o0 + side):
         w = load(pairs, (o, WEIGHT + b, 0))
         e0, e1, e2 = load(pairs, (o, DN, 0)), load(pairs, (o, DN + 1, 0)), load(pairs, (o, DN + 2, 0))
         w0, w1, w2 = w * e0, w * e1, w * e2
         m = (m[0] + w, m[1] + w0, m[2] + w1, m[3] + w2, m[4] + w0 * e0, m[5] + w0 * e1, m[6] + w0 * e2,
              m[7] + w1 * e1, m[8] + w1 * e2, m[9] + w2 * e2)  # fmt: skip
     for e in range(10):
-        store(moments, (e, 0), m[e])
+        store(moments, (b, e, 0), m[e])
 
 
 @numba.njit(inline="always", fastmath=True)
-def _channel_pass(b, ch, pairs, moments):  # pragma: no cover
-    """Regression b's colour channel ch: its 17 moments over the pairs, added to moments[10 + 17 ch ...]:
+def _channel_pass(b, ch, pairs, o0, side, moments):  # pragma: no cover
+    """Regression b's colour channel ch: its 17 moments over pairs[o0 ... o0 + side - 1], added to
+    moments[b, 10 + 17 ch ...]:
     sum w u [1, dn, u], w a [1, dn, u, a] and the right-hand side sum w t [1, dn, u, a], with u the scaled
     colour difference of buffer b (eq. 6) and t the other buffer's colour relative to its centre value (the
     same fit, the intercept less that value: `_cross_block_kernel` adds it back)."""
     k = 10 + 17 * ch
-    m = (load(moments, (k, 0)), load(moments, (k + 1, 0)), load(moments, (k + 2, 0)), load(moments, (k + 3, 0)),
-         load(moments, (k + 4, 0)), load(moments, (k + 5, 0)), load(moments, (k + 6, 0)), load(moments, (k + 7, 0)),
-         load(moments, (k + 8, 0)), load(moments, (k + 9, 0)), load(moments, (k + 10, 0)),
-         load(moments, (k + 11, 0)), load(moments, (k + 12, 0)), load(moments, (k + 13, 0)),
-         load(moments, (k + 14, 0)), load(moments, (k + 15, 0)), load(moments, (k + 16, 0)))  # fmt: skip
+    m = (load(moments, (b, k, 0)), load(moments, (b, k + 1, 0)), load(moments, (b, k + 2, 0)),
+         load(moments, (b, k + 3, 0)), load(moments, (b, k + 4, 0)), load(moments, (b, k + 5, 0)),
+         load(moments, (b, k + 6, 0)), load(moments, (b, k + 7, 0)), load(moments, (b, k + 8, 0)),
+         load(moments, (b, k + 9, 0)), load(moments, (b, k + 10, 0)), load(moments, (b, k + 11, 0)),
+         load(moments, (b, k + 12, 0)), load(moments, (b, k + 13, 0)), load(moments, (b, k + 14, 0)),
+         load(moments, (b, k + 15, 0)), load(moments, (b, k + 16, 0)))  # fmt: skip
     guide, target = D + 3 * b + ch, D + 3 * (1 - b) + ch
-    for o in range(pairs.shape[0]):
+    for o in range(o0, o0 + side):
         w, a = load(pairs, (o, WEIGHT + b, 0)), load(pairs, (o, DA + ch, 0))
         u = load(pairs, (o, guide, 0)) * load(pairs, (o, SCALE + b, 0))
         e0, e1, e2 = load(pairs, (o, DN, 0)), load(pairs, (o, DN + 1, 0)), load(pairs, (o, DN + 2, 0))
@@ -447,7 +456,7 @@ def _channel_pass(b, ch, pairs, moments):  # pragma: no cover
              m[11] + wt, m[12] + wt * e0, m[13] + wt * e1, m[14] + wt * e2, m[15] + wt * u,
              m[16] + wt * a)  # fmt: skip
     for e in range(17):
-        store(moments, (k + e, 0), m[e])
+        store(moments, (b, k + e, 0), m[e])
 
 
 @numba.njit(inline="always")
@@ -471,13 +480,14 @@ MOMENT_ENTRIES = _moment_entries()
 
 
 @numba.njit(inline="always", fastmath=True)
-def _solve(moments, ridge, gram, rhs, coefs):  # pragma: no cover
-    """moments (MOMENTS, LANES) float32 -> coefs (3 * FEATURES, LANES) float32: per colour channel the
+def _solve(moments, b, ridge, gram, rhs, coefs):  # pragma: no cover
+    """Regression b's moments[b] -> coefs[b], moments (2, MOMENTS, LANES), coefs (2, 3 FEATURES, LANES)
+    float32: per colour channel the
     ridge solve of `solve_ridge` in float64, on the LANES centres as vectors (`_cholesky_solve`).
     gram (3, FEATURES, FEATURES, LANES), rhs (3, FEATURES, LANES): float64 scratch."""
     for e in range(MOMENTS):
         kind, row, col = MOMENT_ENTRIES[e, 0], MOMENT_ENTRIES[e, 1], MOMENT_ENTRIES[e, 2]
-        value = load(moments, (e, 0))
+        value = load(moments, (b, e, 0))
         lo, hi = widen(value, 0), widen(value, 1)
         for ch in range(3):
             if kind != 0 and ch != kind - 1:
@@ -490,43 +500,43 @@ def _solve(moments, ridge, gram, rhs, coefs):  # pragma: no cover
                 store(gram, (ch, col, row, HALF), hi)
     for ch in range(3):
         for h in (0, HALF):
-            _cholesky_solve(gram[ch], rhs[ch], ridge[0], ridge[1], h)
+            _cholesky_solve(gram, rhs, ch, ridge[0], ridge[1], h)
         for k in range(FEATURES):
-            store(coefs, (ch * FEATURES + k, 0), narrow(load(rhs, (ch, k, 0)), load(rhs, (ch, k, HALF))))
+            store(coefs, (b, ch * FEATURES + k, 0), narrow(load(rhs, (ch, k, 0)), load(rhs, (ch, k, HALF))))
 
 
 @numba.njit(inline="always", fastmath=True)
-def _cholesky_solve(a, b, ridge_relative, ridge_absolute, h):  # pragma: no cover
+def _cholesky_solve(a, b, g, ridge_relative, ridge_absolute, h):  # pragma: no cover
     """`local_regression.cholesky_ridge_solve` (constant feature 0, one right-hand side) on VecD lanes
-    h ... h + HALF - 1: a (FEATURES, FEATURES, LANES) float64 lower triangle of X^T W X, b (FEATURES, LANES)
-    X^T W Y -> beta, in place; the same operations in the same order."""
-    scale = vmax(load(a, (0, 0, h)), splat_d(1e-30))
-    store(a, (0, 0, h), scale)
+    h ... h + HALF - 1 of system g: a[g] (a (3, FEATURES, FEATURES, LANES) float64) the lower triangle of
+    X^T W X, b[g] (b (3, FEATURES, LANES)) X^T W Y -> beta, in place; the same operations in the same order."""
+    scale = vmax(load(a, (g, 0, 0, h)), splat_d(1e-30))
+    store(a, (g, 0, 0, h), scale)
     least = scale * ridge_absolute  # pivot floor
     for j in range(1, FEATURES):
-        d = load(a, (j, j, h))
-        store(a, (j, j, h), d + (vmax(d, splat_d(0.0)) * ridge_relative + least))
+        d = load(a, (g, j, j, h))
+        store(a, (g, j, j, h), d + (vmax(d, splat_d(0.0)) * ridge_relative + least))
     for j in range(FEATURES):
-        d = load(a, (j, j, h))
+        d = load(a, (g, j, j, h))
         for p in range(j):
-            d -= load(a, (j, p, h)) * load(a, (j, p, h))
+            d -= load(a, (g, j, p, h)) * load(a, (g, j, p, h))
         inv = 1.0 / sqrt(vmax(d, least))
-        store(a, (j, j, h), inv)  # the diagonal holds 1 / L_jj
+        store(a, (g, j, j, h), inv)  # the diagonal holds 1 / L_jj
         for i in range(j + 1, FEATURES):
-            v = load(a, (i, j, h))
+            v = load(a, (g, i, j, h))
             for p in range(j):
-                v -= load(a, (i, p, h)) * load(a, (j, p, h))
-            store(a, (i, j, h), v * inv)
+                v -= load(a, (g, i, p, h)) * load(a, (g, j, p, h))
+            store(a, (g, i, j, h), v * inv)
     for i in range(FEATURES):
-        v = load(b, (i, h))
+        v = load(b, (g, i, h))
         for p in range(i):
-            v -= load(a, (i, p, h)) * load(b, (p, h))
-        store(b, (i, h), v * load(a, (i, i, h)))
+            v -= load(a, (g, i, p, h)) * load(b, (g, p, h))
+        store(b, (g, i, h), v * load(a, (g, i, i, h)))
     for i in range(FEATURES - 1, -1, -1):
-        v = load(b, (i, h))
+        v = load(b, (g, i, h))
         for p in range(i + 1, FEATURES):
-            v -= load(a, (p, i, h)) * load(b, (p, h))
-        store(b, (i, h), v * load(a, (i, i, h)))
+            v -= load(a, (g, p, i, h)) * load(b, (g, p, h))
+        store(b, (g, i, h), v * load(a, (g, i, i, h)))
 
 
 @numba.njit(inline="always", fastmath=True)
@@ -546,9 +556,8 @@ def _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den):  # pragma
                 for k in range(4):
                     for v in range(0, tile.shape[3], LANES):
                         store(tile, (b, p, k, v), zero)
-        row = pairs[(y - y0) * side : (y - y0 + 1) * side]
         for b in range(2):
-            _predict_row(b, s, radius, row, coefs, tile)
+            _predict_row(b, s, radius, pairs, (y - y0) * side, coefs, tile)
         for b in range(2):
             for p in range(s):
                 for v in range(0, tile.shape[3], LANES):
@@ -559,10 +568,10 @@ def _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den):  # pragma
 
 
 @numba.njit(inline="always", fastmath=True)
-def _predict_row(b, s, radius, pairs, coefs, tile):  # pragma: no cover
-    """One window row of `_predict_pass` for regression b: pairs (2 radius + 1, PAIR_ROWS, LANES), that row's
-    terms; its predictions and weights added into tile[b]. One regression at a time, so that its 18
-    coefficients stay in registers across the row (both at once reloaded them from L1 for every pair;
+def _predict_row(b, s, radius, pairs, o0, coefs, tile):  # pragma: no cover
+    """One window row of `_predict_pass` for regression b: its terms pairs[o0 ... o0 + 2 radius] (pairs
+    (side^2, PAIR_ROWS, LANES)); its predictions and weights added into tile[b]. One regression at a time, so
+    that its 18 coefficients stay in registers across the row (both at once reloaded them from L1 for every pair;
     both pilots at 720p, same-process A/B: one thread 104.9 -> 97.7 ms, two threads 48.9 -> 48.0 ms).
     Phases interleaved: a tile vector is re-read s offsets after its store."""
     k0 = (load(coefs, (b, 0, 0)), load(coefs, (b, 1, 0)), load(coefs, (b, 2, 0)), load(coefs, (b, 3, 0)),
@@ -573,11 +582,11 @@ def _predict_row(b, s, radius, pairs, coefs, tile):  # pragma: no cover
           load(coefs, (b, 16, 0)), load(coefs, (b, 17, 0)))  # fmt: skip
     p, j = (-radius) % s, 0
     for o in range(2 * radius + 1):
-        e0, e1, e2 = load(pairs, (o, DN, 0)), load(pairs, (o, DN + 1, 0)), load(pairs, (o, DN + 2, 0))
-        w, scale = load(pairs, (o, WEIGHT + b, 0)), load(pairs, (o, SCALE + b, 0))
-        _add_prediction(k0, pairs, o, b, 0, e0, e1, e2, scale, w, tile, p, j)
-        _add_prediction(k1, pairs, o, b, 1, e0, e1, e2, scale, w, tile, p, j)
-        _add_prediction(k2, pairs, o, b, 2, e0, e1, e2, scale, w, tile, p, j)
+        e0, e1, e2 = load(pairs, (o0 + o, DN, 0)), load(pairs, (o0 + o, DN + 1, 0)), load(pairs, (o0 + o, DN + 2, 0))
+        w, scale = load(pairs, (o0 + o, WEIGHT + b, 0)), load(pairs, (o0 + o, SCALE + b, 0))
+        _add_prediction(k0, pairs, o0 + o, b, 0, e0, e1, e2, scale, w, tile, p, j)
+        _add_prediction(k1, pairs, o0 + o, b, 1, e0, e1, e2, scale, w, tile, p, j)
+        _add_prediction(k2, pairs, o0 + o, b, 2, e0, e1, e2, scale, w, tile, p, j)
         store(tile, (b, p, 3, j), load(tile, (b, p, 3, j)) + w)
         p += 1
         if p == s:

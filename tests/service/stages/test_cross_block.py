@@ -160,10 +160,10 @@ def test_pack_cross_reference_is_the_phase_split():
 
 @numba.njit
 def _both_solvers(gram, rhs, out_vec, out_scalar):
-    a, b = gram.copy(), rhs.copy()
+    a, b = gram.copy().reshape(1, FEATURES, FEATURES, LANES), rhs.copy().reshape(1, FEATURES, LANES)
     for h in (0, HALF):
-        _cholesky_solve(a, b, RIDGE_RELATIVE, RIDGE_ABSOLUTE, h)
-    out_vec[:] = b
+        _cholesky_solve(a, b, 0, RIDGE_RELATIVE, RIDGE_ABSOLUTE, h)
+    out_vec[:] = b[0]
     a, b = gram.copy(), rhs.copy().reshape(FEATURES, 1, LANES)
     cholesky_ridge_solve(a, b, FEATURES, 1, RIDGE_RELATIVE, RIDGE_ABSOLUTE, True, np.empty(0), LANES)
     out_scalar[:] = b[:, 0]
