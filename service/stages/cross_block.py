@@ -264,8 +264,8 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, n
     before, found them in memory: with the zeroing below, the kernel at 720p was 2.0 and 3.6 ms faster than
     that, the medians of 21 paired runs in two same-process A/Bs, one in each compile order.)
     Then the gaps between the bands, which share rows with both (~0.8 ms at 720p, 2 threads, minima of one
-    A/B): their lane
-    groups in parallel, groups TW / LANES apart at a time (tile width TW: such groups share no lane).
+    A/B): their lane groups in parallel, groups TW / LANES apart at a time (tile width TW: such groups share
+    no lane).
 
     Each chunk zeroes the sums of the rows that it is the first to reach (the band's last chunk: up to the
     next band's first window row, which covers the gap's rows) just before first use, the lanes of each
@@ -382,6 +382,7 @@ def _pairs_pass(planes, spatial, radius, consts, cy, y, c, pairs, o0):  # pragma
     one = np.float32(1.0)
     p, x = (-radius) % s, c + (-radius) // s
     for o in range(2 * radius + 1):
+        i = o0 + o  # the pair's row in the scratch
         sw = spatial[y - cy + radius, o]
         mask = load(planes, (p, MASK, y, x)) * mask_c
         da0 = load(planes, (p, BUFFER_A, y, x)) - ga0
@@ -392,22 +393,22 @@ def _pairs_pass(planes, spatial, radius, consts, cy, y, c, pairs, o0):  # pragma
         db2 = load(planes, (p, BUFFER_B + 2, y, x)) - gb2
         ratio_a = (da0 * da0 + da1 * da1 + da2 * da2) / (load(planes, (p, BUFFER_A + 3, y, x)) + var_a)
         ratio_b = (db0 * db0 + db1 * db1 + db2 * db2) / (load(planes, (p, BUFFER_B + 3, y, x)) + var_b)
-        store(pairs, (o0 + o, WEIGHT, 0), (exp_neg(ratio_a) * sw + floor) * mask)
-        store(pairs, (o0 + o, WEIGHT + 1, 0), (exp_neg(ratio_b) * sw + floor) * mask)
-        store(pairs, (o0 + o, SCALE, 0), one / (load(planes, (p, BUFFER_A + 4, y, x)) + sig_a))
-        store(pairs, (o0 + o, SCALE + 1, 0), one / (load(planes, (p, BUFFER_B + 4, y, x)) + sig_b))
-        store(pairs, (o0 + o, D, 0), da0)
-        store(pairs, (o0 + o, D + 1, 0), da1)
-        store(pairs, (o0 + o, D + 2, 0), da2)
-        store(pairs, (o0 + o, D + 3, 0), db0)
-        store(pairs, (o0 + o, D + 4, 0), db1)
-        store(pairs, (o0 + o, D + 5, 0), db2)
-        store(pairs, (o0 + o, DN, 0), load(planes, (p, NORMAL, y, x)) - n0)
-        store(pairs, (o0 + o, DN + 1, 0), load(planes, (p, NORMAL + 1, y, x)) - n1)
-        store(pairs, (o0 + o, DN + 2, 0), load(planes, (p, NORMAL + 2, y, x)) - n2)
-        store(pairs, (o0 + o, DA, 0), load(planes, (p, ALBEDO, y, x)) - a0)
-        store(pairs, (o0 + o, DA + 1, 0), load(planes, (p, ALBEDO + 1, y, x)) - a1)
-        store(pairs, (o0 + o, DA + 2, 0), load(planes, (p, ALBEDO + 2, y, x)) - a2)
+        store(pairs, (i, WEIGHT, 0), (exp_neg(ratio_a) * sw + floor) * mask)
+        store(pairs, (i, WEIGHT + 1, 0), (exp_neg(ratio_b) * sw + floor) * mask)
+        store(pairs, (i, SCALE, 0), one / (load(planes, (p, BUFFER_A + 4, y, x)) + sig_a))
+        store(pairs, (i, SCALE + 1, 0), one / (load(planes, (p, BUFFER_B + 4, y, x)) + sig_b))
+        store(pairs, (i, D, 0), da0)
+        store(pairs, (i, D + 1, 0), da1)
+        store(pairs, (i, D + 2, 0), da2)
+        store(pairs, (i, D + 3, 0), db0)
+        store(pairs, (i, D + 4, 0), db1)
+        store(pairs, (i, D + 5, 0), db2)
+        store(pairs, (i, DN, 0), load(planes, (p, NORMAL, y, x)) - n0)
+        store(pairs, (i, DN + 1, 0), load(planes, (p, NORMAL + 1, y, x)) - n1)
+        store(pairs, (i, DN + 2, 0), load(planes, (p, NORMAL + 2, y, x)) - n2)
+        store(pairs, (i, DA, 0), load(planes, (p, ALBEDO, y, x)) - a0)
+        store(pairs, (i, DA + 1, 0), load(planes, (p, ALBEDO + 1, y, x)) - a1)
+        store(pairs, (i, DA + 2, 0), load(planes, (p, ALBEDO + 2, y, x)) - a2)
         p += 1
         if p == s:
             p, x = 0, x + 1
