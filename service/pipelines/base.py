@@ -6,7 +6,8 @@
 
 `Pipeline.step` does what all denoisers share, in order: check the frame against the declared layers
 and the sequence size (before any work), split off `emission` from the radiance layers, call the
-denoiser's `denoise`, add emission back, and make sure nothing non-finite leaves.
+denoiser's `denoise`, add emission back, and make sure nothing non-finite leaves. A denoiser that sets
+`fuses_emission` does the split itself, inside its own passes, and checks its `color`.
 """
 
 from __future__ import annotations
@@ -48,6 +49,10 @@ class Pipeline(ABC):
     optional: ClassVar[tuple[str, ...]] = ()  # layers used when present
     temporal: ClassVar[bool] = False  # whether the output depends on earlier frames
     Options: ClassVar[type] = NoOptions  # frozen dataclass of algorithm options
+    # True: `denoise` gets `emission` with the radiance layers as sent, takes it out of every radiance layer
+    # it reads and adds it back to `color` itself (the same values as the step's split, without the step's
+    # full-frame passes), and returns a finite `color` (FloatingPointError otherwise)
+    fuses_emission: ClassVar[bool] = False
 
     def __init__(self, **options: Any):
         known = {f.name for f in dataclasses.fields(self.Options)}
@@ -84,7 +89,7 @@ class Pipeline(ABC):
         The input's NaN/Inf repair counts are carried to the output frame's `nonfinite`.
         """
         self.check(frame, state)
-        emission = frame.get("emission")
+        emission = frame.get("emission") if not self.fuses_emission else None  # the emission the step splits off
         if emission is not None:
             # `color` always (the frame contract fills it in, every pipeline may read it); the halves only
             # where the pipeline declares them: each layer subtracted is a full frame read and written.
@@ -93,7 +98,7 @@ class Pipeline(ABC):
             split = subtract_emission([frame[k] for k in names], emission)
             frame = frame.replace(**dict(zip(names, split, strict=True)))
         buffers, state = self.denoise(frame, state)
-        finite = {}  # name -> True where the emission pass already found every value finite
+        finite = {"color": True} if self.fuses_emission else {}  # name -> True where every value is known finite
         if emission is not None:
             buffers["color"], finite["color"] = add_emission(buffers["color"], emission)
         for name, value in buffers.items():

@@ -2,7 +2,8 @@
 
 Stages: cross-regression of the two half buffers in log space (service/stages/cross_regression.py)
 -> the two pilot estimates back to linear radiance -> their mean -> clipped to the noisy frame's range
-over the regression window (the last three in one pass, `cross_regression_radiance`). No network, no
+over the regression window (the last three in one pass, `cross_regression_radiance`), the emission taken
+out in the packing pass and added back in the last one (`fuses_emission`). No network, no
 temporal filter: the input that the online denoiser (`crossreg`) refines, useful on its own as a fast,
 detail-preserving spatial filter for frames that carry colorA/colorB.
 """
@@ -38,12 +39,14 @@ class CrossRegressionPipeline(Pipeline):
     requires = ("colorA", "colorB", "albedo", "normal")
     optional = ("emission",)
     Options = CrossRegressionOptions
+    fuses_emission = True  # in the packing and the last pass (`cross_regression_radiance`)
 
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         opt = self.options
         params = CrossRegressionParams(opt.window, opt.sparsity, opt.firefly_k)
         # the pilots' mean in linear radiance, clipped to the noisy range over the window (no extrapolated energy)
         color = cross_regression_radiance(
-            frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], frame["color"], params
+            frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], frame["color"], params,
+            frame.get("emission"),
         )
         return {"color": color}, state

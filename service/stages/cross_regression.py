@@ -28,6 +28,7 @@ import numba
 import numpy as np
 
 from service.stages.cross_block import empty_planes, pack_row, regress_packed, regress_sums
+from service.stages.emission import add_row, nonfinite, subtract_emission, subtract_row
 from service.stages.fill import filled
 from service.stages.local_regression import (
     FIREFLY_K,
@@ -124,9 +125,10 @@ def pilots_to_radiance_reference(pilot_a: np.ndarray, pilot_b: np.ndarray) -> np
 
 
 @numba.njit(inline="always")
-def _log_row(flat, y, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
-    """Row y of one buffer in log space (`log_planes_reference`) into d0, d1, d2 (W,) float32, its three
-    colour planes' rows, from flat (H, 3 W) float32, the interleaved radiance. The clamp of
+def _log_row(flat, period, y, height, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
+    """Row y of one buffer of an H-row frame in log space (`log_planes_reference`) into d0, d1, d2 (W,)
+    float32, its three colour planes' rows, from flat (P, 3 W) float32, the interleaved radiance, frame row
+    yy at flat[yy % period] (the whole frame, period = H, or a ring of rows around y). The clamp of
     `local_regression._clamp_kernel` (the same float32 operations; min and max are exact, so the order in
     which the neighbours are taken does not matter) runs on the interleaved rows, where the neighbour in x
     of a value lies a constant 3 values away, so every loop is contiguous and vectorises; one pass per
@@ -135,13 +137,13 @@ def _log_row(flat, y, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
     signed log1p, and the row is split into the planes. No fast-math (its caller has none either: inlined,
     it would take the caller's). (Allocating lo and hi under an `if clamp` halved the clamp's speed; taking
     them, or the line, as scratch from the caller: their loops no longer vectorised.)"""
-    height, n = flat.shape
+    n = flat.shape[1]
     width = n // 3
-    src = flat[y]
+    src = flat[y % period]
     lo = filled(n, np.inf, np.float32)
     hi = filled(n, -np.inf, np.float32)
     for yy in range(max(0, y - 1), min(height, y + 2) if clamp else 0):
-        row = flat[yy]
+        row = flat[yy % period]
         if yy != y:  # the row above or below: the neighbours left, right and in line
             for i in range(3, n - 3):
                 a, b, c = row[i - 3], row[i], row[i + 3]
@@ -320,45 +322,68 @@ def pack_buffers(
     normal: np.ndarray,
     firefly_k: float | None,
     params: BlockParams,
+    emission: np.ndarray | None = None,
 ) -> np.ndarray:
     """Both buffers' phase planes for `cross_block.regress_packed`, straight from the radiance, in one numba
-    pass: each buffer in log space (3x3 firefly clamp with k = firefly_k, None: off; signed log1p, musl's
-    log1pf, within 1 ulp of log1p), its 3x3 variance, and the G-buffers, packed.
+    pass: each buffer less the emission (when given), in log space (3x3 firefly clamp with k = firefly_k,
+    None: off; signed log1p, musl's log1pf, within 1 ulp of log1p), its 3x3 variance, and the G-buffers,
+    packed.
 
     color_a, color_b: (H, W, 3) float32 linear HDR radiance (any sign, finite); albedo, normal: (H, W, 3)
-    float32 frame layers; params: the block regression's geometry. Returns (S, PLANES, H, L) float32 (the
-    layout of `cross_block.pack_cross_reference`). The numpy twin is the chain `log_planes_reference`,
-    `pixel_variance_reference`, `pack_cross_reference`.
+    float32 frame layers; params: the block regression's geometry; emission: None or (H, W, 3) float32, the
+    emitted radiance (`Pipeline.step`'s split, fused: the same values as packing color_a - emission and
+    color_b - emission). Returns (S, PLANES, H, L) float32 (the layout of `cross_block.pack_cross_reference`).
+    The numpy twin is the chain `log_planes_reference`, `pixel_variance_reference`, `pack_cross_reference`.
     """
-    shapes = [x.shape for x in (color_a, color_b, albedo, normal)]
-    if len(set(shapes)) != 1 or len(shapes[0]) != 3 or shapes[0][2] != 3:
-        raise ValueError(f"pack_buffers: expected four (H, W, 3) layers of one shape, got {shapes}")
-    height, width = shapes[0][:2]
+    layers = {"color_a": color_a, "color_b": color_b, "albedo": albedo, "normal": normal, "emission": emission}
+    layers = {name: x for name, x in layers.items() if x is not None}
+    shapes = {name: x.shape for name, x in layers.items()}
+    if len(set(shapes.values())) != 1 or len(shapes["color_a"]) != 3 or shapes["color_a"][2] != 3:
+        raise ValueError(f"pack_buffers: expected (H, W, 3) layers of one shape, got {shapes}")
+    layers = list(layers.values())
+    height, width = shapes["color_a"][:2]
     out = empty_planes(height, width, params)
-    f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (color_a, color_b, albedo, normal)]
+    f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in layers]
     rows = rows_per_thread(height)  # the fewest logs taken twice
     k = np.float32(1.0 if firefly_k is None else firefly_k)  # unused when the clamp is off
-    _pack_buffers_kernel(*f32, k, firefly_k is not None, rows, pad_lanes(params), out)
+    split = emission is not None  # else the kernel's emission argument is color_a, unread
+    _pack_buffers_kernel(*f32[:4], f32[-1] if split else f32[0], split, k, firefly_k is not None, rows,
+                         pad_lanes(params), out)  # fmt: skip
     return out
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _pack_buffers_kernel(color_a, color_b, albedo, normal, k, clamp, rows, pad, out):  # pragma: no cover
+def _pack_buffers_kernel(
+    color_a, color_b, albedo, normal, emission, split, k, clamp, rows, pad, out
+):  # pragma: no cover - jitted
     """color_a, color_b, albedo, normal (H, W, 3) -> out, a task per `rows` consecutive frame rows. A task
     keeps each buffer's log rows y - 1, y, y + 1 (`_log_row`) in a ring of three, frame row yy in slot
     yy % 3, forms the variance of row y from it (`_variance_row`) and packs the row (`cross_block.pack_row`);
-    the logs of the row before its first and after its last are taken by the neighbouring task as well."""
+    the logs of the row before its first and after its last are taken by the neighbouring task as well.
+    When `split`, the logs read each buffer less emission (H, W, 3) from a ring of the three rows around the
+    row taken, frame row yy in slot yy % 3, each row subtracted once (`emission.subtract_row`)."""
     height, width = albedo.shape[:2]
-    flat_a, flat_b = color_a.reshape(height, 3 * width), color_b.reshape(height, 3 * width)
-    albedo, normal = albedo.reshape(height, 3 * width), normal.reshape(height, 3 * width)
+    n = 3 * width
+    flat_a, flat_b = color_a.reshape(height, n), color_b.reshape(height, n)
+    albedo, normal, emitted = albedo.reshape(height, n), normal.reshape(height, n), emission.reshape(height, n)
     for task in numba.prange(-(-height // rows)):
         first, last = task * rows, min(height, task * rows + rows)
         ring_a, ring_b = np.empty((3, 3, width), np.float32), np.empty((3, 3, width), np.float32)
         var_a, var_b, acc = np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32)
+        less_a, less_b = np.empty((3, n), np.float32), np.empty((3, n), np.float32)
+        taken = max(first - 2, 0)  # frame rows taken less the emission so far end here
         for after in range(max(first - 1, 0), last + 1):  # row after = y + 1 is taken, then row y is packed
             r = min(after, height - 1)  # the last row twice, not under an `if` (which stopped the vectorising)
-            _log_row(flat_a, r, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
-            _log_row(flat_b, r, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
+            if split:
+                for yy in range(taken, min(r + 2, height)):
+                    subtract_row(flat_a[yy], emitted[yy], less_a[yy % 3])
+                    subtract_row(flat_b[yy], emitted[yy], less_b[yy % 3])
+                taken = max(taken, min(r + 2, height))
+                _log_row(less_a, 3, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
+                _log_row(less_b, 3, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
+            else:
+                _log_row(flat_a, height, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
+                _log_row(flat_b, height, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
             y = after - 1
             if y >= first:
                 _variance_row(ring_a, y, height, acc, var_a)
@@ -373,34 +398,46 @@ def cross_regression_radiance(
     normal: np.ndarray,
     noisy: np.ndarray,
     params: CrossRegressionParams | None = None,
+    emission: np.ndarray | None = None,
 ) -> np.ndarray:
     """The pipeline `crossregression`'s image: the two pilots of `cross_regression` (same arguments), their
     mean in linear radiance (`pilots_to_radiance`), clipped per pixel and channel to the range of `noisy`
     over the regression window (`range_clamp.clamp_to_local_range`, radius window // 2: no energy that
     the input cannot explain). The last three steps run as one numba pass over the regression's sums.
 
-    noisy: (H, W, 3) float32 the frame's radiance (the two halves' mean). Returns (H, W, 3) float32 linear
-    HDR radiance, the same values as that chain of the separate functions."""
+    noisy: (H, W, 3) float32 the frame's radiance (the two halves' mean). emission: None or (H, W, 3)
+    float32, the emitted radiance: taken out of the halves and of noisy first and added back to the result
+    (`Pipeline.step`'s split, fused into the packing and the last pass; the same values). Returns (H, W, 3)
+    float32 linear HDR radiance, the same values as that chain of the separate functions, finite:
+    FloatingPointError otherwise (adding the emission back can overflow float32)."""
     params = params or CrossRegressionParams()
     noisy = np.ascontiguousarray(noisy, dtype=np.float32)
     if noisy.shape != np.shape(color_a):
         raise ValueError(f"cross_regression_radiance: noisy {noisy.shape} != the halves {np.shape(color_a)}")
     block = params.block()
-    planes = pack_buffers(color_a, color_b, albedo, normal, params.firefly_k, block)
+    planes = pack_buffers(color_a, color_b, albedo, normal, params.firefly_k, block, emission)
     num, den = regress_sums(planes, noisy.shape[1], block)
+    split = emission is not None
+    base = subtract_emission([noisy], emission)[0] if split else noisy  # the range is taken less the emission
+    emitted = np.ascontiguousarray(emission, np.float32) if split else noisy  # noisy: unread
     out = np.empty(noisy.shape, np.float32)
-    _finish_kernel(num, den, pad_lanes(block), noisy, params.window // 2, rows_per_thread(noisy.shape[0]), out)
+    bad = _finish_kernel(num, den, pad_lanes(block), base, emitted, split, params.window // 2,
+                         rows_per_thread(noisy.shape[0]), out)  # fmt: skip
+    if bad:
+        raise FloatingPointError(f"cross_regression_radiance: {bad} non-finite values in the result")
     return out
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _finish_kernel(num, den, pad, noisy, radius, rows_per_task, out):  # pragma: no cover - jitted
+def _finish_kernel(num, den, pad, noisy, emission, split, radius, rows_per_task, out):  # pragma: no cover - jitted
     """The sums num (2, S, 3, H, L'), den (2, S, H, L') of `cross_block.regress_sums` -> out (H, W, 3): per
     row, both pilots (`normalise_row`), their `_linear_mean`, interleaved, clipped to the window range of
-    noisy (H, W, 3) (`window_range`); a band of rows_per_task rows per task."""
+    noisy (H, W, 3) (`window_range`), plus emission (H, W, 3) when `split`; a band of rows_per_task rows per
+    task. Returns the count of non-finite values written (`emission.nonfinite`)."""
     height, width, channels = noisy.shape
     n = width * channels
-    flat = noisy.reshape(height, n)
+    flat, emitted = noisy.reshape(height, n), emission.reshape(height, n)
+    bad = 0
     for task in numba.prange(-(-height // rows_per_task)):
         y0 = task * rows_per_task
         scans, rows = range_scratch(radius, width, channels)
@@ -418,6 +455,13 @@ def _finish_kernel(num, den, pad, noisy, radius, rows_per_task, out):  # pragma:
                 emit_range_row(rows[2], rows[3], mean, True, out[y], out[y])
             else:
                 emit_range_row(rows[0], rows[1], mean, True, out[y], out[y])
+            dst = out[y].reshape(n)
+            if split:
+                bad += add_row(dst, emitted[y], dst)
+            else:
+                for j in range(n):
+                    bad += nonfinite(dst[j])
+    return bad
 
 
 def cross_regression(

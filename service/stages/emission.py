@@ -5,7 +5,9 @@ sends it) and add it back after; the step then checks that the result is finite.
 the subtraction from each radiance layer was one single-threaded full-frame pass per layer (1280x720, 3
 layers: 2.1 ms), the sum and the check two more (1.1 ms); here the subtraction from all layers is one
 parallel pass that reads the emission once (1.15 ms; one layer alone was no faster than numpy: the pass is
-memory-bound), and the sum and the check another (0.55 ms).
+memory-bound), and the sum and the check another (0.55 ms). A pipeline that reads its radiance layers
+in passes of its own can fuse the split into them instead (`Pipeline.fuses_emission`; `crossregression`
+subtracts row by row with `subtract_row` and adds back with `add_row`).
 """
 
 from __future__ import annotations
@@ -44,15 +46,16 @@ def _subtract_kernel(a, b, c, count, emission, out):  # pragma: no cover - jitte
     row, each emission row read once for every layer."""
     for y in numba.prange(emission.shape[0]):
         e = emission[y]
-        _subtract_row(a[y], e, out[0, y])
+        subtract_row(a[y], e, out[0, y])
         if count > 1:
-            _subtract_row(b[y], e, out[1, y])
+            subtract_row(b[y], e, out[1, y])
         if count > 2:
-            _subtract_row(c[y], e, out[2, y])
+            subtract_row(c[y], e, out[2, y])
 
 
 @numba.njit(inline="always")
-def _subtract_row(src, emission, dst):  # pragma: no cover - jitted
+def subtract_row(src, emission, dst):  # pragma: no cover - jitted
+    """dst = src - emission, rows (N,) float32."""
     for i in range(dst.shape[0]):
         dst[i] = src[i] - emission[i]
 
@@ -66,17 +69,35 @@ def add_emission(color: np.ndarray, emission: np.ndarray) -> tuple[np.ndarray, b
     if color.shape != emission.shape:
         raise ValueError(f"emission: the colour {color.shape} does not match the emission {emission.shape}")
     out = np.empty(color.shape, np.float32)
-    finite = _add_kernel(color.reshape(-1), emission.reshape(-1), out.reshape(-1))
+    rows = color.shape[0] if color.ndim > 1 else 1
+    finite = _add_kernel(color.reshape(rows, -1), emission.reshape(rows, -1), out.reshape(rows, -1))
     return out, bool(finite)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _add_kernel(color, emission, out):  # pragma: no cover - jitted
-    """out = color + emission (flat float32); returns whether every value of out is finite (exponent bits
-    not all set: an integer count, which vectorises where a float test would need fast-math)."""
+    """out = color + emission, all (H, N) float32, a task per row (`add_row`); returns whether every value of
+    out is finite."""
     bad = 0
-    for i in numba.prange(out.shape[0]):
-        v = color[i] + emission[i]
-        out[i] = v
-        bad += (float32_to_bits(v) & 0x7F800000) == 0x7F800000
+    for y in numba.prange(out.shape[0]):
+        bad += add_row(color[y], emission[y], out[y])
     return bad == 0
+
+
+@numba.njit(inline="always")
+def add_row(src, emission, dst):  # pragma: no cover - jitted
+    """dst = src + emission, rows (N,) float32 (dst may be src); returns the count of non-finite values of dst
+    (`nonfinite`)."""
+    bad = 0
+    for i in range(dst.shape[0]):
+        v = src[i] + emission[i]
+        dst[i] = v
+        bad += nonfinite(v)
+    return bad
+
+
+@numba.njit(inline="always")
+def nonfinite(v):  # pragma: no cover - jitted
+    """Whether float32 v is NaN or infinite: its exponent bits all set (an integer test, which vectorises where
+    a float test would need fast-math)."""
+    return (float32_to_bits(v) & 0x7F800000) == 0x7F800000
