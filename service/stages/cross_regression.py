@@ -170,14 +170,22 @@ def _log_row(flat, period, y, height, k, clamp, d0, d1, d2):  # pragma: no cover
         spread = k * (hi[i] - lo[i])
         clamped = min(max(src[i], lo[i] - spread), hi[i] + spread)
         line[i] = clamped if lo[i] <= hi[i] else src[i]
-    for i in range(n):
-        v = line[i]
-        log_abs = _log1p_nonneg(abs(v))
-        line[i] = -log_abs if v < 0 else log_abs
+    _signed_log1p_row(line)
     for x in range(width):  # a constant stride: the strided loads vectorise together
         d0[x] = line[3 * x]
         d1[x] = line[3 * x + 1]
         d2[x] = line[3 * x + 2]
+
+
+@numba.njit(fastmath={"contract"}, error_model="numpy")
+def _signed_log1p_row(line):  # pragma: no cover - jitted
+    """line[i] = sign(v) log1p(|v|), v = line[i], in place; line (N,) float32, finite. Fast-math for the
+    fused multiply-adds alone (the accuracy of `_log1p_nonneg` unchanged); a call, not inlined, so that the
+    flag stays its own."""
+    for i in range(line.shape[0]):
+        v = line[i]
+        log_abs = _log1p_nonneg(abs(v))
+        line[i] = -log_abs if v < 0 else log_abs
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -192,10 +200,12 @@ def _pilots_kernel(pilot_a, pilot_b, out):  # pragma: no cover - jitted
         interleave_row(line, out[y], False, out[y])
 
 
-@numba.njit(inline="always")
+@numba.njit(fastmath={"contract"}, error_model="numpy")
 def _linear_mean(a, b, dst):  # pragma: no cover - jitted
-    """dst = 0.5 (e(a) + e(b)) for rows a, b, dst (W,) float32 (dst may be a or b): e the signed expm1
-    (`_expm1_nonneg`) of log values clipped to +-LOG_MAX."""
+    """dst = 0.5 (e(a) + e(b)) for rows a, b, dst (W,) float32: e the signed expm1 (`_expm1_nonneg`) of log
+    values clipped to +-LOG_MAX. Fast-math for the fused multiply-adds alone, as in `_signed_log1p_row`.
+    (dst may be a or b, but then the loop runs scalar: its run-time check for overlap fails; 720p, the
+    finishing pass took twice as long.)"""
     limit, half = np.float32(LOG_MAX), np.float32(0.5)
     for x in range(dst.shape[0]):
         ea = _expm1_nonneg(min(abs(a[x]), limit))
@@ -443,13 +453,13 @@ def _finish_kernel(num, den, pad, noisy, emission, split, radius, rows_per_task,
         scans, rows = range_scratch(radius, width, channels)
         inv = np.empty((num.shape[1], num.shape[4]), np.float32)
         pilots = np.empty((2, channels, 1, width), np.float32)
-        line = pilots[0].reshape((channels, width))
+        line = np.empty((channels, width), np.float32)
         mean = np.empty(n, np.float32)
         for y in range(y0, min(height, y0 + rows_per_task)):
             normalise_row(num[0], den[0], pad, y, inv, pilots[0], 0)
             normalise_row(num[1], den[1], pad, y, inv, pilots[1], 0)
             for m in range(channels):
-                _linear_mean(pilots[0, m, 0], pilots[1, m, 0], pilots[0, m, 0])
+                _linear_mean(pilots[0, m, 0], pilots[1, m, 0], line[m])
             interleave_row(line, mean, False, mean)
             if window_range(flat, channels, y, y0, radius, scans, rows):
                 emit_range_row(rows[2], rows[3], mean, True, out[y], out[y])
