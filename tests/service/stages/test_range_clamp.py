@@ -20,7 +20,11 @@ def _brute(image, radius):
     return lo, hi
 
 
-@pytest.mark.parametrize("shape,radius", [((1, 1), 3), ((3, 5), 1), ((17, 31), 8), ((9, 4), 0), ((12, 13), 6)])
+# windows of 1, 3, 7, 9, 13, 17 and 27 columns: spans only tripled (3, 9, 27), then doubled, then overlapped
+@pytest.mark.parametrize(
+    "shape,radius",
+    [((1, 1), 3), ((3, 5), 1), ((17, 31), 8), ((9, 4), 0), ((12, 13), 6), ((11, 20), 4), ((30, 61), 13)],
+)
 def test_local_range_matches_brute_force(shape, radius):
     image = np.random.default_rng(0).normal(size=(*shape, 3)).astype(np.float32)
     lo, hi = local_range(image, radius)
