@@ -8,9 +8,10 @@ optionally their relL2 on a sequence folder in the same run.
 Every method denoises the same synthetic frame (bench.synthetic, all layers) through `Pipeline.step`
 (layer check, emission split and guard included), each on one sequence state, so a temporal pipeline is
 timed with its history after the first step. OIDN runs as the benchmark anchors (bench.methods: HDR,
-albedo and normal, emission split), run through the same `step`. One untimed step each first (numba
-compilation or cache load, OIDN device creation), then the methods take turns for `--repeats` rounds so
-that load from other processes falls on all of them alike; the median and the minimum are reported.
+albedo and normal, emission split), run through the same `step`. WARMUP_ROUNDS untimed rounds first, the
+methods taking turns (numba compilation or cache load, OIDN device creation, and the transient that
+follows), then they take turns for `--repeats` timed rounds so that load from other processes falls on all
+of them alike; the median and the minimum are reported.
 With `--sample DIR`, each method then denoises that sequence in order on a fresh state and the mean
 0.1%-trimmed relL2 against its `reference` is reported.
 """
@@ -34,6 +35,11 @@ from service.metrics import TRIM_FRACTION, rel_l2
 from service.pipelines import Pipeline
 
 DEFAULT_PIPELINES = ("crossregression", "bmfr", "flr")
+# Untimed rounds before the timed ones. After one, the steps were not yet steady: taking turns with OIDN
+# (whose first call allocates and frees its buffers), crossregression's 2nd to 4th steps at 1280x720 took
+# 172, 73 and 65 ms, then 57-66 ms; OIDN's own were steady from its 2nd (548-563 ms). Run alone, its 2nd
+# step was already steady.
+WARMUP_ROUNDS = 4
 # `high-default` is the call issue 3's speed targets name: pyoidn.denoise(color, albedo, normal, hdr=True,
 # quality='high'); `high` is the benchmark's anchor (clean_aux, a larger network at quality high).
 OIDN = {"high-default": OidnHighDefaultAnchor, "high": OidnHighAnchor, "fast": OidnFastAnchor}
@@ -55,8 +61,9 @@ def time_methods(methods: dict[str, Pipeline], height: int, width: int, repeats:
     """Wall times in ms of each method's `step` on one synthetic frame of height x width, `repeats` each."""
     frame = Frame.from_buffers(synthetic_frame(height, width, 1, rng=np.random.default_rng(0)))
     states = {label: method.start(height, width) for label, method in methods.items()}
-    for label, method in methods.items():
-        _, states[label] = method.step(frame, states[label])  # warm-up: compilation, caches, device creation
+    for _ in range(WARMUP_ROUNDS):
+        for label, method in methods.items():
+            _, states[label] = method.step(frame, states[label])
     times: dict[str, list[float]] = {label: [] for label in methods}
     for _ in range(repeats):
         for label, method in methods.items():
