@@ -278,32 +278,42 @@ def pixel_variance_reference(log_planes: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(fastmath=True, error_model="numpy")
-def _variance_row(planes, y, height, acc, total):  # pragma: no cover - jitted
-    """Row y of `pixel_variance_reference` of an H-row frame into total (W,) float32: 3-pixel row sums of
-    the valid rows, minus the pixel, per channel. Frame row yy lies at planes[:, yy % P], planes (C, P, W)
-    float32 a ring of the log rows around y. acc: (W,) float32 scratch. Fast-math, so a call: inlined,
-    numba would compile it with its caller's flags."""
+def _row_sums(planes, r, sums):  # pragma: no cover - jitted
+    """The 3-pixel sums along frame row r of every channel (2 values at the first and last pixel, 1 in a
+    1-pixel row): sums[c, r % P] (W,) from planes[c, r % P], planes (C, P, W) float32 a ring of log rows,
+    sums (C, P + 1, W) float32 (its last row, zeros, stands for rows outside the frame). Each row's sums are
+    taken once and serve the variance of the row and of both neighbours (`_variance_row`). Fast-math, so a
+    call (as `_variance_row`)."""
     channels, period, width = planes.shape
-    y0, y1 = max(0, y - 1), min(height, y + 2)
-    rows = y1 - y0
+    for c in range(channels):
+        row, dst = planes[c, r % period], sums[c, r % period]
+        for x in range(1, width - 1):
+            dst[x] = row[x - 1] + row[x] + row[x + 1]
+        dst[0] = row[0] + (row[1] if width > 1 else np.float32(0.0))
+        if width > 1:
+            dst[width - 1] = row[width - 2] + row[width - 1]
+
+
+@numba.njit(fastmath=True, error_model="numpy")
+def _variance_row(planes, sums, y, height, total):  # pragma: no cover - jitted
+    """Row y of `pixel_variance_reference` of an H-row frame into total (W,) float32: the 3-pixel row sums
+    (`_row_sums`, sums (C, P + 1, W)) of the valid rows y - 1 ... y + 1, minus the pixel, per channel. Frame
+    row yy lies at planes[:, yy % P], planes (C, P, W) float32 a ring of the log rows around y. Fast-math,
+    so a call: inlined, numba would compile it with its caller's flags."""
+    channels, period, width = planes.shape
+    rows = min(height, y + 2) - max(0, y - 1)
+    above = (y - 1) % period if y > 0 else period  # the zeros: no row there
+    below = (y + 1) % period if y + 1 < height else period
+    inner = np.float32(1.0) / np.float32(3 * rows - 1)
+    count = (2 if width > 1 else 1) * rows - 1  # at the first and last column
     total[:] = 0.0
     for c in range(channels):
-        acc[:] = 0.0
-        for yy in range(y0, y1):
-            row = planes[c, yy % period]
-            for x in range(1, width - 1):
-                acc[x] += row[x - 1] + row[x] + row[x + 1]
-            acc[0] += row[0] + (row[1] if width > 1 else np.float32(0.0))
-            if width > 1:
-                acc[width - 1] += row[width - 2] + row[width - 1]
-        own = planes[c, y % period]
-        inner = np.float32(1.0) / np.float32(3 * rows - 1)
+        own, up, mid, down = planes[c, y % period], sums[c, above], sums[c, y % period], sums[c, below]
         for x in range(1, width - 1):
-            d = own[x] - (acc[x] - own[x]) * inner
+            d = own[x] - (up[x] + mid[x] + down[x] - own[x]) * inner
             total[x] += d * d
-        count = (2 if width > 1 else 1) * rows - 1  # at the first and last column
         for x in range(0, width, max(width - 1, 1)):
-            d = own[x] - (acc[x] - own[x]) / count if count > 0 else np.float32(0.0)
+            d = own[x] - (up[x] + mid[x] + down[x] - own[x]) / count if count > 0 else np.float32(0.0)
             total[x] += d * d
 
 
@@ -379,7 +389,8 @@ def _pack_buffers_kernel(
     for task in numba.prange(-(-height // rows)):
         first, last = task * rows, min(height, task * rows + rows)
         ring_a, ring_b = np.empty((3, 3, width), np.float32), np.empty((3, 3, width), np.float32)
-        var_a, var_b, acc = np.empty(width, np.float32), np.empty(width, np.float32), np.empty(width, np.float32)
+        var_a, var_b = np.empty(width, np.float32), np.empty(width, np.float32)
+        sums_a, sums_b = np.zeros((3, 4, width), np.float32), np.zeros((3, 4, width), np.float32)  # `_row_sums`
         less_a, less_b = np.empty((3, n), np.float32), np.empty((3, n), np.float32)
         taken = max(first - 2, 0)  # frame rows taken less the emission so far end here
         for after in range(max(first - 1, 0), last + 1):  # row after = y + 1 is taken, then row y is packed
@@ -394,10 +405,12 @@ def _pack_buffers_kernel(
             else:
                 _log_row(flat_a, height, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
                 _log_row(flat_b, height, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
+            _row_sums(ring_a, r, sums_a)
+            _row_sums(ring_b, r, sums_b)
             y = after - 1
             if y >= first:
-                _variance_row(ring_a, y, height, acc, var_a)
-                _variance_row(ring_b, y, height, acc, var_b)
+                _variance_row(ring_a, sums_a, y, height, var_a)
+                _variance_row(ring_b, sums_b, y, height, var_b)
                 pack_row(ring_a, ring_b, y % 3, var_a, var_b, albedo[y], normal[y], pad, out, y)
 
 
