@@ -18,6 +18,7 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
                                   # p < n): lane q is array[i, j + n q + p]; one wide load and a shuffle
     store_phases(array, (i, j), v0, v1, v2, v3)  # the reverse at n = 4: array[i, j + 4 q + p] = v_p[q]
     phase_blocks(width, sparsity)  # the pixels of a row that those two move as whole blocks
+    prefetch(array, (i, j, k))    # ask for the cache line of array[i, j, k] in L1 (no effect on values)
     v + w, v - w, v * w, v / w    # same-type vectors; either side may also be a Python/numpy number
     vmax(v, w), floor(v), sqrt(v), exp_neg(v)
     d = widen(v, half)            # VecD of lanes half * LANES/2 ... of the Vec v
@@ -170,6 +171,26 @@ def store_phases(typingctx, array, index, v0, v1, v2, v3):
         return context.get_dummy_value()
 
     return types.void(array, index, v0, v1, v2, v3), codegen
+
+
+@intrinsic
+def prefetch(typingctx, array, index):
+    """Hint that array[index] (C-contiguous float32 or float64) will be read soon: LLVM's prefetch for a read
+    into all cache levels (x86 `prefetcht0`; nothing where the CPU has none). Indices unchecked, like
+    `load`; a prefetch of an address outside the array does not fault."""
+    vector = _vector_of(array)
+    _check_index(array, index)
+    byte_pointer = ir.IntType(8).as_pointer()
+    signature = ir.FunctionType(ir.VoidType(), [byte_pointer, _INT32, _INT32, _INT32])
+
+    def codegen(context, builder, sig, args):
+        ptr = builder.bitcast(_pointer(context, builder, array, args[0], args[1], index.types, vector), byte_pointer)
+        fn = cgutils.get_or_insert_function(builder.module, signature, "llvm.prefetch.p0i8")
+        read, locality, data = (ir.Constant(_INT32, v) for v in (0, 3, 1))  # read, keep in all levels, data cache
+        builder.call(fn, [ptr, read, locality, data])
+        return context.get_dummy_value()
+
+    return types.void(array, index), codegen
 
 
 @numba.njit(inline="always")
