@@ -375,9 +375,9 @@ def _zero_lanes(num, den, y0, y1, x0, x1):  # pragma: no cover
 @numba.njit(inline="always", fastmath=True)
 def _pairs_pass(planes, spatial, radius, consts, cy, y, c, pairs, o0):  # pragma: no cover
     """Window row y of LANES centres (centre row cy, lanes c ...), read from the planes once for both
-    regressions: every pair's terms into pairs[o0 + o] (pairs (side^2, PAIR_ROWS, LANES), o the offset in the
-    row, side = 2 radius + 1): per buffer the
-    weight (eq. 7, times the spatial factor, plus WEIGHT_FLOOR, 0 outside the frame), the colour scale
+    regressions: every pair's terms into pairs[o0 + o] (pairs (side^2, PAIR_ROWS, LANES), o the offset in
+    the row, side = 2 radius + 1): per buffer the weight (eq. 7, times the spatial factor, plus
+    WEIGHT_FLOOR, 0 outside the frame), the colour scale
     1 / (sigma_i + sigma_c + eps) of eq. 6 and the log colour differences y_i - y_c; the normal and albedo
     differences. The later passes stream the scratch in order instead of gathering from 4 phase planes x
     17 rows again."""

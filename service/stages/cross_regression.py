@@ -355,20 +355,18 @@ def pack_buffers(
     color_b - emission). Returns (S, PLANES, H, L) float32 (the layout of `cross_block.pack_cross_reference`).
     The numpy twin is the chain `log_planes_reference`, `pixel_variance_reference`, `pack_cross_reference`.
     """
-    layers = {"color_a": color_a, "color_b": color_b, "albedo": albedo, "normal": normal, "emission": emission}
-    layers = {name: x for name, x in layers.items() if x is not None}
-    shapes = {name: x.shape for name, x in layers.items()}
+    named = {"color_a": color_a, "color_b": color_b, "albedo": albedo, "normal": normal, "emission": emission}
+    shapes = {name: x.shape for name, x in named.items() if x is not None}
     if len(set(shapes.values())) != 1 or len(shapes["color_a"]) != 3 or shapes["color_a"][2] != 3:
         raise ValueError(f"pack_buffers: expected (H, W, 3) layers of one shape, got {shapes}")
-    layers = list(layers.values())
     height, width = shapes["color_a"][:2]
     out = empty_planes(height, width, params)
-    f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in layers]
+    f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (color_a, color_b, albedo, normal)]
+    split = emission is not None
+    emitted = np.ascontiguousarray(emission, dtype=np.float32) if split else f32[0]  # f32[0]: unread
     rows = rows_per_thread(height)  # the fewest logs taken twice
     k = np.float32(1.0 if firefly_k is None else firefly_k)  # unused when the clamp is off
-    split = emission is not None  # else the kernel's emission argument is color_a, unread
-    _pack_buffers_kernel(*f32[:4], f32[-1] if split else f32[0], split, k, firefly_k is not None, rows,
-                         pad_lanes(params), out)  # fmt: skip
+    _pack_buffers_kernel(*f32, emitted, split, k, firefly_k is not None, rows, pad_lanes(params), out)
     return out
 
 
@@ -395,7 +393,7 @@ def _pack_buffers_kernel(
         taken = max(first - 2, 0)  # frame rows taken less the emission so far end here
         for after in range(max(first - 1, 0), last + 1):  # row after = y + 1 is taken, then row y is packed
             r = min(after, height - 1)  # the last row twice, not under an `if` (which stopped the vectorising)
-            if split:
+            if split:  # two calls in two branches: `src = less_a if split else flat_a` kept the logs scalar (2x)
                 for yy in range(taken, min(r + 2, height)):
                     subtract_row(flat_a[yy], emitted[yy], less_a[yy % 3])
                     subtract_row(flat_b[yy], emitted[yy], less_b[yy % 3])
