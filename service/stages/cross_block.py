@@ -26,8 +26,9 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
 - The 61 moments of each regression are solved right there, in float64 on `simd.VecD` vectors
   (`_cholesky_solve`, the operations of `local_regression.cholesky_ridge_solve`), and a last pass adds
   each centre's weighted predictions of both regressions (eq. 5), from the window's scratch, into a
-  one-row tile that stays in L1 and then into the numerator and denominator planes. Centre rows whose
-  windows overlap are never run at the same time.
+  strip of the pixel rows that the lane group's chunk of centre rows covers (each row is in L1 while a
+  window row is added), and the strip into the numerator and denominator planes once per chunk. Centre
+  rows whose windows overlap are never run at the same time.
 """
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ def regress_sums(
     L' >= L. tasks: bands of centre rows run in parallel (`centre_bands`), default one per numba thread;
     the sums do not depend on it."""
     s, _, height, lanes = planes.shape
-    # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_predict_pass` adds
+    # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_group_rows` adds
     # them in whole vectors from there, so the sums carry that many lanes (rounded to vectors) more.
     extra = -(-(2 * pad_lanes(params) + LANES) // LANES) * LANES
     num = np.empty((2, s, 3, height, lanes + extra), np.float32)  # zeroed by the kernel, just before first use
@@ -265,7 +266,7 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, n
     before, found them in memory: with the zeroing below, the kernel at 720p was 2.0 and 3.6 ms faster than
     that, the medians of 21 paired runs in two same-process A/Bs, one in each compile order.)
     Then the gaps between the bands, which share rows with both (~0.8 ms at 720p, 2 threads, minima of one
-    A/B): their lane groups in parallel, groups TW / LANES apart at a time (tile width TW: such groups share
+    A/B): their lane groups in parallel, groups TW / LANES apart at a time (strip width TW: such groups share
     no lane).
 
     Each chunk zeroes the sums of the rows that it is the first to reach (the band's last chunk: up to the
@@ -274,10 +275,10 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, n
     addition read them back: at 720p 0.7 and 2.3 ms slower, same-process A/Bs in both compile orders.)"""
     s, height = planes.shape[0], planes.shape[2]
     wc = counts[1]
-    rows = (2 * radius) // s + 1  # a window's worth (two: no clear change at 720p)
-    tw = num.shape[4] - planes.shape[3]  # tile width TW, see regress_sums
+    rows = (2 * radius) // s + 1  # a window's worth (two: no clear change at 720p); > band_gap: a gap fits a strip
+    tw = num.shape[4] - planes.shape[3]  # strip width TW, see regress_sums
     for band in numba.prange(bands.shape[0]):
-        scratch = _scratch(radius, s, tw)
+        scratch = _scratch(radius, s, tw, rows)
         start, end = bands[band, 0], bands[band, 1]
         z1 = max(start * s - radius, 0)  # pixel rows zeroed so far end here
         for first in range(start, end, rows):
@@ -296,28 +297,36 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, n
     for colour in range(colours):
         for item in numba.prange((bands.shape[0] - 1) * parts):  # a gap's groups of this colour, in parts
             gap, part = item // parts, item % parts
-            scratch = _scratch(radius, s, tw)
+            scratch = _scratch(radius, s, tw, rows)
             for g in range(colour + colours * part, groups, colours * parts):
                 _group_rows(planes, spatial, radius, consts, ridge, g * LANES, bands[gap, 1], bands[gap + 1, 0],
                             scratch, num, den)  # fmt: skip
 
 
 @numba.njit(inline="always")
-def _scratch(radius, s, tw):  # pragma: no cover
-    """`_group_rows`' scratch: (pairs (side^2, PAIR_ROWS, LANES) ~300 KB at radius 8, moments (2, MOMENTS,
-    LANES), gram (3, FEATURES, FEATURES, LANES) float64, rhs (3, FEATURES, LANES) float64, coefs
-    (2, 3 FEATURES, LANES), tile (2, S, 4, tw)), float32 unless said."""
+def _scratch(radius, s, tw, rows):  # pragma: no cover
+    """`_group_rows`' scratch for chunks of up to `rows` centre rows: (pairs (side^2, PAIR_ROWS, LANES) ~300 KB
+    at radius 8, moments (2, MOMENTS, LANES), gram (3, FEATURES, FEATURES, LANES) float64, rhs
+    (3, FEATURES, LANES) float64, coefs (2, 3 FEATURES, LANES), strip (R, 2, S, 4, tw) with R the pixel rows
+    that a chunk's windows cover, ~135 KB at radius 8), float32 unless said."""
     side = 2 * radius + 1
     return (np.empty((side * side, PAIR_ROWS, LANES), np.float32), np.empty((2, MOMENTS, LANES), np.float32),
             np.empty((3, FEATURES, FEATURES, LANES)), np.empty((3, FEATURES, LANES)),
-            np.empty((2, 3 * FEATURES, LANES), np.float32), np.empty((2, s, 4, tw), np.float32))  # fmt: skip
+            np.empty((2, 3 * FEATURES, LANES), np.float32),
+            np.empty(((rows - 1) * s + side, 2, s, 4, tw), np.float32))  # fmt: skip
 
 
 @numba.njit(inline="always", fastmath=True)
 def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch, num, den):  # pragma: no cover
     """Centre columns q ... q + LANES - 1 (a lane group) of centre rows first ... last - 1, one row after the
     other: both regressions' moments (`_pairs_pass`, `_shared_pass`, `_channel_pass`), their solves and
-    predictions (`_predict_pass`) into num and den. scratch: `_scratch`.
+    predictions (`_predict_row`) into the strip of the pixel rows their windows cover, which is then added
+    to num and den. scratch: `_scratch`.
+
+    The strip takes each pixel row's sums over all the chunk's centre rows, so num and den are read and
+    written once per chunk, not once per centre row whose window covers the row (720p, 2 threads, against a
+    one-row tile added to num and den after every window row: -3.4 and -1.7 ms in same-process A/Bs in both
+    compile orders; -1.6 ms, the means of two copies of each compiled in one process).
 
     The passes take whole scratch arrays and a first index (window row o0 of pairs, regression b), never a
     slice: numba counts the references of every view it makes, an atomic increment and decrement by call
@@ -328,12 +337,19 @@ def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch,
     L2 (a window shares all but s rows with the last one), and the pair pass waited for them (720p, 2
     threads, two copies of each kernel compiled in one process, in both orders: -2.4 and -1.7 ms, the means
     of the copies' medians; prefetching the row after next instead was 0.4-1.0 ms slower than the next)."""
-    pairs, moments, gram, rhs, coefs, tile = scratch
+    pairs, moments, gram, rhs, coefs, strip = scratch
     s, height = planes.shape[0], planes.shape[2]
     c = -(-radius // s) + q  # plane lane of the first centre
     first_lane = c + (-radius) // s  # of the window's leftmost pixels (a row: 20 lanes at the paper's window)
     side = 2 * radius + 1
     zero = splat(np.float32(0.0))
+    top, bottom = max(first * s - radius, 0), min((last - 1) * s + radius + 1, height)  # the strip's rows
+    for y in range(top, bottom):
+        for b in range(2):
+            for p in range(s):
+                for k in range(4):
+                    for v in range(0, strip.shape[4], LANES):
+                        store(strip, (y - top, b, p, k, v), zero)
     for r in range(first, last):
         cy = r * s
         y0, y1 = max(cy - radius, 0), min(cy + radius + 1, height)
@@ -358,7 +374,18 @@ def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch,
             for ch in range(3):  # the target was fitted relative to its centre value: add it back
                 k = ch * FEATURES
                 store(coefs, (b, k, 0), load(coefs, (b, k, 0)) + load(planes, (0, target + ch, cy, c)))
-        _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den)
+        for y in range(y0, y1):
+            for b in range(2):
+                _predict_row(b, s, radius, pairs, (y - y0) * side, coefs, strip, y - top)
+    lane = c - (-(-radius // s))  # plane lane of strip lane 0: the leftmost pixels of the windows
+    for y in range(top, bottom):
+        for b in range(2):
+            for p in range(s):
+                for v in range(0, strip.shape[4], LANES):
+                    x = lane + v
+                    for ch in range(3):
+                        store(num, (b, p, ch, y, x), load(num, (b, p, ch, y, x)) + load(strip, (y - top, b, p, ch, v)))
+                    store(den, (b, p, y, x), load(den, (b, p, y, x)) + load(strip, (y - top, b, p, 3, v)))
 
 
 @numba.njit(inline="always")
@@ -553,40 +580,16 @@ def _cholesky_solve(a, b, g, ridge_relative, ridge_absolute, h):  # pragma: no c
 
 
 @numba.njit(inline="always", fastmath=True)
-def _predict_pass(s, radius, y0, y1, c, pairs, coefs, tile, num, den):  # pragma: no cover
-    """Eq. 5's sums of both regressions b: num[b, channel] += w_b (alpha + beta . x_b) and den[b] += w_b at
-    every pixel of the window (rows y0 ... y1 - 1), the pair terms from the scratch of `_pairs_pass`, coefs
-    (2, 3 FEATURES, LANES); s the sparsity (phase planes). Each window row is summed in tile (2, S, 4, TW)
-    float32 (channels, then the weight; lane j is plane lane c - pad + j), which stays in L1, and then added
-    to num and den in TW / LANES vectors per plane: adding every pair straight into the planes missed L1 on
-    most of them (~25% of the kernel's time at 720p)."""
-    first = c - (-(-radius // s))  # plane lane of the window's leftmost pixels (tile lane 0)
-    zero = splat(np.float32(0.0))
-    side = 2 * radius + 1
-    for y in range(y0, y1):
-        for b in range(2):
-            for p in range(s):
-                for k in range(4):
-                    for v in range(0, tile.shape[3], LANES):
-                        store(tile, (b, p, k, v), zero)
-        for b in range(2):
-            _predict_row(b, s, radius, pairs, (y - y0) * side, coefs, tile)
-        for b in range(2):
-            for p in range(s):
-                for v in range(0, tile.shape[3], LANES):
-                    x = first + v
-                    for ch in range(3):
-                        store(num, (b, p, ch, y, x), load(num, (b, p, ch, y, x)) + load(tile, (b, p, ch, v)))
-                    store(den, (b, p, y, x), load(den, (b, p, y, x)) + load(tile, (b, p, 3, v)))
-
-
-@numba.njit(inline="always", fastmath=True)
-def _predict_row(b, s, radius, pairs, o0, coefs, tile):  # pragma: no cover
-    """One window row of `_predict_pass` for regression b: its terms pairs[o0 ... o0 + 2 radius] (pairs
-    (side^2, PAIR_ROWS, LANES)); its predictions and weights added into tile[b]. One regression at a time, so
+def _predict_row(b, s, radius, pairs, o0, coefs, strip, row):  # pragma: no cover
+    """Eq. 5's sums of regression b over one window row: num[b, channel] += w_b (alpha + beta . x_b) and
+    den[b] += w_b at each of its pixels, into strip[row, b] (strip (R, 2, S, 4, TW) float32: channels, then
+    the weight; lane j is plane lane c - pad + j), from its terms pairs[o0 ... o0 + 2 radius] (pairs
+    (side^2, PAIR_ROWS, LANES)) and the coefficients coefs (2, 3 FEATURES, LANES); s the sparsity (phase
+    planes). A strip row stays in L1 while a window row is added (adding every pair straight into the
+    planes missed L1 on most of them: ~25% of the kernel's time at 720p). One regression at a time, so
     that its 18 coefficients stay in registers across the row (both at once reloaded them from L1 for every pair;
     both pilots at 720p, same-process A/B: one thread 104.9 -> 97.7 ms, two threads 48.9 -> 48.0 ms).
-    Phases interleaved: a tile vector is re-read s offsets after its store."""
+    Phases interleaved: a strip vector is re-read s offsets after its store."""
     k0 = (load(coefs, (b, 0, 0)), load(coefs, (b, 1, 0)), load(coefs, (b, 2, 0)), load(coefs, (b, 3, 0)),
           load(coefs, (b, 4, 0)), load(coefs, (b, 5, 0)))  # fmt: skip
     k1 = (load(coefs, (b, 6, 0)), load(coefs, (b, 7, 0)), load(coefs, (b, 8, 0)), load(coefs, (b, 9, 0)),
@@ -597,20 +600,20 @@ def _predict_row(b, s, radius, pairs, o0, coefs, tile):  # pragma: no cover
     for o in range(2 * radius + 1):
         e0, e1, e2 = load(pairs, (o0 + o, DN, 0)), load(pairs, (o0 + o, DN + 1, 0)), load(pairs, (o0 + o, DN + 2, 0))
         w, scale = load(pairs, (o0 + o, WEIGHT + b, 0)), load(pairs, (o0 + o, SCALE + b, 0))
-        _add_prediction(k0, pairs, o0 + o, b, 0, e0, e1, e2, scale, w, tile, p, j)
-        _add_prediction(k1, pairs, o0 + o, b, 1, e0, e1, e2, scale, w, tile, p, j)
-        _add_prediction(k2, pairs, o0 + o, b, 2, e0, e1, e2, scale, w, tile, p, j)
-        store(tile, (b, p, 3, j), load(tile, (b, p, 3, j)) + w)
+        _add_prediction(k0, pairs, o0 + o, b, 0, e0, e1, e2, scale, w, strip, row, p, j)
+        _add_prediction(k1, pairs, o0 + o, b, 1, e0, e1, e2, scale, w, strip, row, p, j)
+        _add_prediction(k2, pairs, o0 + o, b, 2, e0, e1, e2, scale, w, strip, row, p, j)
+        store(strip, (row, b, p, 3, j), load(strip, (row, b, p, 3, j)) + w)
         p += 1
         if p == s:
             p, j = 0, j + 1
 
 
 @numba.njit(inline="always", fastmath=True)
-def _add_prediction(k, pairs, o, b, ch, e0, e1, e2, scale, w, tile, p, j):  # pragma: no cover
-    """tile[b, p, ch, j ...] += w (k0 + k1 e0 + k2 e1 + k3 e2 + k4 u + k5 a): colour channel ch's weighted
+def _add_prediction(k, pairs, o, b, ch, e0, e1, e2, scale, w, strip, row, p, j):  # pragma: no cover
+    """strip[row, b, p, ch, j ...] += w (k0 + k1 e0 + k2 e1 + k3 e2 + k4 u + k5 a): colour channel ch's weighted
     prediction (eq. 5) at pair o of regression b, from its coefficients k (FEATURES Vecs), the shared normal
     differences e, the scaled colour difference u and the albedo difference a."""
     u = load(pairs, (o, D + 3 * b + ch, 0)) * scale
     pred = k[0] + k[1] * e0 + k[2] * e1 + k[3] * e2 + k[4] * u + k[5] * load(pairs, (o, DA + ch, 0))
-    store(tile, (b, p, ch, j), load(tile, (b, p, ch, j)) + w * pred)
+    store(strip, (row, b, p, ch, j), load(strip, (row, b, p, ch, j)) + w * pred)
