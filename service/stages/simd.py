@@ -25,7 +25,8 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
     v = narrow(lo, hi)            # Vec of two VecD halves, rounded to float32
 `exp_neg` is the vector twin of `local_regression._exp_neg` (the same polynomial, the same values).
 
-Also here, for scalar numba code: `bits_to_float32` and `float32_to_bits`, the bit casts with which the
+Also here, for numpy code: `aligned_empty`, arrays that start on a vector (and cache line) boundary. For
+scalar numba code: `bits_to_float32` and `float32_to_bits`, the bit casts with which the
 exp and log polynomials of the stages build and split float32 exponents (they vectorise, unlike calls
 to the C library's expf or frexpf).
 """
@@ -191,6 +192,16 @@ def prefetch(typingctx, array, index):
         return context.get_dummy_value()
 
     return types.void(array, index), codegen
+
+
+def aligned_empty(shape: tuple[int, ...], dtype: type = np.float32) -> np.ndarray:
+    """Uninitialised C-contiguous array of `shape` whose first element lies on a 64-byte boundary (one
+    AVX-512 vector, one cache line; numpy's own allocations are 16-byte aligned)."""
+    itemsize = np.dtype(dtype).itemsize
+    count = int(np.prod(shape))
+    buffer = np.empty(count + 64 // itemsize, dtype)
+    first = (-buffer.ctypes.data % 64) // itemsize
+    return buffer[first : first + count].reshape(shape)
 
 
 @numba.njit(inline="always")

@@ -101,6 +101,14 @@ def test_regress_sums_sets_every_sum_itself(params, tasks, monkeypatch):
         np.testing.assert_array_equal(got, want)
 
 
+def test_regress_sums_rows_start_on_cache_lines():
+    """Each row of the sums is a whole number of vectors from a 64-byte boundary (the strip adds whole
+    vectors at multiples of LANES lanes)."""
+    inputs = _buffers(np.random.default_rng(10), 21, 37)
+    for sums in regress_sums(_packed(inputs, BlockParams()), 37, BlockParams()):
+        assert sums.ctypes.data % 64 == 0 and sums.shape[-1] % LANES == 0
+
+
 @pytest.mark.parametrize("params", SUMS_PARAMS, ids=["paper", "sparsity3", "dense", "narrow"])
 def test_regress_sums_do_not_depend_on_the_bands(params):
     """1 to 5 bands (and their gaps, run after them) give the same sums up to float32 summation order."""

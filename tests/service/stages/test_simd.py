@@ -8,6 +8,7 @@ from service.stages.local_regression import _exp_neg
 from service.stages.simd import (
     HALF,
     LANES,
+    aligned_empty,
     exp_neg,
     floor,
     load,
@@ -167,3 +168,14 @@ def test_prefetch_is_a_hint_that_changes_no_value():
     if platform.machine() in ("x86_64", "AMD64"):
         assembly = next(iter(summed_after_prefetch.inspect_asm().values()))
         assert "prefetcht0" in assembly
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("shape", [(1,), (3, 5), (2, 4, 3, 7, 48)])
+def test_aligned_empty_starts_on_a_cache_line(shape, dtype):
+    for _ in range(8):  # numpy's allocations land on different 16-byte offsets
+        a = aligned_empty(shape, dtype)
+        assert a.shape == shape and a.dtype == dtype and a.flags.c_contiguous and a.flags.writeable
+        assert a.ctypes.data % 64 == 0
+        a[...] = 1.0  # the whole array is owned memory
+        assert a.sum() == a.size
