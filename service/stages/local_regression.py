@@ -28,7 +28,18 @@ import numpy as np
 from service.stages.albedo import albedo_factor, demodulate, remodulate
 from service.stages.fill import filled
 from service.stages.parallel import rows_per_thread
-from service.stages.simd import LANES, bits_to_float32, float32_to_bits, load, phase_blocks, store_phases
+from service.stages.simd import (
+    EXP_NEG_LIMIT,
+    EXP_POLY,
+    LANES,
+    LN2,
+    LOG2E,
+    bits_to_float32,
+    float32_to_bits,
+    load,
+    phase_blocks,
+    store_phases,
+)
 from service.stages.window import overlap, window_offsets
 
 RIDGE_RELATIVE = 1e-3  # Tikhonov: fraction of each feature's own weighted second moment added to its diagonal
@@ -357,19 +368,17 @@ def _clamp_kernel(planes, k, out):
 
 @numba.njit(inline="always", fastmath=True)
 def _exp_neg(x):
-    """exp(-x) for x >= 0 in float32, vectorisable: relative error 3e-7 near 0, growing with x to ~6e-6 at 80
-    (float32 rounding of x log2 e); x beyond 87 gives exp(-87) (`simd.exp_neg` is the vector twin)."""
-    t = max(-x, np.float32(-87.0)) * np.float32(1.4426950408889634)  # log2(e)
-    n = np.floor(t + np.float32(0.5))
-    f = (t - n) * np.float32(0.6931471805599453)  # |f| <= ln2 / 2
-    p = np.float32(1.0 / 720.0)
-    p = p * f + np.float32(1.0 / 120.0)
-    p = p * f + np.float32(1.0 / 24.0)
-    p = p * f + np.float32(1.0 / 6.0)
-    p = p * f + np.float32(0.5)
-    p = p * f + np.float32(1.0)
-    p = p * f + np.float32(1.0)
-    return p * bits_to_float32((np.int32(n) + np.int32(127)) << np.int32(23))
+    """exp(-x) for float32 x >= 0, vectorisable: 2^-m e^g (`simd.EXP_POLY`), relative error < 5e-7; x beyond
+    `simd.EXP_NEG_LIMIT` gives exp(-EXP_NEG_LIMIT) (`simd.exp_neg` is the vector twin, bit for bit)."""
+    xc = min(x, np.float32(EXP_NEG_LIMIT))
+    m = np.floor(xc * np.float32(LOG2E) + np.float32(0.5))
+    g = m * np.float32(LN2) - xc  # exp(-x) = 2^-m e^g, |g| <= ln2 / 2
+    p = g * np.float32(EXP_POLY[5]) + np.float32(EXP_POLY[4])
+    p = p * g + np.float32(EXP_POLY[3])
+    p = p * g + np.float32(EXP_POLY[2])
+    p = p * g + np.float32(EXP_POLY[1])
+    p = p * g + np.float32(EXP_POLY[0])
+    return bits_to_float32(float32_to_bits(p) - (np.int32(m) << np.int32(23)))
 
 
 # ------------------------------------------------------------------------------------ block moments

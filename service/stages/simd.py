@@ -20,10 +20,10 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
     phase_blocks(width, sparsity)  # the pixels of a row that those two move as whole blocks
     prefetch(array, (i, j, k))    # ask for the cache line of array[i, j, k] in L1 (no effect on values)
     v + w, v - w, v * w, v / w    # same-type vectors; either side may also be a Python/numpy number
-    vmax(v, w), floor(v), sqrt(v), exp_neg(v)
+    vmax(v, w), vmin(v, w), floor(v), sqrt(v), exp_neg(v)
     d = widen(v, half)            # VecD of lanes half * LANES/2 ... of the Vec v
     v = narrow(lo, hi)            # Vec of two VecD halves, rounded to float32
-`exp_neg` is the vector twin of `local_regression._exp_neg` (the same polynomial, the same values).
+`exp_neg` is the vector twin of `local_regression._exp_neg` (the same operations, the same values).
 
 Also here, for numpy code: `aligned_empty`, arrays that start on a vector (and cache line) boundary. For
 scalar numba code: `bits_to_float32` and `float32_to_bits`, the bit casts with which the
@@ -44,6 +44,15 @@ from numba.extending import intrinsic, models, overload, register_model
 
 LANES = 16  # float32 lanes of one Vec: one AVX-512 register; a VecD holds LANES // 2 float64
 HALF = LANES // 2
+
+# exp(-x) (`exp_neg` and its scalar twin `local_regression._exp_neg`): x = m ln2 - g, |g| <= ln2 / 2, and
+# e^g by a degree-5 polynomial (coefficients of g^0 ... g^5) with e^0 = 1 exactly and the least maximum
+# relative error on [-ln2/2, ln2/2] for that (Lawson's iteration: 9.2e-8). x is clipped to EXP_NEG_LIMIT,
+# so that 2^-m e^g stays a normal float32 (m <= 124) and takes its exponent by integer subtraction.
+EXP_POLY = (1.0, 0.9999997072462664, 0.4999914970284134, 0.16667636167565678, 0.041897906037271136,
+            0.008290304318230728)  # fmt: skip
+EXP_NEG_LIMIT = 86.0
+LOG2E, LN2 = 1.4426950408889634, 0.6931471805599453
 
 _FAST = ("fast",)
 _INT32 = ir.IntType(32)
@@ -335,31 +344,41 @@ def narrow(typingctx, lo, hi):
 
 
 @intrinsic
-def _pow2(typingctx, n):
-    """2^n per lane for integral float32 lanes n in [-126, 127]: the exponent bits of a float32."""
+def vmin(typingctx, a, b):
+    """Lane-wise minimum of two vectors of one type."""
 
     def codegen(context, builder, sig, args):
-        bits = builder.add(builder.fptosi(args[0], _INTS), ir.Constant(_INTS, [127] * LANES))
-        return builder.bitcast(builder.shl(bits, ir.Constant(_INTS, [23] * LANES)), vec.llvm)
+        return _call_llvm(builder, f"llvm.minnum.{a.suffix}", a, args[0], args[1])
 
-    return vec(vec), codegen
+    return a(a, b), codegen
+
+
+@intrinsic
+def _times_pow2_neg(typingctx, p, m):
+    """p 2^-m per lane, for integral float32 lanes m whose product stays a normal float32: the exponent bits
+    of p less m (no multiplication)."""
+
+    def codegen(context, builder, sig, args):
+        shift = builder.shl(builder.fptosi(args[1], _INTS), ir.Constant(_INTS, [23] * LANES))
+        return builder.bitcast(builder.sub(builder.bitcast(args[0], _INTS), shift), vec.llvm)
+
+    return vec(vec, vec), codegen
 
 
 @numba.njit(inline="always", fastmath=True)
 def exp_neg(x):
-    """Lane-wise exp(-x) for x >= 0 (a Vec): the polynomial of `local_regression._exp_neg`, bit for bit.
-    Relative error 3e-7 near 0, growing with x to ~6e-6 at 80 (float32 rounding of x log2 e); x beyond 87
-    gives exp(-87)."""
-    t = vmax(np.float32(0.0) - x, splat(np.float32(-87.0))) * np.float32(1.4426950408889634)  # log2(e)
-    n = floor(t + np.float32(0.5))
-    f = (t - n) * np.float32(0.6931471805599453)  # |f| <= ln2 / 2
-    p = f * np.float32(1.0 / 720.0) + np.float32(1.0 / 120.0)
-    p = p * f + np.float32(1.0 / 24.0)
-    p = p * f + np.float32(1.0 / 6.0)
-    p = p * f + np.float32(0.5)
-    p = p * f + np.float32(1.0)
-    p = p * f + np.float32(1.0)
-    return p * _pow2(n)
+    """Lane-wise exp(-x) for x >= 0 (a Vec): the operations of `local_regression._exp_neg`, bit for bit.
+    Relative error < 5e-7 (float32 rounding; the polynomial's own is 9.2e-8); exp(-0) = 1; x beyond EXP_NEG_LIMIT gives
+    exp(-EXP_NEG_LIMIT)."""
+    xc = vmin(x, splat(np.float32(EXP_NEG_LIMIT)))
+    m = floor(xc * np.float32(LOG2E) + np.float32(0.5))
+    g = m * np.float32(LN2) - xc  # exp(-x) = 2^-m e^g, |g| <= ln2 / 2
+    p = g * np.float32(EXP_POLY[5]) + np.float32(EXP_POLY[4])
+    p = p * g + np.float32(EXP_POLY[3])
+    p = p * g + np.float32(EXP_POLY[2])
+    p = p * g + np.float32(EXP_POLY[1])
+    p = p * g + np.float32(EXP_POLY[0])
+    return _times_pow2_neg(p, m)
 
 
 @intrinsic
