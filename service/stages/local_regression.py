@@ -30,11 +30,11 @@ from service.stages.fill import filled
 from service.stages.parallel import rows_per_thread
 from service.stages.simd import (
     EXP_NEG_LIMIT,
-    EXP_POLY,
     LANES,
     LN2,
     LOG2E,
     bits_to_float32,
+    exp_poly,
     float32_to_bits,
     load,
     phase_blocks,
@@ -373,12 +373,7 @@ def _exp_neg(x):
     xc = min(x, np.float32(EXP_NEG_LIMIT))
     m = np.floor(xc * np.float32(LOG2E) + np.float32(0.5))
     g = m * np.float32(LN2) - xc  # exp(-x) = 2^-m e^g, |g| <= ln2 / 2
-    p = g * np.float32(EXP_POLY[5]) + np.float32(EXP_POLY[4])
-    p = p * g + np.float32(EXP_POLY[3])
-    p = p * g + np.float32(EXP_POLY[2])
-    p = p * g + np.float32(EXP_POLY[1])
-    p = p * g + np.float32(EXP_POLY[0])
-    return bits_to_float32(float32_to_bits(p) - (np.int32(m) << np.int32(23)))
+    return bits_to_float32(float32_to_bits(exp_poly(g)) - (np.int32(m) << np.int32(23)))
 
 
 # ------------------------------------------------------------------------------------ block moments

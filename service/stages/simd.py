@@ -23,7 +23,8 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
     vmax(v, w), vmin(v, w), floor(v), sqrt(v), exp_neg(v)
     d = widen(v, half)            # VecD of lanes half * LANES/2 ... of the Vec v
     v = narrow(lo, hi)            # Vec of two VecD halves, rounded to float32
-`exp_neg` is the vector twin of `local_regression._exp_neg` (the same operations, the same values).
+`exp_neg` is the vector twin of `local_regression._exp_neg` (the same operations, the same values; both
+evaluate `exp_poly`, which takes a float32 or a Vec).
 
 Also here, for numpy code: `aligned_empty`, arrays that start on a vector (and cache line) boundary. For
 scalar numba code: `bits_to_float32` and `float32_to_bits`, the bit casts with which the
@@ -373,12 +374,18 @@ def exp_neg(x):
     xc = vmin(x, splat(np.float32(EXP_NEG_LIMIT)))
     m = floor(xc * np.float32(LOG2E) + np.float32(0.5))
     g = m * np.float32(LN2) - xc  # exp(-x) = 2^-m e^g, |g| <= ln2 / 2
+    return _times_pow2_neg(exp_poly(g), m)
+
+
+@numba.njit(inline="always")
+def exp_poly(g):
+    """e^g for |g| <= ln2 / 2 by `EXP_POLY` (Horner), for a float32 or a Vec g: the shared part of `exp_neg`
+    and its scalar twin (inlined: the caller's fast-math flags, hence its fused multiply-adds)."""
     p = g * np.float32(EXP_POLY[5]) + np.float32(EXP_POLY[4])
     p = p * g + np.float32(EXP_POLY[3])
     p = p * g + np.float32(EXP_POLY[2])
     p = p * g + np.float32(EXP_POLY[1])
-    p = p * g + np.float32(EXP_POLY[0])
-    return _times_pow2_neg(p, m)
+    return p * g + np.float32(EXP_POLY[0])
 
 
 @intrinsic
