@@ -344,7 +344,7 @@ def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch,
     pairs, moments, gram, rhs, coefs, strip = scratch
     s, height = planes.shape[0], planes.shape[2]
     c = -(-radius // s) + q  # plane lane of the first centre
-    first_lane = c + (-radius) // s  # of the window's leftmost pixels (a row: 20 lanes at the paper's window)
+    first_lane = q  # of the windows' leftmost pixels, c - pad (strip lane 0; a row: 20 lanes at the paper's window)
     side = 2 * radius + 1
     zero = splat(np.float32(0.0))
     top, bottom = max(first * s - radius, 0), min((last - 1) * s + radius + 1, height)  # the strip's rows
@@ -381,12 +381,11 @@ def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch,
         for y in range(y0, y1):
             for b in range(2):
                 _predict_row(b, s, radius, pairs, (y - y0) * side, coefs, strip, y - top)
-    lane = c - (-(-radius // s))  # plane lane of strip lane 0: the leftmost pixels of the windows
     for y in range(top, bottom):
         for b in range(2):
             for p in range(s):
                 for v in range(0, strip.shape[4], LANES):
-                    x = lane + v
+                    x = first_lane + v
                     for ch in range(3):
                         store(num, (b, p, ch, y, x), load(num, (b, p, ch, y, x)) + load(strip, (y - top, b, p, ch, v)))
                     store(den, (b, p, y, x), load(den, (b, p, y, x)) + load(strip, (y - top, b, p, 3, v)))

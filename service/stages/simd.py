@@ -369,8 +369,8 @@ def _times_pow2_neg(typingctx, p, m):
 @numba.njit(inline="always", fastmath=True)
 def exp_neg(x):
     """Lane-wise exp(-x) for x >= 0 (a Vec): the operations of `local_regression._exp_neg`, bit for bit.
-    Relative error < 5e-7 (float32 rounding; the polynomial's own is 9.2e-8); exp(-0) = 1; x beyond EXP_NEG_LIMIT gives
-    exp(-EXP_NEG_LIMIT)."""
+    Relative error < 5e-7 (float32 rounding; the polynomial's own is 9.2e-8); exp(-0) = 1; x beyond
+    EXP_NEG_LIMIT gives exp(-EXP_NEG_LIMIT)."""
     xc = vmin(x, splat(np.float32(EXP_NEG_LIMIT)))
     m = floor(xc * np.float32(LOG2E) + np.float32(0.5))
     g = m * np.float32(LN2) - xc  # exp(-x) = 2^-m e^g, |g| <= ln2 / 2
