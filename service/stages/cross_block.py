@@ -52,6 +52,7 @@ from service.stages.simd import (
     LANES,
     aligned_empty,
     exp_neg,
+    jit_aligned_empty,
     load,
     load_phase,
     narrow,
@@ -314,10 +315,11 @@ def _scratch(radius, s, tw, rows):  # pragma: no cover
     (3, FEATURES, LANES) float64, coefs (2, 3 FEATURES, LANES), strip (R, 2, S, 4, tw) with R the pixel rows
     that a chunk's windows cover, ~135 KB at radius 8), float32 unless said."""
     side = 2 * radius + 1
-    return (np.empty((side * side, PAIR_ROWS, LANES), np.float32), np.empty((2, MOMENTS, LANES), np.float32),
-            np.empty((3, FEATURES, FEATURES, LANES)), np.empty((3, FEATURES, LANES)),
-            np.empty((2, 3 * FEATURES, LANES), np.float32),
-            np.empty(((rows - 1) * s + side, 2, s, 4, tw), np.float32))  # fmt: skip
+    empty = jit_aligned_empty
+    return (empty((side * side, PAIR_ROWS, LANES), np.float32), empty((2, MOMENTS, LANES), np.float32),
+            empty((3, FEATURES, FEATURES, LANES), np.float64), empty((3, FEATURES, LANES), np.float64),
+            empty((2, 3 * FEATURES, LANES), np.float32),
+            empty(((rows - 1) * s + side, 2, s, 4, tw), np.float32))  # fmt: skip
 
 
 @numba.njit(inline="always", fastmath=True)

@@ -26,7 +26,8 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
 `exp_neg` is the vector twin of `local_regression._exp_neg` (the same operations, the same values; both
 evaluate `exp_poly`, which takes a float32 or a Vec).
 
-Also here, for numpy code: `aligned_empty`, arrays that start on a vector (and cache line) boundary. For
+Also here, for numpy code: `aligned_empty`, arrays that start on a vector (and cache line) boundary, and
+`jit_aligned_empty`, the same in numba code. For
 scalar numba code: `bits_to_float32` and `float32_to_bits`, the bit casts with which the
 exp and log polynomials of the stages build and split float32 exponents (they vectorise, unlike calls
 to the C library's expf or frexpf).
@@ -212,6 +213,39 @@ def aligned_empty(shape: tuple[int, ...], dtype: type = np.float32) -> np.ndarra
     buffer = np.empty(count + 64 // itemsize, dtype)
     first = (-buffer.ctypes.data % 64) // itemsize
     return buffer[first : first + count].reshape(shape)
+
+
+@intrinsic
+def jit_aligned_empty(typingctx, shape, dtype):
+    """`aligned_empty` in numba code: np.empty(shape, dtype), C-contiguous, its data on a 64-byte boundary
+    (numba's own np.empty gives 32: a vector stored at an odd 32 bytes spans two cache lines). shape: a
+    tuple of ints >= 0 (unchecked: for scratch of known size); dtype: np.float32 or np.float64. The shape
+    stays the tuple's values, so that with constant trailing sizes the compiler folds the element offsets
+    (a reshaped, aligned slice of a larger array computes them at run time)."""
+    if not isinstance(shape, types.UniTuple) or not isinstance(shape.dtype, types.Integer):
+        raise numba.core.errors.TypingError(f"jit_aligned_empty: shape must be a tuple of ints, got {shape}")
+    element = dtype.dtype if isinstance(dtype, types.NumberClass) else None
+    if element not in (types.float32, types.float64):
+        raise numba.core.errors.TypingError(f"jit_aligned_empty: dtype must be np.float32 or np.float64, got {dtype}")
+    result = types.Array(element, shape.count, "C")
+
+    def codegen(context, builder, sig, args):
+        intp = context.get_value_type(types.intp)
+        sizes = cgutils.unpack_tuple(builder, args[0])
+        shapes = [builder.sext(s, intp) if s.type.width < intp.width else s for s in sizes]
+        itemsize = ir.Constant(intp, context.get_abi_sizeof(context.get_data_type(element)))
+        strides = [itemsize]
+        for size in reversed(shapes[1:]):
+            strides.insert(0, builder.mul(strides[0], size))
+        nbytes = builder.mul(strides[0], shapes[0])
+        meminfo = context.nrt.meminfo_alloc_aligned(builder, nbytes, 64)
+        array = context.make_array(result)(context, builder)
+        data = builder.bitcast(context.nrt.meminfo_data(builder, meminfo), context.get_data_type(element).as_pointer())
+        context.populate_array(array, data=data, shape=cgutils.pack_array(builder, shapes),
+                               strides=cgutils.pack_array(builder, strides), itemsize=itemsize, meminfo=meminfo)
+        return array._getvalue()  # a new reference, which the caller owns
+
+    return result(shape, dtype), codegen
 
 
 @numba.njit(inline="always")
