@@ -210,10 +210,36 @@ def _aligned_in_numba(rows):
 
 def test_jit_aligned_empty_starts_on_a_cache_line_in_numba_code():
     """numba's own np.empty is 32-byte aligned (half the kernel's scratch arrays spanned two cache lines per
-    vector); jit_aligned_empty gives whole C-contiguous arrays from a 64-byte boundary, and frees them."""
+    vector); jit_aligned_empty gives whole C-contiguous arrays from a 64-byte boundary."""
     offsets, held = _aligned_in_numba(40)
     assert held
     np.testing.assert_array_equal(offsets, 0)
+
+
+@numba.njit
+def _aligned_returned(rows):
+    return jit_aligned_empty((rows, LANES), np.float32)
+
+
+def test_jit_aligned_empty_arrays_are_freed_once():
+    """Each array the intrinsic makes holds one reference: freed when the kernel drops it, and one that
+    reaches Python is owned by its numpy array and freed with it (numba's allocation counters, switched on
+    here: they are off unless NUMBA_NRT_STATS is set before numba starts)."""
+    from numba.core.runtime import _nrt_python, rtsys
+
+    _nrt_python.memsys_enable_stats()
+    _aligned_in_numba(1), _aligned_returned(1)  # compiled before counting
+    before = rtsys.get_allocation_stats()
+    _aligned_in_numba(40)
+    after = rtsys.get_allocation_stats()
+    assert after.mi_alloc - before.mi_alloc == 3 * 40 + 1  # + the offsets
+    assert after.mi_free - before.mi_free == 3 * 40 + 1  # the offsets are freed when the tuple goes
+    returned = _aligned_returned(5)
+    returned[:] = 3.0
+    assert returned.ctypes.data % 64 == 0 and returned.sum() == 3.0 * returned.size
+    kept = rtsys.get_allocation_stats()
+    del returned
+    assert rtsys.get_allocation_stats().mi_free - kept.mi_free == 1
 
 
 def test_jit_aligned_empty_rejects_other_dtypes_and_shapes():
