@@ -1,7 +1,8 @@
 """The Mitsuba renderer: every layer of a tiny sequence, and the motion-vector proofs on rendered frames.
 
 Renders are tiny (32x32 to 48x48, 2 frames, few samples) so the file runs in seconds on 2 busy cores with
-the llvm variant (the first run compiles kernels into Dr.Jit's cache).
+the llvm variant (the first run compiles kernels into Dr.Jit's cache). Every render runs in a child
+process (tests.models.data.isolated), so a native abort in the renderer fails these tests, not the suite.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from service.exr import list_sequence, read_frame  # noqa: E402
 from service.frame import LAYERS  # noqa: E402
 from service.metrics import rel_l2_map  # noqa: E402
 from service.stages.reprojection import reproject  # noqa: E402
-from tests.models.data.probe_scenes import MOVING_CAMERA, MOVING_OBJECT  # noqa: E402
+from tests.models.data import probe_scenes  # noqa: E402
+from tests.models.data.isolated import render_or_fail  # noqa: E402
 
 # Warping the previous reference by the motion vectors must remove most of the frame-to-frame error
 # (the rest is reference noise at 128 spp and bilinear resampling): at most this fraction of the
@@ -36,8 +38,8 @@ WARP_ERROR_MAX = 0.015  # relL2 of warped vs current reference over the same pix
 @pytest.fixture(scope="module")
 def tiny_sequence(tmp_path_factory):
     out = tmp_path_factory.mktemp("render") / "emissive"
-    code = main(["render", "--scene", "emissive", "--frames", "2", "--spp", "2", "--ref-spp", "8",
-                 "--size", "32x24", "--seed", "1", "--out", str(out)])
+    code = render_or_fail(main, ["render", "--scene", "emissive", "--frames", "2", "--spp", "2", "--ref-spp", "8",
+                                 "--size", "32x24", "--seed", "1", "--out", str(out)])
     assert code == 0
     return out
 
@@ -85,7 +87,9 @@ def test_report_on_the_cli_output(tiny_sequence):
     assert np.isfinite(report["motion"])
 
 
-def _render_pair(spec, size=48):
+def render_pair(scene: str, size: int = 48):
+    """Frames 0 and 1 of probe_scenes.<scene> (runs in the child process of render_or_fail)."""
+    spec = getattr(probe_scenes, scene)
     mi = load_mitsuba()
     opts = RenderOptions(size, size, 2, 128, gbuffer_spp=4, emission_spp=4, ao_spp=4)
     first = render_frame(mi, spec, 0, opts, previous_of(mi, spec, 0, opts))
@@ -95,12 +99,12 @@ def _render_pair(spec, size=48):
 
 @pytest.fixture(scope="module")
 def camera_pair():
-    return _render_pair(MOVING_CAMERA)
+    return render_or_fail(render_pair, "MOVING_CAMERA")
 
 
 @pytest.fixture(scope="module")
 def object_pair():
-    return _render_pair(MOVING_OBJECT)
+    return render_or_fail(render_pair, "MOVING_OBJECT")
 
 
 def test_pixel_centre_positions_project_onto_their_pixels(camera_pair):
