@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# The rendered sample sequence bundled with the repository (models/data/samples, README "Rendering data");
+# The rendered sample sequence bundled with the repository (models/data/samples, docs/rendering.md);
 # the demo falls back to the synthetic sequence when it is absent.
 SAMPLE ?= models/data/samples/shadows
 DEMO_PIPELINE ?= auto
@@ -60,9 +60,9 @@ bench: $(STAMP) bench-data
 		$$($(PY) -c "from models.data import SAMPLE_DIRS; print(' '.join(str(p) for p in SAMPLE_DIRS if p.is_dir()))") \
 		$(addprefix $(BENCH_DATA)/,$(BENCH_SCENES))
 
-# Training set (README, "Rendering data"): each models.data library scene with variation seeds 1..3, 8 frames
-# at 256x256, 4 spp noisy input, 1024 spp references, into $(DATA_OUT) (git-ignored). Finished sequences are
-# skipped, so an interrupted run resumes; a progress bar counts frames.
+# Data set (README, "Rendering data and training"; docs/rendering.md): each models.data library scene with
+# variation seeds 1..3, 8 frames at 256x256, 4 spp noisy input, 1024 spp references, into $(DATA_OUT)
+# (git-ignored). Finished sequences are skipped, so an interrupted run resumes; a progress bar counts frames.
 DATA_OUT ?= data/train
 DATA_ARGS ?= --sequences-per-scene 3 --frames 8 --size 256x256 --spp 4 --ref-spp 1024
 

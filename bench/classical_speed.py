@@ -35,10 +35,8 @@ from service.metrics import TRIM_FRACTION, rel_l2
 from service.pipelines import Pipeline
 
 DEFAULT_PIPELINES = ("crossregression", "bmfr", "flr")
-# Untimed rounds before the timed ones. After one, the steps were not yet steady: taking turns with OIDN
-# (whose first call allocates and frees its buffers), crossregression's 2nd to 4th steps at 1280x720 took
-# 172, 73 and 65 ms, then 57-66 ms; OIDN's own were steady from its 2nd (548-563 ms). Run alone, its 2nd
-# step was already steady.
+# Untimed rounds before the timed ones. After only one, the steps of a method taking turns with OIDN
+# (whose first call allocates and frees its buffers) were not yet steady; run alone, they were.
 WARMUP_ROUNDS = 4
 # `high-default` is the call issue 3's speed targets name: pyoidn.denoise(color, albedo, normal, hdr=True,
 # quality='high'); `high` is the benchmark's anchor (clean_aux, a larger network at quality high).

@@ -33,9 +33,7 @@ def numba_cache_dir(sources: Path, root: Path) -> Path:
 def keep_freed_buffers() -> bool:
     """Make glibc malloc keep freed frame-sized blocks in the heap (mallopt M_MMAP_THRESHOLD = 1 GiB,
     M_TRIM_THRESHOLD = 2 GiB) instead of returning them to the kernel, so the next frame's arrays do not
-    pay thousands of minor page faults on first touch (1280x720 on 2 cores, median of 9 steps, two processes
-    each, 2026-11-21: crossregression 85.0-85.4 -> 78.3-83.2 ms, flr 25.9-26.2 -> 24.8-25.0 ms). Memory is
-    reused frame after frame, not returned.
+    pay thousands of minor page faults on first touch. Memory is reused frame after frame, not returned.
     Returns whether it applied (Linux with glibc only)."""
     if sys.platform != "linux":
         return False
@@ -52,7 +50,7 @@ def configure() -> None:
     """Apply the settings; called by service/__init__.py."""
     # numba's parallel kernels run on OpenMP (thread-safe: the HTTP service steps frames from a thread
     # pool, which numba's `workqueue` layer does not allow). OpenMP's default busy-wait between parallel
-    # regions costs 3-9x on a shared 2-core machine (measured on svgf at 256x256); passive waiting avoids it.
+    # regions starves the other threads of a shared machine; passive waiting avoids it.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     if "NUMBA_CACHE_DIR" not in os.environ:
         try:

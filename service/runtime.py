@@ -10,7 +10,7 @@ Hot-swap: `OnnxModel.swap_weights` builds a new session from the same graph byte
 given as `SessionOptions.add_initializer` overrides (OrtValues on numpy arrays; no re-export, no graph
 edit), then replaces the live session in one assignment. Weights that are not finite, or whose names or
 shapes do not match the graph, are refused (WeightError) and the current session stays. For the 30K
-parameter crossreg U-Net the rebuild takes a few milliseconds (see README, crossreg section).
+parameter crossreg U-Net the rebuild takes a few milliseconds (see docs/crossreg.md).
 
 Threads: `threads` argument, else the environment variable MCDENOISE_ORT_THREADS, else ONNX Runtime's
 default (one per physical core).

@@ -23,10 +23,9 @@ from service.stages.local_regression import FIREFLY_K
 
 @dataclass(frozen=True)
 class CrossRegressionOptions:
-    # window: speed/quality trade-off, measured on models/data/samples/shadows (trimmed relL2) and at
-    # 1280x720 (bench.classical_speed, 2 cores, one run, OIDN-high 542 ms, 2026-11-22):
-    # 17 -> 0.0601, 52.4 ms; 13 -> 0.0517, 42.4 ms; 9 -> 0.0435, 31.2 ms.
-    # The default stays the paper's 17 (other scenes and the crossreg network's pilots were tuned on it).
+    # window: a speed/smoothing trade-off (`python -m bench.classical_speed` with crossregression:window=N,
+    # docs/benchmarks.md). The default stays the paper's 17 (other scenes and the crossreg network's pilots
+    # were tuned on it).
     window: int = 17  # regression window side, pixels, odd (Choi 2024 sec. 3)
     sparsity: int = 4  # centre pixels on every 4th row and column (Choi 2024 sec. 3)
     firefly_k: float | None = FIREFLY_K  # clamp each buffer's outliers (local_regression.clamp_fireflies); None: off

@@ -21,8 +21,6 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
   The target colour enters relative to its centre value, which is the other buffer's colour difference
   already in the scratch. The ridge leaves the constant feature alone, so this is the same fit with the
   intercept less that value, added back after the solve.
-  (Sharing the terms of both regressions and summing each window row while in L1: at 720p -18% against
-  two kernels that wrote and re-read a window's scratch per buffer, same-process A/B.)
 - The 61 moments of each regression are solved right there, in float64 on `simd.VecD` vectors
   (`_cholesky_solve`, the operations of `local_regression.cholesky_ridge_solve`), and a last pass adds
   each centre's weighted predictions of both regressions (eq. 5), from the window's scratch, into a
@@ -106,7 +104,7 @@ def regress_sums(
     # A window's predictions span lanes c - pad ... c + pad + LANES - 1 of a plane; `_group_rows` adds
     # them in whole vectors from there (lane q of group q on), so the sums carry that many lanes (rounded
     # to vectors) more. Rows of a whole number of vectors from a 64-byte boundary: each of those vectors
-    # is one cache line (720p, 2 threads, two copies of each kernel compiled in one process: -0.35 ms).
+    # is one cache line.
     extra = -(-(2 * pad_lanes(params) + LANES) // LANES) * LANES
     total = -(-(lanes + extra) // LANES) * LANES
     num = aligned_empty((2, s, 3, height, total))  # zeroed by the kernel, just before first use
@@ -266,19 +264,15 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, t
 
     The bands run in parallel, each one chunk of `rows` centre rows after the other, top to bottom; within
     a chunk each group of LANES centre columns goes down the rows (`_group_rows`), so that a window shares
-    all but s pixel rows with the last one, still in L2 (at 720p ~25% faster than running rows a window
-    apart over the whole width, which reread every window from memory), and a chunk finds the sums of the
-    rows it shares with the one before still in cache. (Even and then odd chunks in parallel, the layout
-    before, found them in memory: with the zeroing below, the kernel at 720p was 2.0 and 3.6 ms faster than
-    that, the medians of 21 paired runs in two same-process A/Bs, one in each compile order.)
-    Then the gaps between the bands, which share rows with both (~0.8 ms at 720p, 2 threads, minima of one
-    A/B): their lane groups in parallel, groups TW / LANES apart at a time (strip width TW: such groups share
-    no lane).
+    all but s pixel rows with the last one, still in L2 (rows a window apart over the whole width would
+    reread every window from memory), and a chunk finds the sums of the rows it shares with the one before
+    still in cache. Then the gaps between the bands, which share rows with both: their lane groups in
+    parallel, groups TW / LANES apart at a time (strip width TW: such groups share no lane).
 
     Each chunk zeroes the sums of the rows that it is the first to reach (the band's last chunk: up to the
     next band's first window row, which covers the gap's rows) just before first use, the lanes of each
-    group as it starts. (Zeroing all the sums first, in parallel, sent them to memory before the first
-    addition read them back: at 720p 0.7 and 2.3 ms slower, same-process A/Bs in both compile orders.)"""
+    group as it starts (zeroing all the sums first would send them to memory before the first addition
+    reads them back)."""
     s, height = planes.shape[0], planes.shape[2]
     wc = counts[1]
     rows = (2 * radius) // s + 1  # a window's worth (two: no clear change at 720p); > band_gap: a gap fits a strip
@@ -330,19 +324,14 @@ def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch,
     to num and den. scratch: `_scratch`.
 
     The strip takes each pixel row's sums over all the chunk's centre rows, so num and den are read and
-    written once per chunk, not once per centre row whose window covers the row (720p, 2 threads, against a
-    one-row tile added to num and den after every window row: -3.4 and -1.7 ms in same-process A/Bs in both
-    compile orders; -1.6 ms, the means of two copies of each compiled in one process).
+    written once per chunk, not once per centre row whose window covers the row.
 
     The passes take whole scratch arrays and a first index (window row o0 of pairs, regression b), never a
     slice: numba counts the references of every view it makes, an atomic increment and decrement by call
-    per view, and views of pairs and moments per window row cost the kernel at 720p 1.0 and 1.3 ms (2
-    threads, same-process A/Bs in both compile orders, paired medians of 15).
+    per view, which per window row would be a measurable share of the kernel.
 
     While a window row's moments are summed, the plane lines of the next row are prefetched: they come from
-    L2 (a window shares all but s rows with the last one), and the pair pass waited for them (720p, 2
-    threads, two copies of each kernel compiled in one process, in both orders: -2.4 and -1.7 ms, the means
-    of the copies' medians; prefetching the row after next instead was 0.4-1.0 ms slower than the next)."""
+    L2 (a window shares all but s rows with the last one), and the pair pass would wait for them."""
     pairs, moments, gram, rhs, coefs, strip = scratch
     s, height = planes.shape[0], planes.shape[2]
     c = -(-radius // s) + q  # plane lane of the first centre
@@ -591,9 +580,8 @@ def _predict_row(b, s, radius, pairs, o0, coefs, strip, row):  # pragma: no cove
     the weight; lane j is plane lane c - pad + j), from its terms pairs[o0 ... o0 + 2 radius] (pairs
     (side^2, PAIR_ROWS, LANES)) and the coefficients coefs (2, 3 FEATURES, LANES); s the sparsity (phase
     planes). A strip row stays in L1 while a window row is added (adding every pair straight into the
-    planes missed L1 on most of them: ~25% of the kernel's time at 720p). One regression at a time, so
-    that its 18 coefficients stay in registers across the row (both at once reloaded them from L1 for every pair;
-    both pilots at 720p, same-process A/B: one thread 104.9 -> 97.7 ms, two threads 48.9 -> 48.0 ms).
+    planes would miss L1 on most of them). One regression at a time, so that its 18 coefficients stay in
+    registers across the row (both at once would reload them from L1 for every pair).
     Phases interleaved: a strip vector is re-read s offsets after its store."""
     k0 = (load(coefs, (b, 0, 0)), load(coefs, (b, 1, 0)), load(coefs, (b, 2, 0)), load(coefs, (b, 3, 0)),
           load(coefs, (b, 4, 0)), load(coefs, (b, 5, 0)))  # fmt: skip

@@ -204,8 +204,7 @@ def _pilots_kernel(pilot_a, pilot_b, out):  # pragma: no cover - jitted
 def _linear_mean(a, b, dst):  # pragma: no cover - jitted
     """dst = 0.5 (e(a) + e(b)) for rows a, b, dst (W,) float32: e the signed expm1 (`_expm1_nonneg`) of log
     values clipped to +-LOG_MAX. Fast-math for the fused multiply-adds alone, as in `_signed_log1p_row`.
-    (dst may be a or b, but then the loop runs scalar: its run-time check for overlap fails; 720p, the
-    finishing pass took twice as long.)"""
+    (dst may be a or b, but then the loop runs scalar: its run-time check for overlap fails.)"""
     limit, half = np.float32(LOG_MAX), np.float32(0.5)
     for x in range(dst.shape[0]):
         ea = _expm1_nonneg(min(abs(a[x]), limit))

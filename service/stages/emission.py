@@ -2,10 +2,9 @@
 
 Denoisers filter the radiance without its emitted part (`emission`, exact and noise-free when the renderer
 sends it) and add it back after; the step then checks that the result is finite. As numpy expressions
-the subtraction from each radiance layer was one single-threaded full-frame pass per layer (1280x720, 3
-layers: 2.1 ms), the sum and the check two more (1.1 ms); here the subtraction from all layers is one
-parallel pass that reads the emission once (1.15 ms; one layer alone was no faster than numpy: the pass is
-memory-bound), and the sum and the check another (0.55 ms). A pipeline that reads its radiance layers
+the subtraction would be one single-threaded full-frame pass per radiance layer, and the sum and the check
+two more; here the subtraction from all layers is one parallel pass that reads the emission once (the
+pass is memory-bound), and the sum and the check another. A pipeline that reads its radiance layers
 in passes of its own can fuse the split into them instead (`Pipeline.fuses_emission`; `crossregression`
 subtracts row by row with `subtract_row` and adds back with `add_row`).
 """

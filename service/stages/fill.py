@@ -1,12 +1,10 @@
 """Filled arrays inside numba kernels.
 
 numba's own `np.full` and `np.ones` are overloads compiled once per process and then linked into every
-later kernel that uses them. Measured on `cross_regression`'s packing kernel (1280x720, 2 threads, five
-identical copies compiled one after another in one process): the copy compiled second ran 1.5x slower
-(11.4 against 7.3 ms; one thread 23.6 against 15.4 ms), the others not, in whatever order the copies were
-compiled; with the fill written as a loop of its own every copy ran at 7.4-7.7 ms. Which kernel is compiled
-second depends on the order a process (the test suite, a first `make demo`) meets them, and the numba
-cache keeps that code. `filled` is the loop, inlined into each kernel.
+later kernel that uses them, and the kernel that happens to be compiled second with them ran markedly
+slower than identical copies compiled before or after it. Which kernel is compiled second depends on
+the order a process (the test suite, a first `make demo`) meets them, and the numba cache keeps that
+code. `filled` is a loop of its own, inlined into each kernel, so every kernel gets the same code.
 """
 
 from __future__ import annotations

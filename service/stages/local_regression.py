@@ -760,7 +760,7 @@ def normalise_phases(num, den, pad, out):
 def normalise_row(num, den, pad, y, inv, out, row):
     """Row y of `normalise_phases` into row `row` of out (C, R, W) float32; inv: (S, L) float32 scratch. At
     sparsity 4 (the paper's) whole blocks of 4 LANES pixels are written as vectors (`simd.store_phases`),
-    the other pixels one value at a time (at 1280x720, 3 channels, 2 threads: 1.7 -> 1.1 ms)."""
+    the other pixels one value at a time."""
     s = num.shape[0]
     channels, width = out.shape[0], out.shape[2]
     done = phase_blocks(width, s)
@@ -978,7 +978,7 @@ def _channel_planes_kernel(image, albedo, divide, out):
     height, width, channels = image.shape
     for y in numba.prange(height):
         src, factor = image[y].reshape(width * channels), albedo[y].reshape(width * channels)
-        if channels == 3 and divide:  # a constant stride: LLVM vectorises the strided loads together (3x faster)
+        if channels == 3 and divide:  # a constant stride: LLVM vectorises the strided loads together
             d0, d1, d2 = out[0, y], out[1, y], out[2, y]
             for x in range(width):
                 d0[x] = src[3 * x] / albedo_factor(factor[3 * x])
@@ -1329,7 +1329,7 @@ def radiance_scale(planes: np.ndarray) -> float:
     sample = np.abs(planes[:, ::4, ::4]).ravel()
     if not sample.size:
         return 1e-6
-    half = sample.size // 2  # the median by one partition (np.median's two-index partition is ~8x slower)
+    half = sample.size // 2  # the median by one partition (np.median partitions at two indices)
     part = np.partition(sample, half)
     median = float(part[half]) if sample.size % 2 else 0.5 * (float(part[:half].max()) + float(part[half]))
     return max(median, 1e-6)
@@ -1357,10 +1357,7 @@ def clamp_outlier_clusters(
     Values inside that band, a constant image and smooth gradients are unchanged; structures that fill
     more than ~1/3 of the window count as signal. Limitation: thin bright detail (a 1-2 pixel line more
     than e^(k d' + margin) above its surround) is clipped too: the regressions fed by this blur such detail
-    anyway unless a G-buffer explains it. Energy removed (mean radiance of the bmfr/flr output, with vs
-    without): -1.2% on the `fireflies` bench sequence (the clipped emitter-edge residuals and fireflies),
-    +0.04% / -0.01% on the shadows sample. Cost: ~8 ms at 1280x720x3 on 2 cores (was ~110 ms with libm
-    log1p and whole-frame float64 passes).
+    anyway unless a G-buffer explains it.
 
     planes: (C, H, W) float32 radiance (any sign). Returns (C, H, W) float32. numba kernel: t in float32
     by a vectorised log (`_log_fast`, relative error ~1e-7), box sums and statistics in float64, fused per

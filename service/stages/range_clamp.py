@@ -148,10 +148,10 @@ def _min_max_pass3(lo, hi, step, out_lo, out_hi, n):
 def row_range(lo, hi, spare_lo, spare_hi, g, shift):
     """Padded rows lo, hi -> min (max) of lo (hi) at i + d shift, d = 0 .. g - 1, for i < len(lo) - (g - 1)
     shift: spans tripled (1, 3, 9, ..) while they fit in g, then doubled or, last, two overlapping spans
-    (g = 17: 1, 3, 9, 17, three passes where doubling took five: 720p, radius 8, 2 threads, the clamp
-    1.84-2.02 -> 1.65-1.88 ms). Passes alternate between the rows and the spare rows (no in-place pass: it
-    would read ahead of what it writes, which keeps LLVM from vectorising it; so does swapping the names of
-    the buffers). Returns True when the result is in the spare rows."""
+    (g = 17: 1, 3, 9, 17, three passes where doubling takes five). Passes alternate between the rows and
+    the spare rows (no in-place pass: it would read ahead of what it writes, which keeps LLVM from
+    vectorising it; so does swapping the names of the buffers). Returns True when the result is in the
+    spare rows."""
     span, spare, length = 1, False, lo.shape[0]
     while span < g:
         if 3 * span <= g:  # tripling
@@ -205,8 +205,8 @@ def window_range(flat, channels, y, y0, radius, scans, rows):
     go in blocks of g = 2r+1 from the band's first window on (van Herk / Gil-Werman), and a window starting
     at row offset o of block k is the backward scan of block k at o (made at o = 0, kept in scans (2, g, n)
     float32: lo, hi) and the running min / max of block k+1's rows up to o - 1, which each call extends by
-    the window's new last row (rows[4], rows[5]; a forward scan of g rows kept as well put twice the
-    scratch in L2: 1280x720, radius 8, 2.3-2.4 -> 1.8-1.9 ms). Then along the row (`row_range`) in rows[0:4]
+    the window's new last row (rows[4], rows[5]; a forward scan of g rows kept as well would put twice the
+    scratch in L2). Then along the row (`row_range`) in rows[0:4]
     (lo, hi, spare lo, spare hi); rows: (6, n + 2 C r) float32, both from `range_scratch`. Returns True
     when the result, lo and hi at [0, n), is in rows[2], rows[3], False when in rows[0], rows[1] (the
     caller branches: a chosen name would keep its loops from vectorising)."""

@@ -1,6 +1,6 @@
 """Deployment settings of the HTTP service: one validated, frozen object built from environment variables.
 
-Every variable is optional; the defaults below are the documented ones (README "HTTP service"). Values
+Every variable is optional; the defaults below are the documented ones (README "HTTP API"). Values
 that would make the service unsafe or unable to work (a limit of zero, a short API key, a key with
 whitespace) are refused with a `SettingsError` naming the variable, before the server starts.
 """
