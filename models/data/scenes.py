@@ -306,6 +306,48 @@ def _glossy_env(t: float, seed: int) -> SceneState:
     return SceneState(cam, tuple(shapes), (env,))
 
 
+def _veiled_light(t: float, seed: int) -> SceneState:
+    """A small, very bright sphere light seen directly through a grid of thin bars; a glossy floor
+    mirrors it. The bars cover part of the light in most pixels around it."""
+    v = variation(seed)
+    s = (t + v.phase) * v.speed
+    room = cornell_room(ceiling=True, walls=((0.5, 0.45, 0.4), (0.4, 0.45, 0.5)))[1:]  # all but the floor
+    shapes = [quad("floor", T.rotate([1, 0, 0], -90), plastic((0.3, 0.3, 0.3), 0.05), 0.05), *room,
+        sphere("lamp", (0.05 * np.sin(0.3 * s), 1.2, -0.4), 0.07, diffuse(BLACK), radiance=(1000.0, 900.0, 750.0)),
+        sphere("metal", (0.45, 0.3, 0.1 + 0.1 * np.sin(0.4 * s)), 0.3, conductor(0.1, "Cu"), 0.1),
+        Shape("bars", "mesh", T.translate([0.0, 0.55, 0.3]), diffuse((0.2, 0.2, 0.22)), ROUGHNESS_DIFFUSE,
+              mesh=_lattice(7, 0.1, 0.025, 1.1, 4)),
+    ]
+    return SceneState(_cornell_camera(v, t, sway=0.15, target_y=1.0), tuple(shapes), ())
+
+
+def _window(t: float, seed: int) -> SceneState:
+    """Inside a closed room looking at a window: a sky of radiance 1e3 outside, the room lit only
+    through the window (a bright sun patch on the floor, the rest indirect light)."""
+    v = variation(seed)
+    s = (t + v.phase) * v.speed
+    wall = (0.7, 0.68, 0.62)
+    x0, x1, y0, y1 = -0.3, 0.2, 1.0, 1.5  # window opening in the back wall (z = -1)
+    back = T.translate([0, 0, -1])
+    shapes = [
+        quad("floor", T.rotate([1, 0, 0], -90) @ T.scale([1, 1.3, 1]), diffuse((0.5, 0.4, 0.3))),
+        quad("ceiling", T.translate([0, 2, 0]) @ T.rotate([1, 0, 0], 90) @ T.scale([1, 1.3, 1]), diffuse(wall)),
+        quad("left", T.translate([-1, 1, 0]) @ T.rotate([0, 1, 0], 90) @ T.scale([1.3, 1, 1]), diffuse(wall)),
+        quad("right", T.translate([1, 1, 0]) @ T.rotate([0, 1, 0], -90) @ T.scale([1.3, 1, 1]), diffuse(wall)),
+        quad("front", T.translate([0, 1, 1.3]) @ T.rotate([0, 1, 0], 180), diffuse(wall)),
+        quad("below", back @ T.translate([0, y0 / 2, 0]) @ T.scale([1, y0 / 2, 1]), diffuse(wall)),
+        quad("above", back @ T.translate([0, (y1 + 2) / 2, 0]) @ T.scale([1, (2 - y1) / 2, 1]), diffuse(wall)),
+        quad("beside_l", back @ T.translate([(x0 - 1) / 2, (y0 + y1) / 2, 0])
+             @ T.scale([(x0 + 1) / 2, (y1 - y0) / 2, 1]), diffuse(wall)),
+        quad("beside_r", back @ T.translate([(x1 + 1) / 2, (y0 + y1) / 2, 0])
+             @ T.scale([(1 - x1) / 2, (y1 - y0) / 2, 1]), diffuse(wall)),
+        sphere("ball", (0.3 * np.sin(0.4 * s), 0.25, -0.3), 0.25, diffuse((0.7, 0.7, 0.7))),
+    ]
+    x = v.camera_offset + 0.1 * np.sin(0.3 * v.camera_speed * t)
+    cam = Camera((x, 1.0, 1.2), (0.3 * x, 0.8, -1.0), (0.0, 1.0, 0.0), 60.0)
+    return SceneState(cam, tuple(shapes), ({"type": "constant", "radiance": rgb((1000.0, 1000.0, 1100.0))},))
+
+
 SCENES: dict[str, SceneSpec] = {
     spec.name: spec
     for spec in (
@@ -323,6 +365,10 @@ SCENES: dict[str, SceneSpec] = {
         SceneSpec("emissive", "many moving emitters seen directly and in a glossy floor", _emissive),
         SceneSpec("glossy_env", "rough plastic and near-mirror metal under an HDR sky with a tiny bright sun",
                   _glossy_env),
+        SceneSpec("veiled_light", "a small light of radiance 1e3 seen through thin bars, mirrored by a glossy floor",
+                  _veiled_light, max_depth=8),
+        SceneSpec("window", "a closed room lit only through a window by a sky of radiance 1e3 (seen directly)",
+                  _window, max_depth=8),
     )
 }
 

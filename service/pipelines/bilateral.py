@@ -1,6 +1,7 @@
 """`bilateral`: joint bilateral filter guided by albedo, normal and depth (Sakai 2024 eq. 16 weights).
 
-Stages: (optional) albedo demodulation -> guide features -> joint bilateral -> remodulation.
+Stages: outlier clamp (service/stages/outliers.py) -> (optional) albedo demodulation -> guide features
+-> joint bilateral -> remodulation.
 Fast and robust; blurs what no G-buffer shows (shadows, caustics). The baseline and the default
 until better pipelines land.
 """
@@ -16,6 +17,7 @@ from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.stages.albedo import demodulate, remodulate
 from service.stages.bilateral import BilateralParams, guide_features, joint_bilateral
+from service.stages.outliers import clamp_outliers
 
 
 @dataclass(frozen=True)
@@ -45,7 +47,7 @@ class BilateralPipeline(Pipeline):
         features = guide_features(
             params, frame.height, frame.width, albedo, frame.get("normal"), frame.get("depth")
         )
-        color = frame["color"]
+        color = clamp_outliers(frame["color"])  # fireflies would spread into discs
         if opt.demodulate and albedo is not None:
             color = remodulate(joint_bilateral(demodulate(color, albedo), features, params), albedo)
         else:

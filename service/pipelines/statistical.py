@@ -1,7 +1,9 @@
 """`statistical`: the statistical denoiser of Sakai et al. 2024 (Algorithm 2).
 
 Stages, top to bottom: sample statistics -> per-pixel estimates (Curto-corrected Box-Cox means and
-their variances) -> guide features (eq. 16) -> joint bilateral filter gated by the Welch t-test.
+their variances) -> guide features (eq. 16) -> joint bilateral filter gated by the Welch t-test, of
+the colour with its outliers clamped (service/stages/outliers.py: a firefly has a huge variance, so the
+test cannot reject it, and the average would spread it over the window).
 Keeps edges that no G-buffer shows (shadows, caustics) when the statistics resolve them, and converges
 to its input as the variance goes to zero. No training, no history. Renderers that hand samples
 instead of the statistics layers compute them with `service.stages.sample_statistics`.
@@ -17,6 +19,7 @@ from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.stages.bilateral import BilateralParams, guide_features
+from service.stages.outliers import clamp_outliers
 from service.stages.statistical import ALPHA, PAPER_BASE, StatisticalParams, pixel_estimates, statistical_filter
 
 
@@ -64,4 +67,5 @@ class StatisticalPipeline(Pipeline):
         features = guide_features(
             params.base, frame.height, frame.width, frame.get("albedo"), frame.get("normal"), frame.get("depth")
         )
-        return {"color": statistical_filter(frame["color"], features, estimates, params)}, state
+        color = clamp_outliers(frame["color"])  # the t-test admits a firefly (its variance is huge): clip it first
+        return {"color": statistical_filter(color, features, estimates, params)}, state

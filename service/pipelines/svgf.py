@@ -1,8 +1,8 @@
 """`svgf`: spatiotemporal variance-guided filtering (Schied et al. 2017).
 
-Stages, top to bottom: albedo demodulation -> reprojection of the history (colour, moments, history
-length) by motion with depth/normal validity -> history clamp to the current frame's local colour box (extension)
--> temporal accumulation of colour and luminance moments
+Stages, top to bottom: outlier clamp (service/stages/outliers.py) -> albedo demodulation -> reprojection of
+the history (colour, moments, history length) by motion with depth/normal validity -> history clamp to the
+current frame's local colour box (extension) -> temporal accumulation of colour and luminance moments
 -> variance estimate (spatial for short histories) -> 5 edge-aware a-trous passes -> remodulation.
 The colour after the first a-trous pass becomes the next frame's colour history (Schied sec. 4.3).
 """
@@ -18,6 +18,7 @@ from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.stages.albedo import demodulate, remodulate
 from service.stages.atrous import AtrousParams, atrous, edge_guides
+from service.stages.outliers import clamp_outliers
 from service.stages.range_clamp import clamp_to_local_range
 from service.stages.reprojection import ReprojectionParams, reproject
 from service.stages.svgf import (
@@ -90,7 +91,8 @@ class SvgfPipeline(Pipeline):
 
     def denoise(self, frame: Frame, state: SvgfState) -> tuple[dict[str, np.ndarray], SvgfState]:
         albedo = frame.get("albedo") if self.options.demodulate else None
-        color = frame["color"] if albedo is None else demodulate(frame["color"], albedo)
+        color = clamp_outliers(frame["color"])  # a firefly would enter the history and every a-trous pass
+        color = color if albedo is None else demodulate(color, albedo)
         scale = max(1.0, float(np.abs(color).max()) / SAFE_RADIANCE)
         color = color / np.float32(scale)
         depth, normal = frame["depth"], frame["normal"]

@@ -82,6 +82,7 @@ class _Brightener(Pipeline):
     """A broken denoiser: adds light that is not in the input on frame 1."""
 
     name, summary, requires, temporal = "brightener", "test double", ("color",), False
+    guards = False  # the noise clamp would take the added light out again: this double tests the criterion
 
     def denoise(self, frame: Frame, state: SequenceState):
         return {"color": frame["color"] + (1.0 if state.frame_index == 1 else 0.0)}, state

@@ -7,7 +7,7 @@ from models.data.sequence import METADATA
 
 def test_default_plan_is_every_scene_with_seeds_one_to_three(tmp_path):
     jobs = plan(tmp_path, DatasetOptions())
-    assert len(jobs) == 3 * len(SCENES) == 27
+    assert len(jobs) == 3 * len(SCENES)
     assert {job.seed for job in jobs} == {1, 2, 3}  # seed 0 (the canonical animation) is held out
     assert len({job.folder for job in jobs}) == len(jobs)
     assert jobs[0].folder == tmp_path / f"{next(iter(SCENES))}_s1"

@@ -1,0 +1,23 @@
+"""Outlier suppression before a filter: the two clamps the regressions use, for any (H, W, C) image.
+
+A firefly (one sample of 1e3 among samples of 1) is a value no filter should average in: a bilateral or
+t-test filter spreads it into a bright disc of its window, a temporal filter into its history. The
+regressions (bmfr, flr, cross-regression) clamp their inputs with `local_regression.clamp_fireflies`
+(isolated values, against the 3x3 neighbour range) and `local_regression.clamp_outlier_clusters` (small
+clusters, against a sigma-clipped 7x7 statistic of the log-compressed signal); the filters without a
+regression (bilateral, statistical, svgf) call them here. Exact pixels (a directly visible light) are
+taken out as emission before any pipeline runs (`service.stages.exact`), so they are not clipped.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.stages.local_regression import FIREFLY_K, clamp_fireflies, clamp_outlier_clusters, from_planes, to_planes
+
+
+def clamp_outliers(image: np.ndarray, firefly_k: float = FIREFLY_K) -> np.ndarray:
+    """`image` ((H, W, C) float32 linear radiance, any sign) with isolated outliers and small clusters of
+    them clipped to their neighbourhood. Returns (H, W, C) float32; a constant image and smooth
+    gradients are unchanged."""
+    return from_planes(clamp_outlier_clusters(clamp_fireflies(to_planes(image), firefly_k)))

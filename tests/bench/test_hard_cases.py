@@ -1,0 +1,125 @@
+"""The rendered hard cases (bench/hard_cases.py) on every registered pipeline, judged per tile.
+
+Parametrised over `pipelines.names()`, so a new pipeline is held to the criterion as soon as it
+registers: half the noisy relL2 or better, no 16x16 tile more than 10% worse than the noisy input's,
+exact pixels unchanged. The frames are committed (models/data/samples/hard); no renderer runs here.
+Pairs that still fail are listed in KNOWN_FAILURES, as expected failures.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+
+from bench import hard_cases
+from bench.hard_cases import CASE_NAMES, TILE_FLOOR, TILE_SLACK, score, tile_means
+from service import pipelines
+from service.frame import Frame
+
+# Where a pipeline still fails the criterion, with its worst tile ratio as measured (`python -m bench.hard_cases
+# table`). Mostly mirror and glossy reflections that no G-buffer shows (a black void in a gold sphere, the
+# horizon in a chrome ball and in the sky): a filter guided by albedo, normal and depth blurs them into pixels
+# whose reference is near black. These are expected failures, so that a fix shows up as an unexpected pass;
+# those within 20% of the limit are not strict (they may pass on another CPU's rounding).
+KNOWN_FAILURES: dict[tuple[str, str], float] = {
+    ("bilateral", "bulb"): 2.27, ("bilateral", "bulb_emission"): 2.27, ("bilateral", "caustics"): 2.68,
+    ("bilateral", "veiled"): 1.9, ("bilateral", "glints"): 5.12,
+    ("bmfr", "bulb"): 2.81, ("bmfr", "bulb_emission"): 2.81, ("bmfr", "caustics"): 3.32, ("bmfr", "veiled"): 2.32,
+    ("bmfr", "window"): 5.4, ("bmfr", "glints"): 2.66,
+    ("crossreg", "dark"): 1.11, ("crossreg", "glints"): 2.74,
+    ("crossregression", "glints"): 2.1,
+    ("flr", "bulb"): 1.84, ("flr", "bulb_emission"): 1.84, ("flr", "caustics"): 3.11, ("flr", "veiled"): 4.56,
+    ("flr", "glints"): 3.46,
+    ("statistical", "bulb"): 2.72, ("statistical", "bulb_emission"): 2.55, ("statistical", "caustics"): 2.44,
+    ("statistical", "veiled"): 1.16, ("statistical", "glints"): 3.92,
+    ("svgf", "glints"): 2.33,
+}
+
+
+def _params() -> list:
+    out = []
+    for pipeline_name in pipelines.names():
+        for case_name in CASE_NAMES:
+            ratio = KNOWN_FAILURES.get((pipeline_name, case_name))
+            marks = () if ratio is None else pytest.mark.xfail(
+                reason=f"worst tile {ratio}x the noisy input's", strict=ratio > 1.2 * (1 + TILE_SLACK))
+            out.append(pytest.param(pipeline_name, case_name, marks=marks, id=f"{pipeline_name}-{case_name}"))
+    return out
+
+
+@cache
+def _layers(name: str) -> frozenset[str]:
+    return frozenset(hard_cases.frames(name)[0].buffers)
+
+
+def test_known_failures_name_real_pairs() -> None:
+    assert {p for p, _ in KNOWN_FAILURES} <= set(pipelines.names())
+    assert {c for _, c in KNOWN_FAILURES} <= set(CASE_NAMES)
+
+
+@pytest.mark.parametrize(("pipeline_name", "case_name"), _params())
+def test_pipeline_passes_hard_case(pipeline_name: str, case_name: str) -> None:
+    pipeline = pipelines.get(pipeline_name)
+    missing = set(pipeline.requires) - _layers(case_name)
+    if missing:
+        pytest.skip(f"{pipeline_name} needs {sorted(missing)}")
+    for index, result in enumerate(hard_cases.run(pipeline, case_name)):
+        assert not result.failures(), f"{pipeline_name} / {case_name}, frame {index}: {result.failures()}"
+
+
+def test_cases_are_what_they_say() -> None:
+    for name in CASE_NAMES:
+        frames = hard_cases.frames(name)
+        assert len(frames) >= 2 and all("reference" in f for f in frames)
+        assert ("emission" in frames[0]) == hard_cases.case(name).emission
+    bulb = hard_cases.frames("bulb")[0]
+    assert float(bulb["color"].max()) > 1e3  # the light is seen directly
+    window = hard_cases.frames("window")[0]
+    assert float(window["reference"].max()) >= 1e3  # the sky through the window
+    dark = hard_cases.frames("dark")[0]
+    assert float(np.median(dark["reference"])) < 0.1
+
+
+def _frame(noisy: np.ndarray, reference: np.ndarray) -> Frame:
+    return Frame({"color": noisy, "colorA": noisy, "colorB": noisy + 0.5, "reference": reference})
+
+
+def test_tile_check_catches_a_black_ring_that_the_mean_hides() -> None:
+    rng = np.random.default_rng(0)
+    reference = np.ones((64, 64, 3), np.float32)
+    noisy = (reference * rng.lognormal(-0.02, 0.2, reference.shape)).astype(np.float32)
+    out = reference.copy()
+    out[20:24, 20:24] = 0.0  # a black patch inside one tile, 16 of 4096 pixels
+    result = score(out, _frame(noisy, reference))
+    assert result.rel_l2 < 0.5 * result.noisy_rel_l2  # the mean passes
+    assert result.worst_tile == (16, 16) and result.worst_tile_ratio > 1.1
+    assert any("tile at (16, 16)" in reason for reason in result.failures())
+    assert not score(reference.copy(), _frame(noisy, reference)).failures()
+
+
+def test_exact_pixels_must_come_out_unchanged() -> None:
+    reference = np.ones((16, 16, 3), np.float32)
+    noisy = reference * 1.3
+    frame = Frame({"color": noisy, "colorA": noisy, "colorB": noisy.copy(), "reference": reference})
+    frame.buffers["colorB"][1:] += 0.5  # only row 0 is exact (both halves agree)
+    out = reference.copy()  # denoised everywhere, so the exact row changed by 1/1.3
+    assert score(out, frame).exact_error == pytest.approx(0.3 / 1.3, rel=1e-5)
+    out[0] = noisy[0]
+    assert score(out, frame).exact_error == 0.0
+
+
+def test_tile_means_cover_ragged_borders() -> None:
+    errors = np.arange(20 * 35, dtype=np.float64).reshape(20, 35)
+    means = tile_means(errors, 16)
+    assert means.shape == (2, 3)
+    assert means[1, 2] == pytest.approx(errors[16:, 32:].mean())
+    assert means[0, 0] == pytest.approx(errors[:16, :16].mean())
+
+
+def test_floor_lets_noise_free_tiles_compare() -> None:
+    reference = np.ones((16, 16, 3), np.float32)
+    result = score(reference + 1e-4, _frame(reference.copy(), reference))
+    assert result.worst_tile_ratio == pytest.approx((1e-8 / 1.01 + TILE_FLOOR) / TILE_FLOOR, rel=1e-6)
+    assert result.worst_tile_ratio < 1.0 + TILE_SLACK  # within the floor: not a tile failure

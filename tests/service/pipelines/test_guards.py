@@ -1,0 +1,58 @@
+"""The step's hard-case guards (Pipeline.step, `Pipeline.guards`): a visible light without an emission layer
+comes out exactly as it went in and does not leak into its neighbours, for every pipeline; anchors run
+without the guards."""
+
+import numpy as np
+import pytest
+
+from bench.methods import anchor_method
+from service import pipelines
+from service.frame import Frame
+from service.pipelines.base import with_exact_emission
+from service.stages.exact import exact_mask
+
+LIGHT = (slice(10, 13), slice(18, 21))  # 3x3 pixels of a directly visible light
+RING = (slice(8, 15), slice(16, 23))  # the light and two pixels around it
+
+
+def _with_light(layers: dict[str, np.ndarray]) -> Frame:
+    """A synthetic frame with a light of radiance 1e3 whose halves agree (exact), no emission layer."""
+    buffers = {k: v.copy() for k, v in layers.items() if k not in ("emission", "reference")}
+    for name in ("color", "colorA", "colorB"):
+        buffers[name][LIGHT] = 1000.0
+    return Frame.from_buffers(buffers)
+
+
+@pytest.mark.parametrize("name", pipelines.names())
+def test_a_light_without_emission_layer_stays_exact_and_in_place(name, tiny_layers):
+    pipeline = pipelines.get(name)
+    state = pipeline.start(24, 40)
+    for layers in tiny_layers[:2]:
+        frame = _with_light(layers)
+        out, state = pipeline.step(frame, state)
+    color = out["color"]
+    np.testing.assert_array_equal(color[LIGHT], frame["color"][LIGHT])
+    ring = np.zeros(color.shape[:2], bool)
+    ring[RING] = True
+    ring[LIGHT] = False
+    assert color[ring].max() < 50.0  # no glow, no blown-out block around the light (surround ~1)
+    assert color[ring].min() >= 0.0  # no black ring
+
+
+def test_exact_emission_only_where_halves_agree(tiny_layers):
+    frame = _with_light(tiny_layers[0])
+    emission = with_exact_emission(frame)["emission"]
+    assert (emission[LIGHT] == 1000.0).all()
+    exact = exact_mask(frame["colorA"], frame["colorB"])  # the light and the synthetic scene's noise-free emitter
+    np.testing.assert_array_equal(emission.any(axis=-1), exact)
+    assert exact.sum() < 0.2 * exact.size
+    given = Frame.from_buffers({**tiny_layers[0]})  # the renderer's own emission layer wins
+    assert with_exact_emission(given) is given
+
+
+def test_anchors_run_without_guards(tiny_layers):
+    noisy = anchor_method("noisy").make()
+    assert not noisy.guards and all(pipelines.get(n).guards for n in pipelines.names())
+    frame = _with_light(tiny_layers[0])
+    out, _ = noisy.step(frame, noisy.start(24, 40))
+    np.testing.assert_array_equal(out["color"], frame["color"])

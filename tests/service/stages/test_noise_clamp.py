@@ -1,0 +1,64 @@
+"""The noise clamp (service/stages/noise_clamp.py): parity with the numpy twin, the band it allows, exact
+pixels unchanged, and what it leaves alone."""
+
+import numpy as np
+import pytest
+
+from service.stages.noise_clamp import NOISE_K, noise_clamp, noise_clamp_reference, noise_sd_reference
+
+
+def _frame(rng, shape, sd=0.2):
+    truth = rng.uniform(0.5, 2.0, shape).astype(np.float32)
+    a = (truth + rng.normal(0, sd, shape)).astype(np.float32)
+    b = (truth + rng.normal(0, sd, shape)).astype(np.float32)
+    return truth, a, b, ((a + b) / 2).astype(np.float32)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (2, 7, 3), (41, 29, 3)])
+def test_matches_the_numpy_twin(shape):
+    rng = np.random.default_rng(0)
+    _, a, b, color = _frame(rng, shape)
+    b[0, 0] = a[0, 0]  # an exact pixel
+    out = rng.uniform(-5, 5, shape).astype(np.float32)
+    np.testing.assert_allclose(noise_clamp(out, color, a, b), noise_clamp_reference(out, color, a, b),
+                               rtol=1e-6, atol=1e-6)
+
+
+def test_band_is_k_standard_deviations_of_the_pixel_estimate():
+    shape = (3, 3, 3)
+    a = np.zeros(shape, np.float32)
+    b = np.full(shape, 2.0, np.float32)  # (a - b)^2 / 4 = 1 everywhere: sd 1
+    color = np.ones(shape, np.float32)
+    out = np.full(shape, 100.0, np.float32)
+    np.testing.assert_allclose(noise_clamp(out, color, a, b), 1.0 + NOISE_K)
+    np.testing.assert_allclose(noise_clamp(-out, color, a, b), 1.0 - NOISE_K)
+    inside = np.full(shape, 2.5, np.float32)
+    np.testing.assert_array_equal(noise_clamp(inside, color, a, b), inside)  # within the band: unchanged
+
+
+def test_exact_pixels_and_black_regions_come_out_as_they_went_in():
+    rng = np.random.default_rng(1)
+    _, a, b, color = _frame(rng, (12, 12, 3))
+    a[5, 5] = b[5, 5] = color[5, 5] = 1000.0  # a light: exact
+    a[:3, :3] = b[:3, :3] = color[:3, :3] = 0.0  # the reflection of a black void, both halves black
+    out = noise_clamp(np.full_like(color, 7.0), color, a, b)
+    assert (out[5, 5] == 1000.0).all()
+    assert (out[:2, :2] == 0.0).all()  # its 3x3 neighbourhood is black too: sd 0
+    assert not np.array_equal(out[8:, 8:], color[8:, 8:])  # noisy pixels move
+
+
+def test_a_good_denoiser_is_rarely_clamped():
+    rng = np.random.default_rng(2)
+    truth, a, b, color = _frame(rng, (64, 64, 3))
+    sd = noise_sd_reference(a, b)
+    assert 0.05 < float(np.median(sd)) < 0.3  # sd of the mean of two halves: 0.2 / sqrt(2)
+    out = noise_clamp(truth, color, a, b)
+    assert np.mean(out != truth) < 0.01
+
+
+def test_refuses_mismatched_shapes_and_negative_k():
+    x = np.zeros((4, 4, 3), np.float32)
+    with pytest.raises(ValueError, match="share one"):
+        noise_clamp(x, x, x, x[:3])
+    with pytest.raises(ValueError, match="k must be >= 0"):
+        noise_clamp(x, x, x, x, k=-1.0)
