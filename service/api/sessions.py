@@ -111,8 +111,8 @@ def build_session(spec: SessionSpec, owner: str | None) -> Session:
     try:
         pipeline = cls(**options)
         state = pipeline.start(spec.height, spec.width)
-    except (TypeError, ValueError) as err:
-        raise InvalidOptionsError(str(err).splitlines()[0]) from err
+    except ValueError as err:  # OptionError: a value outside its declared range, or weights that do not load
+        raise InvalidOptionsError(str(err).splitlines()[0], getattr(err, "option", None)) from err
     return Session(secrets.token_urlsafe(32), spec, pipeline, state, owner)
 
 

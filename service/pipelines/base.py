@@ -20,6 +20,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from service.frame import RADIANCE_LAYERS, Frame, FrameError
+from service.pipelines.options import build as build_options
+from service.pipelines.options import describe as describe_options
 from service.stages.emission import add_emission, subtract_emission
 
 
@@ -55,14 +57,8 @@ class Pipeline(ABC):
     fuses_emission: ClassVar[bool] = False
 
     def __init__(self, **options: Any):
-        known = {f.name for f in dataclasses.fields(self.Options)}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            raise ValueError(
-                f"pipeline '{self.name}' has no option {', '.join(map(repr, unknown))}; "
-                f"options: {', '.join(sorted(known)) or 'none'}"
-            )
-        self.options = self.Options(**options)
+        """Raises OptionError (a ValueError) naming an unknown option or a value outside its declared range."""
+        self.options = build_options(self.Options, options, f"pipeline '{self.name}'")
 
     def start(self, height: int, width: int) -> SequenceState:
         """State for a new sequence of frames of `height` x `width` pixels."""
@@ -113,7 +109,8 @@ class Pipeline(ABC):
 
     @classmethod
     def describe(cls) -> dict[str, Any]:
-        """What clients see: name, summary, layers, temporal flag, options with defaults."""
+        """What clients see: name, summary, layers, temporal flag, options with defaults, and each option's
+        type and range (`option_specs`, see service/pipelines/options.py)."""
         return {
             "name": cls.name,
             "summary": cls.summary,
@@ -121,4 +118,5 @@ class Pipeline(ABC):
             "optional": list(cls.optional),
             "temporal": cls.temporal,
             "options": {f.name: f.default for f in dataclasses.fields(cls.Options)},
+            "option_specs": describe_options(cls.Options),
         }

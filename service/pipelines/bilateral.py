@@ -14,18 +14,19 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.options import MAX_RADIUS, MAX_SIGMA2, option
 from service.stages.albedo import demodulate, remodulate
 from service.stages.bilateral import BilateralParams, guide_features, joint_bilateral
 
 
 @dataclass(frozen=True)
 class BilateralOptions:
-    radius: int = 6  # window half-size, pixels
-    sigma2_position: float = 10.0  # pixels^2 (Sakai eq. 16)
-    sigma2_albedo: float = 0.02  # Sakai eq. 16
-    sigma2_normal: float = 0.1  # Sakai eq. 16
-    sigma2_log_depth: float = 0.01  # relative depth difference^2; our extension
-    demodulate: bool = True  # filter radiance / albedo so textures are not blurred
+    radius: int = option(6, low=0, high=MAX_RADIUS)  # window half-size, pixels
+    sigma2_position: float = option(10.0, above=0, high=MAX_SIGMA2)  # pixels^2 (Sakai eq. 16)
+    sigma2_albedo: float = option(0.02, above=0, high=MAX_SIGMA2)  # Sakai eq. 16
+    sigma2_normal: float = option(0.1, above=0, high=MAX_SIGMA2)  # Sakai eq. 16
+    sigma2_log_depth: float = option(0.01, above=0, high=MAX_SIGMA2)  # relative depth difference^2; our extension
+    demodulate: bool = option(True)  # filter radiance / albedo so textures are not blurred
 
 
 @register

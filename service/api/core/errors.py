@@ -21,6 +21,7 @@ from service.frame import FrameError
 from service.pipelines import UnknownPipelineError
 
 log = logging.getLogger("mcdenoise.api")
+MAX_MESSAGE = 500  # characters of an error message; longer ones (echoing client input) are cut
 
 
 class ApiError(Exception):
@@ -33,11 +34,13 @@ class ApiError(Exception):
         message: str,
         *,
         layer: str | None = None,
+        option: str | None = None,
         retry_after: int | None = None,
         headers: dict[str, str] | None = None,
     ):
+        message = message if len(message) <= MAX_MESSAGE else message[:MAX_MESSAGE] + "..."
         super().__init__(message)
-        self.status, self.code, self.message, self.layer = status, code, message, layer
+        self.status, self.code, self.message, self.layer, self.option = status, code, message, layer, option
         self.headers = dict(headers or {})
         if retry_after is not None:
             self.headers["Retry-After"] = str(retry_after)
@@ -46,6 +49,8 @@ class ApiError(Exception):
         out: dict[str, Any] = {"code": self.code, "message": self.message}
         if self.layer is not None:
             out["layer"] = self.layer
+        if self.option is not None:
+            out["option"] = self.option
         return out
 
 
@@ -54,7 +59,11 @@ class InvalidExrError(Exception):
 
 
 class InvalidOptionsError(Exception):
-    """Pipeline options the pipeline refuses, or an `online` flag it cannot honour."""
+    """Pipeline options the pipeline refuses, or an `online` flag it cannot honour; `option` names it."""
+
+    def __init__(self, message: str, option: str | None = None):
+        super().__init__(message)
+        self.option = option
 
 
 class UnknownSessionError(Exception):
@@ -74,7 +83,7 @@ def to_api_error(exc: Exception) -> ApiError:
     if isinstance(exc, UnknownPipelineError):
         return ApiError(400, "unknown_pipeline", str(exc))
     if isinstance(exc, InvalidOptionsError):
-        return ApiError(400, "invalid_options", str(exc))
+        return ApiError(400, "invalid_options", str(exc), option=exc.option)
     if isinstance(exc, UnknownSessionError):
         return ApiError(404, "unknown_session", str(exc))
     return ApiError(500, "internal_error", f"internal error: {type(exc).__name__}")
