@@ -60,6 +60,12 @@ class Pipeline(ABC):
         """Raises OptionError (a ValueError) naming an unknown option or a value outside its declared range."""
         self.options = build_options(self.Options, options, f"pipeline '{self.name}'")
 
+    @classmethod
+    def reads(cls) -> tuple[str, ...]:
+        """Every layer the pipeline may read: `color` (the frame contract fills it in), required, optional.
+        Readers decode only these (service/api/codec.py)."""
+        return ("color", *cls.requires, *cls.optional)
+
     def start(self, height: int, width: int) -> SequenceState:
         """State for a new sequence of frames of `height` x `width` pixels."""
         if height < 1 or width < 1:
@@ -89,8 +95,7 @@ class Pipeline(ABC):
         if emission is not None:
             # `color` always (the frame contract fills it in, every pipeline may read it); the halves only
             # where the pipeline declares them: each layer subtracted is a full frame read and written.
-            reads = ("color", *self.requires, *self.optional)
-            names = [k for k in RADIANCE_LAYERS if k in frame and k in reads]  # "color" at least
+            names = [k for k in RADIANCE_LAYERS if k in frame and k in self.reads()]  # "color" at least
             split = subtract_emission([frame[k] for k in names], emission)
             frame = frame.replace(**dict(zip(names, split, strict=True)))
         buffers, state = self.denoise(frame, state)

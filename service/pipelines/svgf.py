@@ -36,7 +36,8 @@ from service.stages.svgf import (
 class SvgfOptions:
     # Schied sec. 4.1: weight of the new frame in the colour history
     alpha_color: float = option(ALPHA_COLOR, above=0, high=1)
-    alpha_moments: float = option(ALPHA_MOMENTS, above=0, high=1)  # Schied sec. 4.2: weight of the new frame in the moments
+    # Schied sec. 4.2: weight of the new frame in the moments
+    alpha_moments: float = option(ALPHA_MOMENTS, above=0, high=1)
     iterations: int = option(5, low=0, high=8)  # a-trous passes (Schied sec. 4.3); pass k steps 2^k px, 8: 128 px
     sigma_depth: float = option(1.0, above=0, high=1e6)  # sigma_z (Schied eq. 3)
     sigma_normal: float = option(128.0, above=0, high=1e4)  # sigma_n (Schied eq. 4), an exponent of a cosine
