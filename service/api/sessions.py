@@ -172,9 +172,11 @@ class SessionStore:
         return session
 
     def expire(self) -> list[Session]:
-        """End the sessions idle for longer than the timeout (never one with a frame in progress)."""
+        """End the sessions idle for longer than the timeout (never one with a frame in progress, including a
+        frame whose request timed out while its step runs on, holding the lock)."""
         now = time.monotonic()
-        idle = [s for s in self._sessions.values() if not s.busy and now - s.last_used > self.idle_timeout_s]
+        idle = [s for s in self._sessions.values()
+                if not s.busy and not s.lock.locked() and now - s.last_used > self.idle_timeout_s]
         for session in idle:
             self._remove(session)
         return idle

@@ -67,7 +67,9 @@ class WorkerPool:
             raise
         future = loop.run_in_executor(self._executor, functools.partial(fn, *args))
 
-        def finished(_: asyncio.Future) -> None:
+        def finished(done: asyncio.Future) -> None:
+            if not done.cancelled():
+                done.exception()  # retrieved: a job that outlived its deadline may fail with nobody awaiting it
             self._give_slot()
             if hold is not None:
                 hold.release()
