@@ -1,10 +1,12 @@
-"""ASGI middleware that bounds how long a client may take to send a request body (slow clients).
+"""Deadlines for slow clients, both MCDENOISE_CLIENT_TIMEOUT_S.
 
-A body (EXR frame or JSON) not fully received within MCDENOISE_CLIENT_TIMEOUT_S of the request's start is
-answered `408 timeout` with `Connection: close`, so a client trickling bytes cannot hold a connection, a
-frame slot's wait or memory for long. Idle keep-alive connections are closed by uvicorn after
-`timeout_keep_alive` (5 s). What this does not bound: a client that never finishes its request *headers*
-never reaches the app; put a reverse proxy with a header timeout in front of a public deployment.
+- `BodyDeadline` (ASGI middleware): a request body (EXR frame or JSON) not fully received within the
+  timeout of the request's start is answered `408 timeout` with `Connection: close`.
+- `header_deadline_protocol` (uvicorn HTTP protocol, used by `python -m service serve`): a connection that
+  has not completed a request's headers within the timeout of opening (or of its previous answer) is
+  closed, so a client trickling header bytes cannot hold a connection; uvicorn itself only times out
+  idle keep-alive connections (`timeout_keep_alive`, 5 s).
+So a client trickling bytes cannot hold a connection, a frame slot's wait or memory for long.
 """
 
 from __future__ import annotations
@@ -42,3 +44,48 @@ class BodyDeadline:
             return message
 
         await self.app(scope, receive_by_deadline, send)
+
+
+def header_deadline_protocol(seconds: float) -> type | str:
+    """uvicorn's httptools protocol, closing a connection whose request headers take longer than `seconds`
+    (from the connection's start or its previous answer); "auto" (no header deadline) without httptools."""
+    try:
+        from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+    except ImportError:  # uvicorn[standard] brings httptools; without it uvicorn picks h11
+        return "auto"
+
+    class HeaderDeadline(HttpToolsProtocol):
+        _header_timer: asyncio.TimerHandle | None = None
+
+        def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+            super().connection_made(transport)
+            self._arm()
+
+        def on_headers_complete(self) -> None:
+            self._disarm()
+            super().on_headers_complete()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            if self.timeout_keep_alive_task is not None:  # idle, waiting for the next request
+                self._arm()
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            self._disarm()
+            super().connection_lost(exc)
+
+        def _arm(self) -> None:
+            self._disarm()
+            self._header_timer = self.loop.call_later(seconds, self._headers_late)
+
+        def _disarm(self) -> None:
+            if self._header_timer is not None:
+                self._header_timer.cancel()
+                self._header_timer = None
+
+        def _headers_late(self) -> None:
+            self._header_timer = None
+            if not self.transport.is_closing():
+                self.transport.close()
+
+    return HeaderDeadline

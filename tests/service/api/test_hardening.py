@@ -6,7 +6,9 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import socket
+import sys
 import threading
 import time
 import tracemalloc
@@ -22,7 +24,16 @@ from service.api.core.errors import ApiError
 from service.exr import encode_frame
 from service.frame import Frame
 from service.pipelines import Pipeline, SequenceState
-from tests.service.api.conftest import HEIGHT, ROOT, WIDTH, call, exr_post
+from tests.service.api.conftest import (
+    HEIGHT,
+    ROOT,
+    SERVER_ENV,
+    WIDTH,
+    call,
+    exr_post,
+    start_subprocess_server,
+    stop,
+)
 
 pytestmark = pytest.mark.timeout(120)
 JSON = {"Content-Type": "application/json"}
@@ -250,6 +261,31 @@ def test_a_slow_body_answers_408(make_server):
         reply = sock.recv(4096)
     assert reply.startswith(b"HTTP/1.1 408") and b"connection: close" in reply.lower()
     assert time.monotonic() - start < 3
+
+
+def test_trickled_headers_close_the_connection(tmp_path):
+    """`python -m service serve`: a client sending its headers a byte at a time is cut off at the deadline."""
+    env = {**os.environ, **SERVER_ENV, "PYTHONPATH": str(ROOT), "MCDENOISE_CLIENT_TIMEOUT_S": "1"}
+    env.pop("MCDENOISE_API_KEY", None)
+    url, proc = start_subprocess_server(sys.executable, env, tmp_path / "server.log")
+    try:
+        with _raw(url) as sock:
+            start = time.monotonic()
+            sock.sendall(b"GET /healthz HTTP/1.1\r\n")
+            closed = False
+            while time.monotonic() - start < 5 and not closed:
+                try:
+                    sock.sendall(b"X")
+                    sock.settimeout(0.2)
+                    closed = sock.recv(1024) == b""
+                except TimeoutError:
+                    continue
+                except OSError:
+                    closed = True
+            assert closed and time.monotonic() - start < 3
+        assert call(url, "GET", "/healthz").status == 200  # a prompt client is served as before
+    finally:
+        stop(proc)
 
 
 def test_a_client_disconnect_is_logged_at_info_without_traceback(make_server, caplog):
