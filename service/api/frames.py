@@ -59,11 +59,11 @@ def _step(
 
 
 def _unprocessable(pipeline: Pipeline, frame: Frame, err: Exception) -> FrameError:
-    """The 422 of a frame that `pipeline` could not denoise, naming the layer with the most extreme values
-    (radiance first): what a client can change. Logged with its traceback (a stage may need a fix)."""
+    """The 422 of a frame that `pipeline` could not denoise, naming its radiance layer of largest magnitude:
+    the frame door bounds every other layer a stage could overflow on (albedo, normal), so extreme radiance
+    is what a client can change. Logged with its traceback (a stage may need a fix)."""
     log.warning("pipeline %s failed on a frame: %s", pipeline.name, err, exc_info=err)
-    read = [name for name in (*RADIANCE_LAYERS, *pipeline.reads()) if name in frame]
-    peaks = {name: float(np.abs(frame[name]).max()) for name in dict.fromkeys(read)}
+    peaks = {name: float(np.abs(frame[name]).max()) for name in RADIANCE_LAYERS if name in frame}
     layer = max(peaks, key=peaks.__getitem__)
     return FrameError(f"pipeline '{pipeline.name}' could not denoise this frame ({type(err).__name__}: {err}); "
                       f"layer '{layer}' has values up to {peaks[layer]:.3g} in magnitude", layer)
