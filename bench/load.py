@@ -3,14 +3,16 @@
     python -m bench.load [--sessions 8] [--frames 30] [--size 256x256] [--pipeline crossregression]
                          [--window 4] [--workers 2] [--url URL]
 
-Starts `python -m service serve` on a free loopback port (or uses --url), opens `--sessions` sessions at
-once, half sending their frames one request at a time over REST and half over the WebSocket stream with
-`--window` frames in flight, each on its own connection. Every answer is checked against the pipeline
-called directly on the same frames (computed before the clock starts): a frame answered with another
-frame's output, out of order, or not at all counts as lost or reordered. Prints sessions x frames, wall
-time, frames/s, per-frame latency p50/p95/max (REST: the request; WebSocket: from the frame's send to its
-answer, so it includes the frames queued ahead of it in the window) and the error count; exit status 1
-when any frame was lost, reordered or refused. Numbers depend on the machine and its load.
+Starts `python -m service serve` on a free loopback port (or uses --url) with room for every frame in
+flight (MCDENOISE_MAX_INFLIGHT), opens `--sessions` sessions at once, half sending their frames one
+request at a time over REST (a frame answered `503 busy` is sent again, and counted) and half over the
+WebSocket stream with `--window` frames in flight, each on its own connection. Every answer is checked
+against the pipeline called directly on the same frames (computed before the clock starts): a frame
+answered with another frame's output, out of order, or not at all counts as lost or reordered. Prints
+sessions x frames, wall time, frames/s, per-frame latency p50/p95/max (REST: the request; WebSocket: from
+the frame's send to its answer, so it includes the frames queued ahead of it in the window) and the error
+count; exit status 1 when any frame was lost, reordered or refused. Numbers depend on the machine and its
+load.
 """
 
 from __future__ import annotations
@@ -31,11 +33,12 @@ import numpy as np
 
 from bench.synthetic import synthetic_sequence
 from service import pipelines
-from service.client import Client, ServiceError
+from service.client import Client, ServiceError, Session
 from service.exr import encode_frame, read_frame
 from service.frame import Frame
 
 ROOT = Path(__file__).resolve().parents[1]
+BUSY_RETRY_S = 0.05  # wait before resending a frame answered 503 busy (the service says Retry-After: 1)
 
 
 @dataclass
@@ -43,7 +46,8 @@ class SessionRun:
     """What one session saw."""
 
     latency_ms: list[float] = field(default_factory=list)  # per answered frame
-    errors: int = 0  # frames answered with an error
+    errors: int = 0  # frames answered with an error (after retries of `busy`)
+    busy: int = 0  # 503 busy answers, each retried after its Retry-After
     lost: int = 0  # frames never answered
     wrong: int = 0  # frames answered with another frame's output (reordered or mixed with another session)
 
@@ -78,10 +82,7 @@ def run_session(url: str, name: str, bodies: list[bytes], expected: list[np.ndar
         else:
             for body in bodies:
                 start = time.perf_counter()
-                try:
-                    answers.append(session.denoise(body))
-                except ServiceError as err:
-                    answers.append(err)
+                answers.append(_denoise_retrying(session, body, run))
                 run.latency_ms.append(1e3 * (time.perf_counter() - start))
     run.lost = len(bodies) - len(answers)
     for answer, want in zip(answers, expected, strict=False):
@@ -92,12 +93,24 @@ def run_session(url: str, name: str, bodies: list[bytes], expected: list[np.ndar
     return run
 
 
-def start_server(workers: int) -> tuple[str, subprocess.Popen]:
+def _denoise_retrying(session: Session, body: bytes, run: SessionRun) -> bytes | ServiceError:
+    """One REST frame; a `503 busy` is retried after BUSY_RETRY_S (what a client does with Retry-After)."""
+    while True:
+        try:
+            return session.denoise(body)
+        except ServiceError as err:
+            if err.code != "busy":
+                return err
+            run.busy += 1
+            time.sleep(BUSY_RETRY_S)
+
+
+def start_server(workers: int, max_inflight: int) -> tuple[str, subprocess.Popen]:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "MCDENOISE_WORKER_THREADS": str(workers),
-           "MCDENOISE_MAX_SESSIONS": "64"}
+           "MCDENOISE_MAX_SESSIONS": "64", "MCDENOISE_MAX_INFLIGHT": str(max_inflight)}
     env.pop("MCDENOISE_API_KEY", None)
     proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port), "--log-level", "warning"],
                             cwd=ROOT, env=env)
@@ -129,7 +142,9 @@ def main(argv: list[str] | None = None) -> int:
                  for s in range(args.sessions)]
     bodies = [[encode_frame(layers) for layers in seq] for seq in sequences]
     expected = [expected_outputs(args.pipeline, seq) for seq in sequences]
-    url, proc = (args.url, None) if args.url else start_server(args.workers)
+    # Room for every frame in flight (REST: one per session, WebSocket: a window each): frames queue, not 503
+    max_inflight = max(4 * args.workers, args.sessions * args.window)
+    url, proc = (args.url, None) if args.url else start_server(args.workers, max_inflight)
     try:
         Client(url).session(args.pipeline, width, height).close()  # warm the pipeline before the clock starts
         start = time.perf_counter()
@@ -143,13 +158,14 @@ def main(argv: list[str] | None = None) -> int:
             proc.wait(timeout=15)
     latency = np.concatenate([r.latency_ms for r in runs])
     total = args.sessions * args.frames
-    lost, wrong, errors = (sum(getattr(r, k) for r in runs) for k in ("lost", "wrong", "errors"))
+    lost, wrong, errors, busy = (sum(getattr(r, k) for r in runs) for k in ("lost", "wrong", "errors", "busy"))
     print(f"{args.pipeline}, {args.sessions} sessions x {args.frames} frames of {width}x{height} "
-          f"(half REST, half WebSocket window {args.window}), {args.workers} worker threads, {os.cpu_count()} CPUs")
+          f"(half REST, half WebSocket window {args.window}), {args.workers} worker threads, {os.cpu_count()} CPUs"
+          + ("" if args.url else f", MCDENOISE_MAX_INFLIGHT {max_inflight}"))
     p50, p95 = np.percentile(latency, [50, 95])
     print(f"{total} frames in {wall:.1f} s: {total / wall:.1f} frames/s; latency p50 {p50:.0f} ms, p95 {p95:.0f} ms, "
           f"max {latency.max():.0f} ms")
-    print(f"lost {lost}, reordered or mixed {wrong}, errors {errors}")
+    print(f"lost {lost}, reordered or mixed {wrong}, errors {errors} (503 busy retried: {busy})")
     return 1 if lost or wrong or errors else 0
 
 
