@@ -35,7 +35,6 @@ class WorkerPool:
         self.retry_after_s = retry_after_s
         self.inflight = 0  # accepted jobs: running or waiting for a thread or for their lock
         self.rejected = 0  # requests answered 503 busy since start
-        self.timed_out = 0  # requests answered 504 timeout since start
         self._slots = asyncio.Semaphore(max_inflight)
         self._executor = ThreadPoolExecutor(threads, thread_name_prefix="mcdenoise-frame")
 
@@ -102,7 +101,7 @@ class WorkerPool:
                         retry_after=self.retry_after_s)
 
     def _timeout(self, deadline: float | None) -> ApiError:
-        self.timed_out += 1
+        """504 timeout (counted per pipeline in /metrics as a frame error with code `timeout`)."""
         return ApiError(504, "timeout", f"the frame was not done within {deadline:g} s (MCDENOISE_FRAME_TIMEOUT_S); "
                                         "its work runs on to its end in the background")
 

@@ -47,7 +47,8 @@ class Settings:
     retry_after_s: int = 1  # Retry-After of a 503 `busy` answer, seconds
     max_frame_mb: int = 8192  # per-frame memory budget, MiB: a larger estimate from the EXR header answers 413
     frame_timeout_s: float = 120.0  # a frame not answered this long after it was accepted answers 504, seconds
-    client_timeout_s: float = 60.0  # a request body (or JSON) not received within this answers 408, seconds
+    # a request's headers (`serve`: the connection is closed) and body (408) must arrive within this, seconds
+    client_timeout_s: float = 60.0
     api_key: str | None = None  # None (variable unset): no auth; one key, or comma-separated keys (one per client)
     warmup: str = ""  # comma-separated pipelines run on generated frames at start (not ready until done);
     # `default` names the API's default pipeline (pipelines.DEFAULT)
