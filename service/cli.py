@@ -75,6 +75,8 @@ def cmd_pipelines(args: argparse.Namespace) -> int:
         print(f"{info['name']}{flag}{default}: {info['summary']}")
         print(f"    requires: {', '.join(info['requires']) or '-'}")
         print(f"    optional: {', '.join(info['optional']) or '-'}")
+        for option, spec in info["option_specs"].items():
+            print(f"    option {option} = {json.dumps(spec['default'])}: {spec['allowed']}")
     return 0
 
 

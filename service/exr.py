@@ -17,11 +17,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import Imath
 import numpy as np
 import OpenEXR
 
 from service.frame import LAYERS, Frame, FrameError
 
+_FLOAT = Imath.PixelType(Imath.PixelType.FLOAT)  # what `read_layers` asks the decoder for, whatever the file holds
 # Alternative channel names accepted per channel count, after the spec's own names.
 _ALIASES: dict[int, tuple[tuple[str, ...], ...]] = {
     3: (("R", "G", "B"), ("X", "Y", "Z")),
@@ -83,6 +85,15 @@ class ExrHeader:
     width: int  # pixels, of the data window
     height: int  # pixels, of the data window
     layers: frozenset[str]  # known layers present; `color` also when `colorA` and `colorB` are
+    channels: tuple[str, ...] = ()  # every channel name in the file
+
+    def channels_of(self, layers: Iterable[str]) -> tuple[str, ...]:
+        """The channels to decode for `layers` (known layers; those absent are skipped): `colorA` and
+        `colorB` too for `color` when the file has no color channels (the frame contract averages them)."""
+        wanted = set(layers)
+        if "color" in wanted and not any(_split_channel(c, self.channels)[0] == "color" for c in self.channels):
+            wanted |= {"colorA", "colorB"}
+        return tuple(c for c in self.channels if _split_channel(c, self.channels)[0] in wanted & set(LAYERS))
 
 
 def read_header(source: str | Path | bytes) -> ExrHeader:
@@ -101,7 +112,35 @@ def read_header(source: str | Path | bytes) -> ExrHeader:
     layers = {_split_channel(name, names)[0] for name in names} & set(LAYERS)
     if {"colorA", "colorB"} <= layers:
         layers.add("color")
-    return ExrHeader(int(high[0] - low[0] + 1), int(high[1] - low[1] + 1), frozenset(layers))
+    return ExrHeader(int(high[0] - low[0] + 1), int(high[1] - low[1] + 1), frozenset(layers), tuple(names))
+
+
+def read_layers(source: str | Path | bytes, header: ExrHeader, layers: Iterable[str] = LAYERS) -> dict[str, np.ndarray]:
+    """The known `layers` of an EXR file or bytes whose header is `header` (`read_header`), decoding only
+    their channels (`ExrHeader.channels_of`): no other channel is ever converted or held in memory.
+
+    Returns layer -> (H, W, C) float32 array in spec channel order (`group_layers`). Raises FrameError when
+    the pixel data is unreadable (truncated, corrupt), a channel is subsampled, or a layer's channels do not
+    match its spec (naming the layer).
+    """
+    names = header.channels_of(layers)
+    handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
+    what = "data" if isinstance(source, bytes | bytearray) else f"file '{source}'"
+    try:
+        exr = OpenEXR.InputFile(handle)  # the binding's channel-selective reader
+        try:
+            data = exr.channels(list(names), _FLOAT) if names else []
+        finally:
+            exr.close()
+    except Exception as err:  # the binding raises OSError/RuntimeError/TypeError on bad or truncated data
+        raise FrameError(f"{what} is not a readable OpenEXR image ({err})") from err
+    pixels: dict[str, np.ndarray] = {}
+    for name, raw in zip(names, data, strict=True):
+        if len(raw) != 4 * header.width * header.height:
+            layer = _split_channel(name, header.channels)[0]
+            raise FrameError(f"channel '{name}' is subsampled; every channel must have one value per pixel", layer)
+        pixels[name] = np.frombuffer(raw, np.float32).reshape(header.height, header.width)
+    return group_layers(pixels)
 
 
 def _match_channel_names(layer: str, expected: tuple[str, ...], present: tuple[str, ...]) -> tuple[str, ...]:
@@ -118,9 +157,8 @@ def _match_channel_names(layer: str, expected: tuple[str, ...], present: tuple[s
 
 
 def read_frame(source: str | Path | bytes, *, repair: bool = True) -> Frame:
-    """Read one frame (a path or in-memory EXR bytes) into a validated float32 Frame."""
-    channels, _ = read_channels(source)
-    return Frame.from_buffers(group_layers(channels), repair=repair)
+    """Read one frame (a path or in-memory EXR bytes) into a validated float32 Frame (known layers only)."""
+    return Frame.from_buffers(read_layers(source, read_header(source)), repair=repair)
 
 
 def encode_frame(buffers: Mapping[str, np.ndarray] | Frame, *, half: bool = False) -> bytes:

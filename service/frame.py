@@ -25,17 +25,27 @@ class LayerSpec:
     # Value that replaces NaN/Inf; None means "the largest finite value of the layer" (used for
     # depth, whose convention for 'nothing hit' is a large finite distance).
     fill: float | None = 0.0
+    # Largest magnitude a finite value may have; beyond it the frame is refused naming the layer (None: any).
+    limit: float | None = None
+
+
+# Radiance beyond this is refused: 20 orders of magnitude above a sunlit scene (~1e9 W/m^2/sr), and the
+# stages' float32 sums and squares of it stay finite (bench.stability's radiance_1e20 case passes).
+RADIANCE_LIMIT = 1e30
+# Albedo in [0, 1] and unit normals, with room for renderers' overshoot; far beyond it products overflow.
+GUIDE_LIMIT = 1e6
 
 
 _RGB = ("R", "G", "B")
 LAYERS: dict[str, LayerSpec] = {
     spec.name: spec
     for spec in (
-        LayerSpec("color", _RGB, "noisy HDR radiance, linear, mean of all samples"),
-        LayerSpec("colorA", _RGB, "radiance from the first half of the samples"),
-        LayerSpec("colorB", _RGB, "radiance from the second, disjoint half of the samples"),
-        LayerSpec("albedo", _RGB, "albedo of the first visible surface, [0, 1]"),
-        LayerSpec("normal", ("X", "Y", "Z"), "world-space unit shading normal, zero where nothing hit"),
+        LayerSpec("color", _RGB, "noisy HDR radiance, linear, mean of all samples", limit=RADIANCE_LIMIT),
+        LayerSpec("colorA", _RGB, "radiance from the first half of the samples", limit=RADIANCE_LIMIT),
+        LayerSpec("colorB", _RGB, "radiance from the second, disjoint half of the samples", limit=RADIANCE_LIMIT),
+        LayerSpec("albedo", _RGB, "albedo of the first visible surface, [0, 1]", limit=GUIDE_LIMIT),
+        LayerSpec("normal", ("X", "Y", "Z"), "world-space unit shading normal, zero where nothing hit",
+                  limit=GUIDE_LIMIT),
         LayerSpec("depth", ("Z",), "camera distance to the first visible surface, scene units", None),
         LayerSpec("motion", ("X", "Y"), "backward motion in pixels to the previous frame"),
         LayerSpec("motionDual", ("X", "Y"), "dual motion vectors in pixels (Zeng et al.)"),
@@ -45,8 +55,8 @@ LAYERS: dict[str, LayerSpec] = {
         LayerSpec("bcMean", _RGB, "mean of the Box-Cox (lambda 1/2) transformed samples"),
         LayerSpec("bcM2", _RGB, "central second moment of the transformed samples (sum / n)"),
         LayerSpec("bcM3", _RGB, "central third moment of the transformed samples (sum / n)"),
-        LayerSpec("emission", _RGB, "noise-free directly visible emitted radiance, linear"),
-        LayerSpec("reference", _RGB, "converged radiance of the same frame (evaluation only)"),
+        LayerSpec("emission", _RGB, "noise-free directly visible emitted radiance, linear", limit=RADIANCE_LIMIT),
+        LayerSpec("reference", _RGB, "converged radiance of the same frame (evaluation only)", limit=RADIANCE_LIMIT),
     )
 }
 
@@ -82,7 +92,8 @@ class Frame:
             dtype (converted to float32). Unknown layer names are ignored. When `color` is absent
             but `colorA` and `colorB` are present, `color` is their mean.
         Raises FrameError naming the layer on a wrong channel count, a size that differs from the
-        other layers, an empty frame, or no known layer at all.
+        other layers, an empty frame, no known layer at all, or a finite value beyond the layer's
+        `limit` (radiance beyond RADIANCE_LIMIT, albedo or normal beyond GUIDE_LIMIT).
         """
         known = {name: arr for name, arr in buffers.items() if name in LAYERS}
         if not known:
@@ -169,11 +180,21 @@ def _as_hwc(name: str, value: np.ndarray) -> np.ndarray:
 
 
 def _repair(name: str, arr: np.ndarray) -> tuple[np.ndarray, int]:
-    """Replace NaN/Inf in layer `name`; returns the repaired array and how many values were replaced."""
-    bad = ~np.isfinite(arr)
+    """Replace NaN/Inf in layer `name`; returns the repaired array and how many values were replaced.
+    Raises FrameError when a finite value exceeds the layer's `limit` in magnitude."""
+    limit = LAYERS[name].limit
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(arr) if limit is None else ~(np.abs(arr) <= np.float32(limit))  # NaN fails <=
     count = int(bad.sum())
     if not count:
         return arr, 0
+    if limit is not None:
+        outside = arr[bad]
+        outside = np.abs(outside[np.isfinite(outside)])
+        if outside.size:
+            raise FrameError(f"layer '{name}' has values up to {outside.max():.3g} in magnitude; at most "
+                             f"{limit:.3g} is accepted (NaN/Inf are repaired, finite values this large are refused)",
+                             name)
     fill = LAYERS[name].fill
     if fill is None:
         finite = arr[~bad]

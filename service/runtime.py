@@ -33,6 +33,8 @@ from service.layout import ChannelGroup, groups_from_json, pad_planes, total_cha
 
 METADATA_KEY = "mcdenoise"  # ONNX metadata_props key of the JSON contract
 THREADS_ENV = "MCDENOISE_ORT_THREADS"  # intra-op threads when no argument says otherwise (0: ORT default)
+SHIPPED_WEIGHTS = Path(__file__).resolve().parents[1] / "models" / "weights"  # package data (models/weights)
+WEIGHTS_DIR_ENV = "MCDENOISE_WEIGHTS_DIR"  # an operator's folder of more .onnx files (optional)
 
 
 class WeightError(ValueError):
@@ -41,6 +43,22 @@ class WeightError(ValueError):
 
 class NonFiniteWeightsError(WeightError):
     """New weights with NaN or Inf values."""
+
+
+def weight_files() -> dict[str, Path]:
+    """The weight registry: name (file stem) -> .onnx file, from the shipped models/weights/*.onnx and, when
+    $MCDENOISE_WEIGHTS_DIR names a folder, its *.onnx (a name there replaces a shipped one). Pipelines take
+    a name from here, never a path, so a client cannot make the server open any other file."""
+    folders = [SHIPPED_WEIGHTS]
+    extra = os.environ.get(WEIGHTS_DIR_ENV, "").strip()
+    if extra:
+        folders.append(Path(extra))
+    return {p.stem: p for folder in folders if folder.is_dir() for p in sorted(folder.glob("*.onnx")) if p.is_file()}
+
+
+def weight_names() -> tuple[str, ...]:
+    """The names of `weight_files`, sorted (the choices of a `weights` option)."""
+    return tuple(sorted(weight_files()))
 
 
 def session_options(threads: int | None = None) -> ort.SessionOptions:

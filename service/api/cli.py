@@ -30,6 +30,8 @@ def add_serve_args(p: argparse.ArgumentParser) -> None:
 def run_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from service.api.deadline import header_deadline_protocol
+
     settings = Settings.from_env()  # refuse bad settings before binding (exit 2)
     if args.workers < 1:
         raise ValueError(f"--workers must be at least 1, got {args.workers}")
@@ -51,6 +53,7 @@ def run_serve(args: argparse.Namespace) -> int:
         ws_per_message_deflate=False,  # EXR frames are compressed already
         timeout_graceful_shutdown=10,
         server_header=False,
+        http=header_deadline_protocol(settings.client_timeout_s),
     )
     return 0
 

@@ -1,6 +1,7 @@
 """Annotated dependencies that keep the routes short: services, the caller, the EXR body, the output wanted.
 
-Auth model: with `MCDENOISE_API_KEY` unset the service is open. With it set (one key, or several
+Auth model: with `MCDENOISE_API_KEY` unset the service is open (set but empty, it refuses to start). With
+it set (one key, or several
 separated by commas, one per client) every route but /healthz and /readyz needs the header
 `Authorization: Bearer <key>`; a wrong or missing key is 401. A session belongs to the key that
 created it: another key gets 404 for it, as for a session that does not exist. With one shared key all

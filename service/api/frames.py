@@ -2,14 +2,19 @@
 
 Each frame is one job in the worker pool (decode, step, encode), accounted in the metrics whether it
 succeeds or fails. A session's frames run under its lock, so they step its state strictly in order;
-a refused frame changes nothing in the session but its error count.
+a refused frame changes nothing in the session but its error count. A frame past the deadline
+(MCDENOISE_FRAME_TIMEOUT_S) is answered 504 at once, but its step runs on (see workers.py): in a session
+it still advances the state, and the session's next frame waits for it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from dataclasses import dataclass
+
+import numpy as np
 
 from service import pipelines
 from service.api import codec
@@ -17,7 +22,10 @@ from service.api.core.errors import UnknownSessionError, to_api_error
 from service.api.sessions import Session, SessionSpec, build_session, close_state
 from service.api.state import Services
 from service.api.telemetry import UNKNOWN_PIPELINE
+from service.frame import RADIANCE_LAYERS, Frame, FrameError
 from service.pipelines import Pipeline, SequenceState
+
+log = logging.getLogger("mcdenoise.api")
 
 
 @dataclass(frozen=True)
@@ -35,14 +43,30 @@ def _step(
     pipeline: Pipeline, state: SequenceState | None, body: bytes, output: codec.Output, services: Services
 ) -> tuple[Denoised, SequenceState]:
     """Decode, check, step and encode one frame (in a pool thread). `state` None: a first frame."""
-    frame = codec.decode(body, services.settings.max_width, services.settings.max_height)
+    frame = codec.decode(body, services.settings, pipeline.reads())
     if state is None:
         state = pipeline.start(frame.height, frame.width)
     index = state.frame_index
     start = time.perf_counter()
-    out, state = pipeline.step(frame, state)
+    try:
+        out, state = pipeline.step(frame, state)
+    except FrameError:
+        raise
+    except (ArithmeticError, ValueError) as err:  # numerics the frame's values broke (FloatingPointError, ...)
+        raise _unprocessable(pipeline, frame, err) from err
     step_ms = 1e3 * (time.perf_counter() - start)
     return Denoised(codec.encode(out, output), output.media_type, index, step_ms, frame.nonfinite_total), state
+
+
+def _unprocessable(pipeline: Pipeline, frame: Frame, err: Exception) -> FrameError:
+    """The 422 of a frame that `pipeline` could not denoise, naming its radiance layer of largest magnitude:
+    the frame door bounds every other layer a stage could overflow on (albedo, normal), so extreme radiance
+    is what a client can change. Logged with its traceback (a stage may need a fix)."""
+    log.warning("pipeline %s failed on a frame: %s", pipeline.name, err, exc_info=err)
+    peaks = {name: float(np.abs(frame[name]).max()) for name in RADIANCE_LAYERS if name in frame}
+    layer = max(peaks, key=peaks.__getitem__)
+    return FrameError(f"pipeline '{pipeline.name}' could not denoise this frame ({type(err).__name__}: {err}); "
+                      f"layer '{layer}' has values up to {peaks[layer]:.3g} in magnitude", layer)
 
 
 async def denoise_once(services: Services, name: str, body: bytes, output: codec.Output) -> Denoised:
@@ -58,7 +82,7 @@ async def denoise_once(services: Services, name: str, body: bytes, output: codec
         return _step(services.stateless_pipeline(name), None, body, output, services)[0]
 
     try:
-        result = await services.pool.run(job)
+        result = await services.pool.run(job, deadline=services.settings.frame_timeout_s)
     except Exception as exc:
         services.metrics.frame_failed(name, to_api_error(exc).code)
         raise
@@ -77,10 +101,21 @@ async def open_session(services: Services, spec: SessionSpec, owner: str | None)
 
 
 async def end_session(services: Services, session: Session) -> None:
-    """End `session`: it is gone at once for new requests; its state is closed after the frame in progress."""
+    """End `session`: it is gone at once for new requests; its state is closed after the frame in progress.
+    Waits for that close at most MCDENOISE_FRAME_TIMEOUT_S; past it the close happens in the background."""
     services.sessions.pop(session.id, session.owner)
-    async with session.lock:
-        await asyncio.get_running_loop().run_in_executor(None, close_state, session)
+
+    async def close_after_frame() -> None:
+        async with session.lock:
+            await asyncio.get_running_loop().run_in_executor(None, close_state, session)
+
+    closing = asyncio.ensure_future(close_after_frame())
+    _background.add(closing)
+    closing.add_done_callback(_background.discard)
+    await asyncio.wait({closing}, timeout=services.settings.frame_timeout_s)
+
+
+_background: set[asyncio.Future] = set()  # closes still running after their DELETE answered (kept referenced)
 
 
 async def session_frame(
@@ -102,7 +137,8 @@ async def session_frame(
 
     session.busy += 1
     try:
-        result = await services.pool.run(job, wait=wait, hold=session.lock)
+        result = await services.pool.run(job, wait=wait, hold=session.lock,
+                                         deadline=services.settings.frame_timeout_s)
     except Exception as exc:
         session.errors += 1
         services.metrics.frame_failed(session.spec.pipeline, to_api_error(exc).code)

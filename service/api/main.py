@@ -13,6 +13,7 @@ from fastapi import Depends, FastAPI
 
 from service.api.core import errors
 from service.api.core.config import Settings
+from service.api.deadline import BodyDeadline
 from service.api.deps import authenticate
 from service.api.routes import denoise, docs, health, metrics, pipelines, sessions, stream
 from service.api.state import Services
@@ -42,8 +43,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         docs_url=None,
         redoc_url=None,
         openapi_url=None,  # served by routes/docs.py, behind the API key
+        redirect_slashes=False,  # `/metrics/` is 404, not a redirect before auth with a Location from Host
     )
     errors.install(app)
+    app.add_middleware(BodyDeadline, seconds=settings.client_timeout_s)
     app.include_router(health.router)
     protected = [Depends(authenticate)]
     for module in (pipelines, denoise, sessions, stream, metrics, docs):

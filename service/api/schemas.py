@@ -15,6 +15,7 @@ class ErrorBody(BaseModel):
     code: str = Field(description="stable machine-readable code, e.g. invalid_frame, busy")
     message: str = Field(description="what is wrong, naming the layer when one is at fault")
     layer: str | None = Field(None, description="the offending layer, when there is one")
+    option: str | None = Field(None, description="the offending pipeline option, when there is one")
 
 
 class PipelineInfo(BaseModel):
@@ -24,6 +25,9 @@ class PipelineInfo(BaseModel):
     optional: list[str] = Field(description="layers used when present")
     temporal: bool = Field(description="whether the output depends on earlier frames of the sequence")
     options: dict[str, Any] = Field(description="option names with their defaults")
+    option_specs: dict[str, dict[str, Any]] = Field(
+        description="per option: type, default, bounds (minimum, maximum, exclusiveMinimum, exclusiveMaximum), "
+                    "odd, enum, nullable, and `allowed` in words; values outside answer 400 invalid_options")
 
 
 class PipelineList(BaseModel):
@@ -34,7 +38,7 @@ class PipelineList(BaseModel):
 class SessionCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    pipeline: str = Field(pipelines.DEFAULT, description="a name from GET /v1/pipelines")
+    pipeline: str = Field(pipelines.DEFAULT, max_length=64, description="a name from GET /v1/pipelines")
     width: int = Field(gt=0, description="frame width of the sequence, pixels")
     height: int = Field(gt=0, description="frame height of the sequence, pixels")
     options: dict[str, Any] = Field(default_factory=dict, description="pipeline options (see GET /v1/pipelines)")

@@ -111,8 +111,8 @@ def build_session(spec: SessionSpec, owner: str | None) -> Session:
     try:
         pipeline = cls(**options)
         state = pipeline.start(spec.height, spec.width)
-    except (TypeError, ValueError) as err:
-        raise InvalidOptionsError(str(err).splitlines()[0]) from err
+    except ValueError as err:  # OptionError: a value outside its declared range, or weights that do not load
+        raise InvalidOptionsError(str(err).splitlines()[0], getattr(err, "option", None)) from err
     return Session(secrets.token_urlsafe(32), spec, pipeline, state, owner)
 
 
@@ -172,9 +172,11 @@ class SessionStore:
         return session
 
     def expire(self) -> list[Session]:
-        """End the sessions idle for longer than the timeout (never one with a frame in progress)."""
+        """End the sessions idle for longer than the timeout (never one with a frame in progress, including a
+        frame whose request timed out while its step runs on, holding the lock)."""
         now = time.monotonic()
-        idle = [s for s in self._sessions.values() if not s.busy and now - s.last_used > self.idle_timeout_s]
+        idle = [s for s in self._sessions.values()
+                if not s.busy and not s.lock.locked() and now - s.last_used > self.idle_timeout_s]
         for session in idle:
             self._remove(session)
         return idle

@@ -65,5 +65,5 @@ def auto(layers: set[str] | frozenset[str]) -> str:
 
 
 for _module in pkgutil.iter_modules(__path__):
-    if _module.name != "base":
+    if _module.name not in ("base", "options"):
         importlib.import_module(f"{__name__}.{_module.name}")

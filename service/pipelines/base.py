@@ -22,6 +22,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from service.frame import RADIANCE_LAYERS, Frame, FrameError
+from service.pipelines.options import build as build_options
+from service.pipelines.options import describe as describe_options
 from service.stages.emission import add_emission, subtract_emission
 from service.stages.exact import exact_emission
 from service.stages.noise_clamp import noise_clamp
@@ -62,14 +64,14 @@ class Pipeline(ABC):
     guards: ClassVar[bool] = True
 
     def __init__(self, **options: Any):
-        known = {f.name for f in dataclasses.fields(self.Options)}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            raise ValueError(
-                f"pipeline '{self.name}' has no option {', '.join(map(repr, unknown))}; "
-                f"options: {', '.join(sorted(known)) or 'none'}"
-            )
-        self.options = self.Options(**options)
+        """Raises OptionError (a ValueError) naming an unknown option or a value outside its declared range."""
+        self.options = build_options(self.Options, options, f"pipeline '{self.name}'")
+
+    @classmethod
+    def reads(cls) -> tuple[str, ...]:
+        """Every layer the pipeline may read: `color` (the frame contract fills it in), required, optional.
+        Readers decode only these (service/api/codec.py)."""
+        return ("color", *cls.requires, *cls.optional)
 
     def start(self, height: int, width: int) -> SequenceState:
         """State for a new sequence of frames of `height` x `width` pixels."""
@@ -103,8 +105,7 @@ class Pipeline(ABC):
         if emission is not None:
             # `color` always (the frame contract fills it in, every pipeline may read it); the halves only
             # where the pipeline declares them: each layer subtracted is a full frame read and written.
-            reads = ("color", *self.requires, *self.optional)
-            names = [k for k in RADIANCE_LAYERS if k in frame and k in reads]  # "color" at least
+            names = [k for k in RADIANCE_LAYERS if k in frame and k in self.reads()]  # "color" at least
             split = subtract_emission([frame[k] for k in names], emission)
             frame = frame.replace(**dict(zip(names, split, strict=True)))
         buffers, state = self.denoise(frame, state)
@@ -125,7 +126,8 @@ class Pipeline(ABC):
 
     @classmethod
     def describe(cls) -> dict[str, Any]:
-        """What clients see: name, summary, layers, temporal flag, options with defaults."""
+        """What clients see: name, summary, layers, temporal flag, options with defaults, and each option's
+        type and range (`option_specs`, see service/pipelines/options.py)."""
         return {
             "name": cls.name,
             "summary": cls.summary,
@@ -133,6 +135,7 @@ class Pipeline(ABC):
             "optional": list(cls.optional),
             "temporal": cls.temporal,
             "options": {f.name: f.default for f in dataclasses.fields(cls.Options)},
+            "option_specs": describe_options(cls.Options),
         }
 
 

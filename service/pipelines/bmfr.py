@@ -15,6 +15,7 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.options import MAX_SPARSITY, MAX_WINDOW, check_sparsity, option
 from service.stages.bmfr import BmfrParams, bmfr
 from service.stages.local_regression import FIREFLY_K
 from service.stages.range_clamp import clamp_to_local_range
@@ -22,10 +23,15 @@ from service.stages.range_clamp import clamp_to_local_range
 
 @dataclass(frozen=True)
 class BmfrOptions:
-    window: int = 13  # regression window side, pixels, odd (see BmfrParams)
-    sparsity: int = 6  # centre pixels on every 6th row and column (see BmfrParams)
-    demodulate: bool = True  # regress radiance / albedo, multiply back after (Koskela 2019)
-    firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
+    window: int = option(13, low=3, high=MAX_WINDOW, odd=True)  # regression window side, pixels (see BmfrParams)
+    # centre pixels on every 6th row and column (see BmfrParams); at most window // 2 + 1
+    sparsity: int = option(6, low=1, high=MAX_SPARSITY)
+    demodulate: bool = option(True)  # regress radiance / albedo, multiply back after (Koskela 2019)
+    # clamp outliers to k neighbour ranges beyond their neighbours; None: off
+    firefly_k: float | None = option(FIREFLY_K, above=0, high=1e6)
+
+    def __post_init__(self) -> None:
+        check_sparsity(self.window, self.sparsity)
 
 
 @register

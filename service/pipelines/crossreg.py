@@ -21,7 +21,6 @@ from __future__ import annotations
 import logging
 import weakref
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,31 +30,36 @@ from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, channel_slices, sta
 from service.online.trainer import OnlineConfig, OnlineTrainer, require_torch
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
-from service.runtime import OnnxModel, WeightError, default_init
+from service.pipelines.options import MAX_THREADS, OptionError, option
+from service.runtime import OnnxModel, WeightError, default_init, weight_files, weight_names
 from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
 from service.stages.reprojection import ReprojectionParams, reproject
 from service.stages.spatiotemporal_filter import FilterOutput, screen_history, spatiotemporal_filter
 
 log = logging.getLogger(__name__)
 
-WEIGHTS_DIR = Path(__file__).resolve().parents[2] / "models" / "weights"
-DEFAULT_WEIGHTS = WEIGHTS_DIR / "crossreg_unet.onnx"  # warm start, see models/weights/crossreg_unet.json
+NETWORK = "crossreg_unet"  # the network a `weights` file must hold (its ONNX metadata)
+DEFAULT_WEIGHTS = "crossreg_unet"  # shipped warm start: models/weights/crossreg_unet.onnx (and .json manifest)
 # Depth and normal consistency, success mask eroded 3x3 (Choi 2024 authors' code: reproject + erosion2d).
 REPROJECTION = ReprojectionParams(erode=True)
 
 
 @dataclass(frozen=True)
 class CrossregOptions:
-    weights: str = ""  # path of the U-Net .onnx; "": the shipped warm start (DEFAULT_WEIGHTS)
-    online: bool = False  # fine-tune online in a torch worker process (needs the `train` extra)
-    publish_every: int = 4  # K: frames the worker trains between weight publications
-    crop: int = 128  # side of the random training crop sent to the worker, pixels (0: whole frame)
-    random_init: bool = False  # start from random weights (Choi 2024 sec. 4.4) instead of the warm start
-    steps_per_frame: int = 1  # worker gradient steps per frame (Choi 2024: 1)
-    worker_threads: int = 1  # torch threads of the worker
-    threads: int = 0  # ONNX Runtime intra-op threads (0: $MCDENOISE_ORT_THREADS or ORT's default)
-    screen: bool = True  # reject history outside the current pilots' 7x7 range (authors' code)
-    seed: int = 0  # random initialisation and crop positions
+    # U-Net weights: a name from the registry (service.runtime.weight_files: shipped models/weights/*.onnx
+    # and $MCDENOISE_WEIGHTS_DIR), never a path
+    weights: str = option(DEFAULT_WEIGHTS, choices=weight_names)
+    online: bool = option(False)  # fine-tune online in a torch worker process (needs the `train` extra)
+    publish_every: int = option(4, low=1, high=1000)  # K: frames the worker trains between weight publications
+    # side of the random training crop sent to the worker, pixels (0: whole frame)
+    crop: int = option(128, low=0, high=4096)
+    random_init: bool = option(False)  # start from random weights (Choi 2024 sec. 4.4) instead of the warm start
+    steps_per_frame: int = option(1, low=1, high=16)  # worker gradient steps per frame (Choi 2024: 1)
+    worker_threads: int = option(1, low=1, high=MAX_THREADS)  # torch threads of the worker
+    # ONNX Runtime intra-op threads (0: $MCDENOISE_ORT_THREADS or ORT's default)
+    threads: int = option(0, low=0, high=MAX_THREADS)
+    screen: bool = option(True)  # reject history outside the current pilots' 7x7 range (authors' code)
+    seed: int = option(0, low=0, high=2**32 - 1)  # random initialisation and crop positions
 
 
 @dataclass
@@ -207,11 +211,21 @@ class CrossregPipeline(Pipeline):
         self._model: OnnxModel | None = None  # loaded on first use, shared by states that never swap
 
     def model(self) -> OnnxModel:
+        """The sequence-shared U-Net of the `weights` named (OptionError when the file is gone or holds
+        no crossreg U-Net: an operator's folder may change after the option was checked)."""
         if self._model is None:
-            path = Path(self.options.weights) if self.options.weights else DEFAULT_WEIGHTS
-            if not path.is_file():
-                raise FileNotFoundError(f"crossreg weights not found: {path} (regenerate: see models/weights/README)")
-            self._model = OnnxModel.from_file(path, threads=self.options.threads or None)
+            name = self.options.weights
+            path = weight_files().get(name)
+            if path is None:
+                raise OptionError(f"weights '{name}' are no longer in the registry", "weights")
+            try:
+                model = OnnxModel.from_file(path, threads=self.options.threads or None)
+            except Exception as err:  # ONNX Runtime raises its own types for a file that is not a model
+                raise OptionError(f"weights '{name}' are not a loadable ONNX model ({type(err).__name__})",
+                                  "weights") from err
+            if model.info.network != NETWORK:
+                raise OptionError(f"weights '{name}' hold network '{model.info.network}', not {NETWORK}", "weights")
+            self._model = model
         return self._model
 
     def new_state(self, height: int, width: int) -> CrossregState:

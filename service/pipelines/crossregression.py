@@ -17,6 +17,7 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.options import MAX_SPARSITY, MAX_WINDOW, check_sparsity, option
 from service.stages.cross_regression import CrossRegressionParams, cross_regression_radiance
 from service.stages.local_regression import FIREFLY_K
 
@@ -26,9 +27,14 @@ class CrossRegressionOptions:
     # window: a speed/smoothing trade-off (`python -m bench.classical_speed` with crossregression:window=N,
     # docs/benchmarks.md). The default stays the paper's 17 (other scenes and the crossreg network's pilots
     # were tuned on it).
-    window: int = 17  # regression window side, pixels, odd (Choi 2024 sec. 3)
-    sparsity: int = 4  # centre pixels on every 4th row and column (Choi 2024 sec. 3)
-    firefly_k: float | None = FIREFLY_K  # clamp each buffer's outliers (local_regression.clamp_fireflies); None: off
+    window: int = option(17, low=3, high=MAX_WINDOW, odd=True)  # regression window side, pixels (Choi 2024 sec. 3)
+    # centre pixels on every 4th row and column (Choi 2024 sec. 3); at most window // 2 + 1
+    sparsity: int = option(4, low=1, high=MAX_SPARSITY)
+    # clamp each buffer's outliers (local_regression.clamp_fireflies); None: off
+    firefly_k: float | None = option(FIREFLY_K, above=0, high=1e6)
+
+    def __post_init__(self) -> None:
+        check_sparsity(self.window, self.sparsity)
 
 
 @register

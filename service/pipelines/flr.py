@@ -15,6 +15,7 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.options import option
 from service.stages.flr import FlrParams, gbuffer_guides, local_linear_regression
 from service.stages.local_regression import FIREFLY_K
 from service.stages.range_clamp import clamp_to_local_range
@@ -22,10 +23,12 @@ from service.stages.range_clamp import clamp_to_local_range
 
 @dataclass(frozen=True)
 class FlrOptions:
-    scale: int = 4  # downsampling factor of the outer-product tensors, pixels
-    sigma: float = 0.5  # Gaussian std on the downsampled grid, cells
-    demodulate: bool = True  # regress radiance / albedo when albedo is present, multiply back after
-    firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
+    scale: int = option(4, low=1, high=16)  # downsampling factor of the outer-product tensors, pixels
+    # Gaussian std on the downsampled grid, cells; the blur reaches 3 sigma, so 8 spans 24 cells (384 px at scale 16)
+    sigma: float = option(0.5, above=0, high=8)
+    demodulate: bool = option(True)  # regress radiance / albedo when albedo is present, multiply back after
+    # clamp outliers to k neighbour ranges beyond their neighbours; None: off
+    firefly_k: float | None = option(FIREFLY_K, above=0, high=1e6)
 
 
 @register

@@ -18,6 +18,7 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.options import MAX_RADIUS, MAX_SIGMA2, option
 from service.stages.bilateral import BilateralParams, guide_features
 from service.stages.outliers import clamp_outliers
 from service.stages.statistical import ALPHA, PAPER_BASE, StatisticalParams, pixel_estimates, statistical_filter
@@ -25,14 +26,16 @@ from service.stages.statistical import ALPHA, PAPER_BASE, StatisticalParams, pix
 
 @dataclass(frozen=True)
 class StatisticalOptions:
-    radius: int = PAPER_BASE.radius  # window half-size, pixels: 20 as in Sakai sec. 6; 6 is the fast setting
-    sigma2_position: float = PAPER_BASE.sigma2_position  # pixels^2 (Sakai eq. 16)
-    sigma2_albedo: float = PAPER_BASE.sigma2_albedo  # albedo^2 (Sakai eq. 16)
-    sigma2_normal: float = PAPER_BASE.sigma2_normal  # normal components^2 (Sakai eq. 16)
-    sigma2_log_depth: float | None = None  # (log depth)^2; None: depth unused, as in the paper
-    alpha: float = ALPHA  # significance level of the Welch test (Sakai sec. 4.2)
-    symmetric: bool = True  # eq. 12 weights (energy preserving); False: eq. 14 (asymmetric)
-    skew_correction: bool = True  # Curto 2023 correction of the means by the third moment
+    # window half-size, pixels: 20 as in Sakai sec. 6; 6 is the fast setting
+    radius: int = option(PAPER_BASE.radius, low=0, high=MAX_RADIUS)
+    sigma2_position: float = option(PAPER_BASE.sigma2_position, above=0, high=MAX_SIGMA2)  # pixels^2 (Sakai eq. 16)
+    sigma2_albedo: float = option(PAPER_BASE.sigma2_albedo, above=0, high=MAX_SIGMA2)  # albedo^2 (Sakai eq. 16)
+    sigma2_normal: float = option(PAPER_BASE.sigma2_normal, above=0, high=MAX_SIGMA2)  # normal components^2 (eq. 16)
+    # (log depth)^2; None: depth unused, as in the paper
+    sigma2_log_depth: float | None = option(None, above=0, high=MAX_SIGMA2)
+    alpha: float = option(ALPHA, above=0, below=1)  # significance level of the Welch test (Sakai sec. 4.2)
+    symmetric: bool = option(True)  # eq. 12 weights (energy preserving); False: eq. 14 (asymmetric)
+    skew_correction: bool = option(True)  # Curto 2023 correction of the means by the third moment
 
 
 @register

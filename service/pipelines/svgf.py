@@ -16,6 +16,7 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.options import option
 from service.stages.albedo import demodulate, remodulate
 from service.stages.atrous import AtrousParams, atrous, edge_guides
 from service.stages.outliers import clamp_outliers
@@ -34,16 +35,19 @@ from service.stages.svgf import (
 
 @dataclass(frozen=True)
 class SvgfOptions:
-    alpha_color: float = ALPHA_COLOR  # Schied sec. 4.1: weight of the new frame in the colour history
-    alpha_moments: float = ALPHA_MOMENTS  # Schied sec. 4.2: weight of the new frame in the moments
-    iterations: int = 5  # a-trous passes (Schied sec. 4.3)
-    sigma_depth: float = 1.0  # sigma_z (Schied eq. 3)
-    sigma_normal: float = 128.0  # sigma_n (Schied eq. 4)
-    sigma_luminance: float = 4.0  # sigma_l (Schied eq. 5)
-    depth_tolerance: float = 0.1  # reprojection: max relative depth change of a history tap
-    normal_cos_min: float = 0.9  # reprojection: min cosine between current and history normal
-    demodulate: bool = True  # filter radiance / albedo when albedo is present (Schied sec. 4)
-    clamp_spread: float | None = 1.0  # history clamp to local mean +- this * std (extension); None: off
+    # Schied sec. 4.1: weight of the new frame in the colour history
+    alpha_color: float = option(ALPHA_COLOR, above=0, high=1)
+    # Schied sec. 4.2: weight of the new frame in the moments
+    alpha_moments: float = option(ALPHA_MOMENTS, above=0, high=1)
+    iterations: int = option(5, low=0, high=8)  # a-trous passes (Schied sec. 4.3); pass k steps 2^k px, 8: 128 px
+    sigma_depth: float = option(1.0, above=0, high=1e6)  # sigma_z (Schied eq. 3)
+    sigma_normal: float = option(128.0, above=0, high=1e4)  # sigma_n (Schied eq. 4), an exponent of a cosine
+    sigma_luminance: float = option(4.0, above=0, high=1e6)  # sigma_l (Schied eq. 5)
+    depth_tolerance: float = option(0.1, above=0, high=1e3)  # reprojection: max relative depth change of a history tap
+    normal_cos_min: float = option(0.9, low=-1, high=1)  # reprojection: min cosine between current and history normal
+    demodulate: bool = option(True)  # filter radiance / albedo when albedo is present (Schied sec. 4)
+    # history clamp to local mean +- this * std (extension); None: off
+    clamp_spread: float | None = option(1.0, low=0, high=1e3)
 
 
 # Radiance above this is scaled down before filtering so that squared luminance moments stay finite in

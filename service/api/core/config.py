@@ -2,7 +2,8 @@
 
 Every variable is optional; the defaults below are the documented ones (README "HTTP API"). Values
 that would make the service unsafe or unable to work (a limit of zero, a short API key, a key with
-whitespace) are refused with a `SettingsError` naming the variable, before the server starts.
+whitespace, an API key variable that is set but empty) are refused with a `SettingsError` naming the
+variable, before the server starts. Auth is off only when MCDENOISE_API_KEY is not set at all.
 """
 
 from __future__ import annotations
@@ -10,8 +11,10 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from pathlib import Path
 
 from service import pipelines
+from service.runtime import WEIGHTS_DIR_ENV
 
 PREFIX = "MCDENOISE_"
 MIN_KEY_LENGTH = 16  # characters; shorter keys are guessable
@@ -42,7 +45,11 @@ class Settings:
     max_inflight: int = 0  # frames accepted (running + queued) at once; more answers 503; 0 = 4 x workers
     queue_wait_s: float = 30.0  # how long a streamed frame waits for a free slot before a `busy` error, s
     retry_after_s: int = 1  # Retry-After of a 503 `busy` answer, seconds
-    api_key: str = ""  # empty: no auth; one key, or comma-separated keys (one per client)
+    max_frame_mb: int = 8192  # per-frame memory budget, MiB: a larger estimate from the EXR header answers 413
+    frame_timeout_s: float = 120.0  # a frame not answered this long after it was accepted answers 504, seconds
+    # a request's headers (`serve`: the connection is closed) and body (408) must arrive within this, seconds
+    client_timeout_s: float = 60.0
+    api_key: str | None = None  # None (variable unset): no auth; one key, or comma-separated keys (one per client)
     warmup: str = ""  # comma-separated pipelines run on generated frames at start (not ready until done);
     # `default` names the API's default pipeline (pipelines.DEFAULT)
 
@@ -58,6 +65,9 @@ class Settings:
                 f"{PREFIX}SESSION_IDLE_S must be > 0 and {PREFIX}QUEUE_WAIT_S >= 0, "
                 f"got {self.session_idle_s} and {self.queue_wait_s}"
             )
+        for name in ("max_frame_mb", "frame_timeout_s", "client_timeout_s"):
+            if not getattr(self, name) > 0:
+                raise SettingsError(f"{PREFIX}{name.upper()} must be > 0, got {getattr(self, name)}")
         if self.max_body_mb > 4096:
             raise SettingsError(f"{PREFIX}MAX_BODY_MB must be at most 4096, got {self.max_body_mb}")
         for key in self.api_keys:
@@ -65,8 +75,9 @@ class Settings:
                 raise SettingsError(
                     f"{PREFIX}API_KEY: every key must have at least {MIN_KEY_LENGTH} characters and no whitespace"
                 )
-        if self.api_key and not self.api_keys:
-            raise SettingsError(f"{PREFIX}API_KEY holds no key")
+        if self.api_key is not None and not self.api_keys:
+            raise SettingsError(f"{PREFIX}API_KEY holds no key (it is set but empty or blank); set a key of "
+                                f"{MIN_KEY_LENGTH}+ characters, or leave the variable unset to run without auth")
         for name in self.warmup_pipelines:
             try:
                 pipelines.pipeline_class(name)
@@ -84,7 +95,7 @@ class Settings:
     @property
     def api_keys(self) -> tuple[str, ...]:
         """The accepted keys; empty when auth is off."""
-        return tuple(k.strip() for k in self.api_key.split(",") if k.strip())
+        return tuple(k.strip() for k in (self.api_key or "").split(",") if k.strip())
 
     @property
     def warmup_pipelines(self) -> tuple[str, ...]:
@@ -103,15 +114,19 @@ class Settings:
         values: dict[str, object] = {}
         for f in fields(cls):
             raw = environ.get(PREFIX + f.name.upper())
-            if raw is None or (raw.strip() == "" and f.name != "api_key"):
+            if raw is None or (raw.strip() == "" and f.name != "api_key"):  # a set but empty key is refused
                 continue
-            kind = type(f.default)
+            kind = str if f.default is None else type(f.default)
             try:
                 values[f.name] = raw if kind is str else kind(raw.strip())
             except ValueError:
                 raise SettingsError(
                     f"{PREFIX}{f.name.upper()} must be {'an integer' if kind is int else 'a number'}, got {raw!r}"
                 ) from None
+        # Read by service.runtime.weight_files (the CLI too), checked here so that `serve` refuses a bad one.
+        weights_dir = environ.get(WEIGHTS_DIR_ENV, "").strip()
+        if weights_dir and not Path(weights_dir).is_dir():
+            raise SettingsError(f"{WEIGHTS_DIR_ENV} must name a folder of .onnx weights, got {weights_dir!r}")
         return cls(**values)
 
     def public(self) -> dict[str, object]:

@@ -15,12 +15,13 @@ from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.requests import HTTPConnection
+from starlette.requests import ClientDisconnect, HTTPConnection
 
 from service.frame import FrameError
 from service.pipelines import UnknownPipelineError
 
 log = logging.getLogger("mcdenoise.api")
+MAX_MESSAGE = 500  # characters of an error message; longer ones (echoing client input) are cut
 
 
 class ApiError(Exception):
@@ -33,11 +34,13 @@ class ApiError(Exception):
         message: str,
         *,
         layer: str | None = None,
+        option: str | None = None,
         retry_after: int | None = None,
         headers: dict[str, str] | None = None,
     ):
+        message = message if len(message) <= MAX_MESSAGE else message[:MAX_MESSAGE] + "..."
         super().__init__(message)
-        self.status, self.code, self.message, self.layer = status, code, message, layer
+        self.status, self.code, self.message, self.layer, self.option = status, code, message, layer, option
         self.headers = dict(headers or {})
         if retry_after is not None:
             self.headers["Retry-After"] = str(retry_after)
@@ -46,6 +49,8 @@ class ApiError(Exception):
         out: dict[str, Any] = {"code": self.code, "message": self.message}
         if self.layer is not None:
             out["layer"] = self.layer
+        if self.option is not None:
+            out["option"] = self.option
         return out
 
 
@@ -54,7 +59,11 @@ class InvalidExrError(Exception):
 
 
 class InvalidOptionsError(Exception):
-    """Pipeline options the pipeline refuses, or an `online` flag it cannot honour."""
+    """Pipeline options the pipeline refuses, or an `online` flag it cannot honour; `option` names it."""
+
+    def __init__(self, message: str, option: str | None = None):
+        super().__init__(message)
+        self.option = option
 
 
 class UnknownSessionError(Exception):
@@ -74,17 +83,22 @@ def to_api_error(exc: Exception) -> ApiError:
     if isinstance(exc, UnknownPipelineError):
         return ApiError(400, "unknown_pipeline", str(exc))
     if isinstance(exc, InvalidOptionsError):
-        return ApiError(400, "invalid_options", str(exc))
+        return ApiError(400, "invalid_options", str(exc), option=exc.option)
     if isinstance(exc, UnknownSessionError):
         return ApiError(404, "unknown_session", str(exc))
-    return ApiError(500, "internal_error", f"internal error: {type(exc).__name__}")
+    if isinstance(exc, ClientDisconnect):  # nobody reads this answer
+        return ApiError(400, "client_disconnected", "the client went away before its request was read")
+    return ApiError(500, "internal_error", f"internal error: {type(exc).__name__}",
+                    headers={"Connection": "close"})  # the server drops the connection after a 500
 
 
 def report(exc: Exception) -> ApiError:
-    """`to_api_error`, logging the traceback of an unexpected error (500)."""
+    """`to_api_error`, logging the traceback of an unexpected error (500) and a client disconnect at info."""
     error = to_api_error(exc)
     if error.status >= 500 and error.code == "internal_error":
         log.error("unexpected error while serving a request", exc_info=exc)
+    elif error.code == "client_disconnected":
+        log.info("client disconnected before its request was read")
     return error
 
 
@@ -108,16 +122,27 @@ async def _validation_error(conn: HTTPConnection, exc: RequestValidationError) -
 
 
 async def _http_error(conn: HTTPConnection, exc: StarletteHTTPException) -> JSONResponse:
+    if exc.status_code == 400 and exc.__cause__ is not None:  # FastAPI could not read or parse a JSON body
+        return _respond(report(_unparsable(exc.__cause__)))
     codes = {404: "not_found", 405: "method_not_allowed"}
     error = ApiError(exc.status_code, codes.get(exc.status_code, "http_error"), str(exc.detail),
                      headers=dict(exc.headers or {}))
     return _respond(error)
 
 
+def _unparsable(cause: BaseException) -> Exception:
+    """What a JSON body that FastAPI could not read answers: 422 invalid_request, with the reason."""
+    if isinstance(cause, ClientDisconnect | ApiError):
+        return cause
+    reasons = {UnicodeDecodeError: "is not UTF-8", RecursionError: "is nested too deeply"}
+    reason = next((text for kind, text in reasons.items() if isinstance(cause, kind)), "is not valid JSON")
+    return ApiError(422, "invalid_request", f"the JSON body {reason}")
+
+
 def install(app: FastAPI) -> None:
     """Register the handlers: domain errors, request validation, plain HTTP errors, anything else (500)."""
     for kind in (ApiError, InvalidExrError, FrameError, UnknownPipelineError, InvalidOptionsError,
-                 UnknownSessionError):
+                 UnknownSessionError, ClientDisconnect):
         app.add_exception_handler(kind, _domain_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)

@@ -33,10 +33,13 @@ FRAME_RESPONSES: dict[int | str, dict[str, Any]] = {
     **{status: {"model": ErrorBody, "description": text} for status, text in (
         (400, "not EXR, truncated, unknown pipeline"),
         (401, "missing or wrong API key"),
-        (413, "body or frame too large"),
+        (408, "the body did not arrive within MCDENOISE_CLIENT_TIMEOUT_S"),
+        (413, "body or frame too large, or the frame's memory estimate over MCDENOISE_MAX_FRAME_MB"),
         (415, "Content-Type is not image/x-exr"),
-        (422, "missing or malformed layer (named), or a size other than the session's"),
+        (422, "missing or malformed layer (named), values beyond a layer's limit or that the pipeline could not "
+              "process (layer named), or a size other than the session's"),
         (503, "every frame slot is taken; see Retry-After"),
+        (504, "the frame was not done within MCDENOISE_FRAME_TIMEOUT_S"),
     )},
 }
 

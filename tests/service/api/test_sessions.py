@@ -12,6 +12,7 @@ import pytest
 from service import pipelines
 from service.exr import encode_frame, read_frame
 from service.pipelines import Pipeline, SequenceState
+from service.pipelines.options import option
 from tests.service.api.conftest import HEIGHT, WIDTH, call, exr_post
 
 pytestmark = pytest.mark.timeout(120)
@@ -112,7 +113,7 @@ def test_idle_sessions_expire_and_the_limit_answers_429(make_server, sequence_ex
 
 @dataclass(frozen=True)
 class OnlineOptions:
-    online: bool = False  # fine-tune while streaming
+    online: bool = option(False)  # fine-tune while streaming
 
 
 @dataclass
