@@ -69,9 +69,11 @@ class Pipeline(ABC):
 
     @classmethod
     def reads(cls) -> tuple[str, ...]:
-        """Every layer the pipeline may read: `color` (the frame contract fills it in), required, optional.
-        Readers decode only these (service/api/codec.py)."""
-        return ("color", *cls.requires, *cls.optional)
+        """Every layer the pipeline's step may read: `color` (the frame contract fills it in), required,
+        optional, and with `guards` the halves and `emission` (exact pixels, noise clamp). Readers decode
+        only these (service/api/codec.py)."""
+        guarded = ("colorA", "colorB", "emission") if cls.guards else ()
+        return tuple(dict.fromkeys(("color", *cls.requires, *cls.optional, *guarded)))
 
     def start(self, height: int, width: int) -> SequenceState:
         """State for a new sequence of frames of `height` x `width` pixels."""
@@ -105,7 +107,8 @@ class Pipeline(ABC):
         if emission is not None:
             # `color` always (the frame contract fills it in, every pipeline may read it); the halves only
             # where the pipeline declares them: each layer subtracted is a full frame read and written.
-            names = [k for k in RADIANCE_LAYERS if k in frame and k in self.reads()]  # "color" at least
+            declared = ("color", *self.requires, *self.optional)
+            names = [k for k in RADIANCE_LAYERS if k in frame and k in declared]  # "color" at least
             split = subtract_emission([frame[k] for k in names], emission)
             frame = frame.replace(**dict(zip(names, split, strict=True)))
         buffers, state = self.denoise(frame, state)
