@@ -84,15 +84,16 @@ CASES: tuple[Case, ...] = (
     Case("window_1spp", "window_1spp", False, "the same at 1 spp per half: every pixel a firefly-heavy estimate"),
     Case("glints", "glints", False, "near-mirror metal under a sun of radiance 2e4, 1 spp per half"),
 )
-CASE_NAMES = tuple(c.name for c in CASES)
+_BY_NAME = {c.name: c for c in CASES}
+CASE_NAMES = tuple(_BY_NAME)
 
 
 def case(name: str) -> Case:
     """The case `name`; ValueError listing the names when unknown."""
-    for c in CASES:
-        if c.name == name:
-            return c
-    raise ValueError(f"unknown hard case '{name}'; cases: {', '.join(CASE_NAMES)}")
+    try:
+        return _BY_NAME[name]
+    except KeyError:
+        raise ValueError(f"unknown hard case '{name}'; cases: {', '.join(CASE_NAMES)}") from None
 
 
 def frames(name: str, folder: Path = HARD_DIR) -> list[Frame]:
