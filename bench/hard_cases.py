@@ -11,8 +11,8 @@ A pipeline passes a case when, on every frame:
 2. no TILE x TILE tile is worse than the noisy input there: with e(x) the mean of `rel_l2_map(x, ref)`
    over the tile, e(out) + TILE_FLOOR <= (1 + TILE_SLACK) (e(noisy) + TILE_FLOOR). A mean over the frame
    can hide a black ring around a light; a tile cannot;
-3. pixels the renderer computed exactly (both halves agree: `service.stages.exact.exact_mask`) come out as
-   they went in, to EXACT_RTOL.
+3. pixels the renderer computed exactly (both halves agree and, with an emission layer, the pixel is all
+   emission: `service.stages.exact.exact_mask`) come out as they went in, to EXACT_RTOL.
 
 `python -m bench.hard_cases render` renders the sequences (about 4 minutes on 2 cores with Mitsuba's
 scalar variant); `python -m bench.hard_cases table [--pipelines ...]` prints relL2 and the worst tile
@@ -146,7 +146,9 @@ def score(out: np.ndarray, frame: Frame) -> FrameScore:
     out_map, noisy_map = rel_l2_map(out, reference), rel_l2_map(noisy, reference)
     ratio = (tile_means(out_map) + TILE_FLOOR) / (tile_means(noisy_map) + TILE_FLOOR)
     worst = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
-    exact = exact_mask(frame["colorA"], frame["colorB"]) if "colorA" in frame else None
+    exact = None
+    if "colorA" in frame:
+        exact = exact_mask(frame["colorA"], frame["colorB"], frame["color"], frame.get("emission"))
     exact_error = 0.0
     if exact is not None and exact.any():
         given = noisy[exact].astype(np.float64)

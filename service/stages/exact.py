@@ -25,48 +25,64 @@ EXACT_RTOL = 1e-6  # halves agree within this relative difference per channel (a
 EXACT_MIN = 1e-6  # radiance: at least one channel above this, so that black pixels are not "exact"
 
 
-def exact_mask(color_a: np.ndarray, color_b: np.ndarray) -> np.ndarray:
-    """(H, W) bool: pixels whose half estimates agree and are not black.
+def exact_mask(color_a: np.ndarray, color_b: np.ndarray, color: np.ndarray | None = None,
+               emission: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) bool: pixels whose half estimates agree and are not black, and, when the renderer's `emission`
+    is given, whose `color` is all emission.
 
-    color_a, color_b: (H, W, 3) float32 linear radiance of the two half buffers. A pixel is exact when
-    |a - b| <= EXACT_RTOL * max(|a|, |b|) in every channel and max(|a|) > EXACT_MIN. numpy reference of
-    `exact_emission`'s test.
+    color_a, color_b, color, emission: (H, W, 3) float32 linear radiance (halves, full estimate, the
+    renderer's noise-free emission; `color` is needed with `emission`). In every channel |a - b| <=
+    EXACT_RTOL * max(|a|, |b|) (and |color - emission| <= EXACT_RTOL * max(|color|, |emission|)), and
+    max(|a|) > EXACT_MIN. With an emission layer, the second test rejects an emitter's edge pixel whose few
+    samples all happened to hit the emitter: the halves agree, the converged emission says otherwise.
+    numpy reference of `exact_emission`'s test.
     """
-    a, b = color_a.astype(np.float32), color_b.astype(np.float32)
-    agree = (np.abs(a - b) <= np.float32(EXACT_RTOL) * np.maximum(np.abs(a), np.abs(b))).all(axis=-1)
-    return agree & (np.abs(a).max(axis=-1) > np.float32(EXACT_MIN))
+    def agree(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        u, v = u.astype(np.float32), v.astype(np.float32)
+        return (np.abs(u - v) <= np.float32(EXACT_RTOL) * np.maximum(np.abs(u), np.abs(v))).all(axis=-1)
+
+    mask = agree(color_a, color_b) & (np.abs(color_a.astype(np.float32)).max(axis=-1) > np.float32(EXACT_MIN))
+    if emission is not None:
+        mask &= agree(color, emission)
+    return mask
 
 
-def exact_emission(color_a: np.ndarray, color_b: np.ndarray, color: np.ndarray) -> np.ndarray | None:
+def exact_emission(color_a: np.ndarray, color_b: np.ndarray, color: np.ndarray,
+                   emission: np.ndarray | None = None) -> np.ndarray | None:
     """The frame's exact pixels as an emission layer, or None when it has none.
 
-    color_a, color_b, color: (H, W, 3) float32 linear radiance (halves and full estimate). Returns
-    (H, W, 3) float32: `color` where `exact_mask` holds, 0 elsewhere; None when no pixel is exact (the
-    common case, which then costs one read of the halves). One numba pass; `exact_mask` is its reference.
+    color_a, color_b, color: (H, W, 3) float32 linear radiance (halves and full estimate); emission: the
+    renderer's (H, W, 3) float32 emission layer or None. Returns (H, W, 3) float32: `color` where
+    `exact_mask` holds, 0 elsewhere; None when no pixel is exact (the common case, which then costs one
+    read of the halves). One numba pass; `exact_mask` is its reference.
     """
     a = np.ascontiguousarray(color_a, dtype=np.float32)
     b = np.ascontiguousarray(color_b, dtype=np.float32)
     c = np.ascontiguousarray(color, dtype=np.float32)
+    e = c if emission is None else np.ascontiguousarray(emission, dtype=np.float32)
     out = np.zeros_like(c)
-    if not _exact_kernel(a, b, c, np.float32(EXACT_RTOL), np.float32(EXACT_MIN), out):
+    if not _exact_kernel(a, b, c, e, emission is not None, np.float32(EXACT_RTOL), np.float32(EXACT_MIN), out):
         return None
     return out
 
 
+@numba.njit(inline="always")
+def _agree(u, v, rtol):  # pragma: no cover - jitted
+    return abs(u - v) <= rtol * max(abs(u), abs(v))
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _exact_kernel(a, b, c, rtol, floor, out):
+def _exact_kernel(a, b, c, e, check_emission, rtol, floor, out):  # pragma: no cover - jitted
     height, width, channels = a.shape
     found = np.zeros(height, np.bool_)
     for y in numba.prange(height):
         for x in range(width):
-            agree, bright = True, False
+            exact, bright = True, False
             for k in range(channels):
-                u, v = a[y, x, k], b[y, x, k]
-                if abs(u - v) > rtol * max(abs(u), abs(v)):
-                    agree = False
-                if abs(u) > floor:
-                    bright = True
-            if agree and bright:
+                exact = exact and _agree(a[y, x, k], b[y, x, k], rtol)
+                exact = exact and (not check_emission or _agree(c[y, x, k], e[y, x, k], rtol))
+                bright = bright or abs(a[y, x, k]) > floor
+            if exact and bright:
                 found[y] = True
                 for k in range(channels):
                     out[y, x, k] = c[y, x, k]

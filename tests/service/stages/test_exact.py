@@ -43,3 +43,15 @@ def test_none_when_no_pixel_is_exact():
     assert exact_emission(a, b, a) is None
     zeros = np.zeros((4, 4, 3), np.float32)
     assert exact_emission(zeros, zeros, zeros) is None  # black everywhere: nothing to keep
+
+
+def test_an_emission_layer_that_disagrees_rejects_an_agreeing_pixel():
+    a, b = _halves(np.random.default_rng(3), (5, 5, 3))
+    a[2, 2] = b[2, 2] = 3000.0  # every sample hit the light's edge...
+    emission = np.zeros_like(a)
+    emission[2, 2] = 900.0  # ...but the converged emission covers only part of the pixel
+    color = (a + b) / 2
+    assert exact_mask(a, b)[2, 2] and not exact_mask(a, b, color, emission)[2, 2]
+    assert exact_emission(a, b, color, emission) is None
+    emission[2, 2] = 3000.0
+    np.testing.assert_array_equal(exact_emission(a, b, color, emission)[2, 2], 3000.0)
