@@ -5,8 +5,8 @@
     out, state = pipeline.step(frame, state)
 
 `Pipeline.step` does what all denoisers share, in order: check the frame against the declared layers
-and the sequence size (before any work), find the exact pixels when the frame has halves
-(`service.stages.exact`: without an `emission` layer they become its emission), split off `emission` from the
+and the sequence size (before any work), find the exact pixels when the frame has halves but no
+`emission` layer (`service.stages.exact`: they become its emission), split off `emission` from the
 radiance layers, call the denoiser's `denoise`, add emission back, keep the result within the noise the
 halves show (`service.stages.noise_clamp`), and make sure nothing non-finite leaves. A denoiser that sets
 `fuses_emission` does the split itself, inside its own passes, and checks its `color`.
@@ -100,11 +100,9 @@ class Pipeline(ABC):
         The input's NaN/Inf repair counts are carried to the output frame's `nonfinite`.
         """
         self.check(frame, state)
-        given, exact = frame, None
-        if self.guards and "colorA" in frame and "colorB" in frame:
-            exact = exact_pixels(frame)  # kept as they came in
-            if exact is not None and "emission" not in frame:
-                frame = frame.replace(emission=exact)  # the denoiser sees them as emission
+        given = frame
+        if self.guards:
+            frame = with_exact_emission(frame)
         emission = frame.get("emission") if not self.fuses_emission else None  # the emission the step splits off
         if emission is not None:
             # `color` always (the frame contract fills it in, every pipeline may read it); the halves only
@@ -119,7 +117,7 @@ class Pipeline(ABC):
             buffers["color"], finite["color"] = add_emission(buffers["color"], emission)
         if self.guards and "colorA" in given and "colorB" in given:  # within the noise the halves show
             halves = given["colorA"], given["colorB"]
-            buffers["color"] = noise_clamp(buffers["color"], given["color"], *halves, exact, given.get("emission"))
+            buffers["color"] = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"))
         for name, value in buffers.items():
             if not finite.get(name) and not np.isfinite(value).all():  # a guard: stages are tested never to get here
                 raise FloatingPointError(f"pipeline '{self.name}' produced non-finite '{name}'")
@@ -145,7 +143,10 @@ class Pipeline(ABC):
         }
 
 
-def exact_pixels(frame: Frame) -> np.ndarray | None:
-    """The exact pixels of a frame with both halves (`service.stages.exact`, checked against the frame's
-    own `emission` when it has one) as (H, W, 3) float32 radiance, 0 elsewhere; None when there are none."""
-    return exact_emission(frame["colorA"], frame["colorB"], frame["color"], frame.get("emission"))
+def with_exact_emission(frame: Frame) -> Frame:
+    """`frame` with an `emission` layer of its exact pixels (`service.stages.exact`) when it has both halves,
+    no `emission` of its own and some exact pixel; otherwise `frame` itself."""
+    if "emission" in frame or "colorA" not in frame or "colorB" not in frame:
+        return frame
+    emission = exact_emission(frame["colorA"], frame["colorB"], frame["color"])
+    return frame if emission is None else frame.replace(emission=emission)

@@ -47,43 +47,61 @@ def exact_mask(color_a: np.ndarray, color_b: np.ndarray, color: np.ndarray | Non
     return mask
 
 
-def exact_emission(color_a: np.ndarray, color_b: np.ndarray, color: np.ndarray,
-                   emission: np.ndarray | None = None) -> np.ndarray | None:
-    """The frame's exact pixels as an emission layer, or None when it has none.
+def exact_emission(color_a: np.ndarray, color_b: np.ndarray, color: np.ndarray) -> np.ndarray | None:
+    """The exact pixels of a frame without an emission layer, as one, or None when it has none.
 
-    color_a, color_b, color: (H, W, 3) float32 linear radiance (halves and full estimate); emission: the
-    renderer's (H, W, 3) float32 emission layer or None. Returns (H, W, 3) float32: `color` where
-    `exact_mask` holds, 0 elsewhere; None when no pixel is exact (the common case, which then costs one
-    read of the halves). One numba pass; `exact_mask` is its reference.
+    color_a, color_b, color: (H, W, 3) float32 linear radiance (halves and full estimate). Returns
+    (H, W, 3) float32: `color` where `exact_mask(color_a, color_b)` holds, 0 elsewhere; None when no pixel
+    is exact (the common case, which then costs one read of the halves). numba passes; `exact_mask` is
+    their reference.
     """
     a = np.ascontiguousarray(color_a, dtype=np.float32)
     b = np.ascontiguousarray(color_b, dtype=np.float32)
-    c = np.ascontiguousarray(color, dtype=np.float32)
-    e = c if emission is None else np.ascontiguousarray(emission, dtype=np.float32)
-    out = np.zeros_like(c)
-    if not _exact_kernel(a, b, c, e, emission is not None, np.float32(EXACT_RTOL), np.float32(EXACT_MIN), out):
+    rtol, floor = np.float32(EXACT_RTOL), np.float32(EXACT_MIN)
+    if not _any_exact(a, b, rtol, floor):
         return None
+    out = np.zeros(a.shape, np.float32)
+    _fill_exact(a, b, np.ascontiguousarray(color, dtype=np.float32), rtol, floor, out)
     return out
 
 
 @numba.njit(inline="always")
-def _agree(u, v, rtol):  # pragma: no cover - jitted
+def agree(u, v, rtol):  # pragma: no cover - jitted
+    """Whether float32 u and v agree to `rtol` relative (the test of `exact_mask`)."""
     return abs(u - v) <= rtol * max(abs(u), abs(v))
 
 
+@numba.njit(inline="always")
+def pixel_exact(a, b, i, channels, rtol, floor):  # pragma: no cover - jitted
+    """Whether the pixel of interleaved rows a, b ((W * C,) float32) starting at index i is exact."""
+    exact, bright = True, False
+    for c in range(channels):
+        exact = exact and agree(a[i + c], b[i + c], rtol)
+        bright = bright or abs(a[i + c]) > floor
+    return exact and bright
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _exact_kernel(a, b, c, e, check_emission, rtol, floor, out):  # pragma: no cover - jitted
+def _any_exact(a, b, rtol, floor):  # pragma: no cover - jitted
     height, width, channels = a.shape
     found = np.zeros(height, np.bool_)
     for y in numba.prange(height):
+        ra, rb = a[y].reshape(width * channels), b[y].reshape(width * channels)
         for x in range(width):
-            exact, bright = True, False
-            for k in range(channels):
-                exact = exact and _agree(a[y, x, k], b[y, x, k], rtol)
-                exact = exact and (not check_emission or _agree(c[y, x, k], e[y, x, k], rtol))
-                bright = bright or abs(a[y, x, k]) > floor
-            if exact and bright:
+            if pixel_exact(ra, rb, x * channels, channels, rtol, floor):
                 found[y] = True
-                for k in range(channels):
-                    out[y, x, k] = c[y, x, k]
+                break
     return found.any()
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _fill_exact(a, b, c, rtol, floor, out):  # pragma: no cover - jitted
+    height, width, channels = a.shape
+    for y in numba.prange(height):
+        n = width * channels
+        ra, rb, rc, ro = a[y].reshape(n), b[y].reshape(n), c[y].reshape(n), out[y].reshape(n)
+        for x in range(width):
+            i = x * channels
+            if pixel_exact(ra, rb, i, channels, rtol, floor):
+                for k in range(channels):
+                    ro[i + k] = rc[i + k]

@@ -11,9 +11,8 @@ value is clipped to
 per channel. The 3x3 mean gives each sd about nine degrees of freedom, so an sd far below the true one
 (which would freeze noise in place) is rare; where the halves disagree strongly (fireflies, heavy-tailed
 paths) sd is large and the denoiser is free. A region where every sample of both halves was black keeps
-black: that is what the samples say. Pixels marked in `keep` (the exact pixels the step took as emission,
-`service.stages.exact`) come out exactly as `color`; pixels marked in `free` (a renderer's emission
-layer) are not clipped.
+black: that is what the samples say. Exact pixels (`service.stages.exact`) come out exactly as `color`;
+other pixels with emission in the renderer's `emission` layer are not clipped.
 
 What it costs on ordinary frames (the benchmark's trimmed relL2, mean over frames, `python -m bench run
 --sequences models/data/samples/shadows out/bench-data/fireflies`, against the commit before the clamp):
@@ -28,6 +27,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from service.stages.exact import EXACT_MIN, EXACT_RTOL, agree, exact_mask, pixel_exact
+
 NOISE_K = 5.0  # half-width of the allowed band, in standard deviations of the pixel estimate
 NOISE_RADIUS = 1  # window half-size of the variance estimate, pixels (3x3)
 
@@ -37,29 +38,30 @@ def noise_clamp(
     color: np.ndarray,
     color_a: np.ndarray,
     color_b: np.ndarray,
-    keep: np.ndarray | None = None,
-    free: np.ndarray | None = None,
+    emission: np.ndarray | None = None,
     k: float = NOISE_K,
 ) -> np.ndarray:
     """`out` clipped to `color` +- k sd per pixel and channel (module docstring).
 
-    out: (H, W, 3) float32 denoised radiance; color, color_a, color_b: (H, W, 3) float32 noisy radiance
-    and its two halves, all linear; keep: (H, W, 3) float32 or None, pixels with any nonzero channel take
-    `color`; free: (H, W, 3) float32 or None, pixels with any nonzero channel keep `out` unclipped (a
-    renderer's `emission` layer: there the samples' binary coverage of an emitter's edge makes the halves
-    agree by chance, and the noise-free emission already tells the denoiser what is exact). Returns a new
-    (H, W, 3) float32 array. One parallel numba pass; `noise_clamp_reference` is the numpy twin.
+    out: (H, W, 3) float32 denoised radiance; color, color_a, color_b: (H, W, 3) float32 noisy radiance and
+    its two halves; emission: the renderer's (H, W, 3) float32 emission layer or None; all linear. Exact
+    pixels (`service.stages.exact.exact_mask(color_a, color_b, color, emission)`) take `color`; pixels
+    with emission keep `out` unclipped (there the samples' binary coverage of an emitter's edge can make
+    the halves agree by chance, and the emission split already tells the denoiser what is exact). Returns
+    a new (H, W, 3) float32 array. One parallel numba pass; `noise_clamp_reference` is the numpy twin.
     """
     if not k >= 0:
         raise ValueError(f"noise clamp k must be >= 0, got {k}")
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (out, color, color_a, color_b)]
-    masks = [None if m is None else np.ascontiguousarray(m, dtype=np.float32) for m in (keep, free)]
-    shapes = {x.shape for x in arrays + [m for m in masks if m is not None]}
+    if emission is not None:
+        arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
+    shapes = {x.shape for x in arrays}
     if len(shapes) != 1 or arrays[0].ndim != 3:
-        raise ValueError(f"noise clamp: out, color, the halves and masks must share one (H, W, C) shape, got {shapes}")
+        raise ValueError(f"noise clamp: out, color, the halves and emission must share one (H, W, C) shape: {shapes}")
     result = np.empty_like(arrays[0])
-    keep32, free32 = (arrays[0] if m is None else m for m in masks)
-    _clamp_kernel(*arrays, keep32, masks[0] is not None, free32, masks[1] is not None, np.float32(k), result)
+    e = arrays[4] if emission is not None else arrays[1]
+    _clamp_kernel(*arrays[:4], e, emission is not None, np.float32(k), np.float32(EXACT_RTOL),
+                  np.float32(EXACT_MIN), result)
     return result
 
 
@@ -83,25 +85,23 @@ def noise_clamp_reference(
     color: np.ndarray,
     color_a: np.ndarray,
     color_b: np.ndarray,
-    keep: np.ndarray | None = None,
-    free: np.ndarray | None = None,
+    emission: np.ndarray | None = None,
     k: float = NOISE_K,
 ) -> np.ndarray:
     """Plain-numpy twin of `noise_clamp`."""
     band = k * noise_sd_reference(color_a, color_b)
     clipped = np.clip(out, color - band, color + band)
-    if free is not None:
-        clipped = np.where(free.any(axis=-1, keepdims=True), out, clipped)
-    if keep is not None:
-        clipped = np.where(keep.any(axis=-1, keepdims=True), color, clipped)
-    return clipped.astype(np.float32)
+    if emission is not None:
+        clipped = np.where((emission != 0).any(axis=-1, keepdims=True), out, clipped)
+    exact = exact_mask(color_a, color_b, color, emission)
+    return np.where(exact[..., None], color, clipped).astype(np.float32)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _clamp_kernel(out, color, a, b, keep, has_keep, free, has_free, k, result):  # pragma: no cover - jitted
+def _clamp_kernel(out, color, a, b, e, has_emission, k, rtol, floor, result):  # pragma: no cover - jitted
     """A task per row: the 3-row column sums of (a - b)^2 along the interleaved (W * C) row, then the
-    3-column sums as shifts by C, then the clip; pixels with a nonzero `free` value take `out` unclipped,
-    those with a nonzero `keep` value take `color`."""
+    3-column sums as shifts by C, then the clip; exact pixels take `color`, other pixels with emission
+    take `out` unclipped."""
     height, width, channels = out.shape
     n = width * channels
     for y in numba.prange(height):
@@ -129,21 +129,21 @@ def _clamp_kernel(out, color, a, b, keep, has_keep, free, has_free, k, result): 
                     total += column[i + channels]
                 band = k * np.sqrt(total * edge)
                 rr[i] = min(max(ro[i], rc[i] - band), rc[i] + band)
-        if has_free:
-            rf = free[y].reshape(n)
-            for x in range(width):
-                unclipped = False
+        re = e[y].reshape(n)
+        for x in range(width):
+            i = x * channels
+            if pixel_exact(ra, rb, i, channels, rtol, floor):
+                with_emission = True
                 for c in range(channels):
-                    unclipped = unclipped or rf[x * channels + c] != 0
-                if unclipped:
+                    with_emission = with_emission and (not has_emission or agree(rc[i + c], re[i + c], rtol))
+                if with_emission:
                     for c in range(channels):
-                        rr[x * channels + c] = ro[x * channels + c]
-        if has_keep:
-            rk = keep[y].reshape(n)
-            for x in range(width):
-                kept = False
+                        rr[i + c] = rc[i + c]
+                    continue
+            if has_emission:
+                emitted = False
                 for c in range(channels):
-                    kept = kept or rk[x * channels + c] != 0
-                if kept:
+                    emitted = emitted or re[i + c] != 0
+                if emitted:
                     for c in range(channels):
-                        rr[x * channels + c] = rc[x * channels + c]
+                        rr[i + c] = ro[i + c]

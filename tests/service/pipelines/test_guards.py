@@ -8,7 +8,7 @@ import pytest
 from bench.methods import anchor_method
 from service import pipelines
 from service.frame import Frame
-from service.pipelines.base import exact_pixels
+from service.pipelines.base import with_exact_emission
 from service.stages.exact import exact_mask
 
 LIGHT = (slice(10, 13), slice(18, 21))  # 3x3 pixels of a directly visible light
@@ -39,18 +39,22 @@ def test_a_light_without_emission_layer_stays_exact_and_in_place(name, tiny_laye
     assert color[ring].min() >= 0.0  # no black ring
 
 
-def test_exact_pixels_where_halves_agree_and_the_emission_layer_agrees(tiny_layers):
+def test_exact_pixels_become_emission_and_a_renderers_emission_decides(tiny_layers, name="crossregression"):
     frame = _with_light(tiny_layers[0])
-    exact = exact_pixels(frame)
-    assert (exact[LIGHT] == 1000.0).all()
+    emission = with_exact_emission(frame)["emission"]
+    assert (emission[LIGHT] == 1000.0).all()
     mask = exact_mask(frame["colorA"], frame["colorB"])  # the light and the synthetic scene's noise-free emitter
-    np.testing.assert_array_equal(exact.any(axis=-1), mask)
+    np.testing.assert_array_equal(emission.any(axis=-1), mask)
     assert mask.sum() < 0.2 * mask.size
-    emission = np.zeros_like(frame["color"])
-    emission[LIGHT] = 1000.0
-    emission[10, 18] = 400.0  # the renderer says this pixel is only partly the light: its halves agree by chance
-    with_layer = exact_pixels(frame.replace(emission=emission))
-    assert with_layer[10, 18].max() == 0.0 and (with_layer[11, 19] == 1000.0).all()
+    given = np.zeros_like(frame["color"])
+    given[LIGHT] = 1000.0
+    given[10, 18] = 400.0  # the renderer says this pixel is only partly the light: its halves agree by chance
+    with_layer = frame.replace(emission=given)
+    assert with_exact_emission(with_layer) is with_layer
+    pipeline = pipelines.get(name)
+    out, _ = pipeline.step(with_layer, pipeline.start(24, 40))
+    assert (out["color"][11, 19] == 1000.0).all()  # exact and all emission: as it came in
+    assert out["color"][10, 18].max() < 1000.0  # the denoised residual plus the renderer's 400
 
 
 def test_anchors_run_without_guards(tiny_layers):
