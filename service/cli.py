@@ -1,4 +1,4 @@
-"""`python -m service ...`: denoise a sequence folder, list pipelines, inspect an EXR file.
+"""`python -m service ...`: denoise a sequence folder, list pipelines, inspect an EXR file, compile kernels ahead.
 
 Exit status: 0 on success, 2 with a one-line `error: ...` on bad input or options.
 """
@@ -19,6 +19,7 @@ from service.api.cli import add_serve_args, add_stream_args, run_serve, run_stre
 from service.exr import list_sequence, read_channels, read_header
 from service.frame import FrameError
 from service.sequence import denoise_folder
+from service.warmup import CompileNotice, warm_up
 
 
 def parse_options(items: Sequence[str]) -> dict[str, Any]:
@@ -40,13 +41,15 @@ def cmd_denoise(args: argparse.Namespace) -> int:
     if args.online:
         options["online"] = True  # a pipeline without this option refuses it: "has no option 'online'"
     pipeline = pipelines.get(resolve_pipeline(args.pipeline, args.in_dir), **options)
-    print(f"{'frame':<24} {'ms':>9} {'relL2 in':>10} {'relL2 out':>10} {'NaN/Inf':>8}")
+    print(f"{'frame':<24} {'ms':>9} {'relL2 in':>10} {'relL2 out':>10} {'NaN/Inf':>8}", flush=True)
     results = []
-    for r in denoise_folder(pipeline, args.in_dir, args.out_dir, png=args.png):
-        results.append(r)
-        noisy = "" if r.rel_l2_noisy is None else f"{r.rel_l2_noisy:.4f}"
-        out = "" if r.rel_l2_out is None else f"{r.rel_l2_out:.4f}"
-        print(f"{r.name:<24} {r.ms:>9.1f} {noisy:>10} {out:>10} {r.nonfinite:>8}", flush=True)
+    with CompileNotice(pipeline.name) as notice:  # a frame's ms include any kernels compiled for it
+        for r in denoise_folder(pipeline, args.in_dir, args.out_dir, png=args.png):
+            notice.report()
+            results.append(r)
+            noisy = "" if r.rel_l2_noisy is None else f"{r.rel_l2_noisy:.4f}"
+            out = "" if r.rel_l2_out is None else f"{r.rel_l2_out:.4f}"
+            print(f"{r.name:<24} {r.ms:>9.1f} {noisy:>10} {out:>10} {r.nonfinite:>8}", flush=True)
     ms = [r.ms for r in results]
     line = f"{pipeline.name}: {len(results)} frames, median {np.median(ms):.1f} ms/frame (mean {np.mean(ms):.1f})"
     scored = [r for r in results if r.rel_l2_out is not None]
@@ -97,6 +100,18 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_warm(args: argparse.Namespace) -> int:
+    """Compile (or load from the cache) the kernels of the named pipelines, or of all, by `warm_up`."""
+    names = args.names or pipelines.names()
+    for name in names:
+        pipelines.pipeline_class(name)  # an unknown name fails before any compiling
+    for name in names:
+        with CompileNotice(name):
+            seconds = warm_up(pipelines.get(name))
+        print(f"{name}: ready in {seconds:.1f} s", flush=True)
+    return 0
+
+
 Command = tuple[str, str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
 
 
@@ -136,10 +151,16 @@ def _args_inspect(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", type=Path, help="an OpenEXR file")
 
 
+def _args_warm(p: argparse.ArgumentParser) -> None:
+    p.add_argument("names", nargs="*", metavar="PIPELINE", help="pipelines to warm (default: all)")
+
+
 COMMANDS: list[Command] = [
     ("denoise", "denoise every frame of a sequence folder", _args_denoise, cmd_denoise),
     ("pipelines", "list pipelines with their required and optional layers", _args_pipelines, cmd_pipelines),
     ("inspect", "layers, channel types, size and value statistics of an EXR file", _args_inspect, cmd_inspect),
+    ("warm", "compile the numba kernels of pipelines ahead of their first frame (cached per machine)", _args_warm,
+     cmd_warm),
     ("serve", "serve every pipeline over HTTP: REST frames, sessions, WebSocket streams", add_serve_args, run_serve),
     ("stream", "stream a sequence folder through a running service, write the results", add_stream_args, run_stream),
 ]

@@ -277,7 +277,6 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, t
     wc = counts[1]
     rows = (2 * radius) // s + 1  # a window's worth (two: no clear change at 720p); > band_gap: a gap fits a strip
     for band in numba.prange(bands.shape[0]):
-        scratch = _scratch(radius, s, tw, rows)
         start, end = bands[band, 0], bands[band, 1]
         z1 = max(start * s - radius, 0)  # pixel rows zeroed so far end here
         for first in range(start, end, rows):
@@ -290,24 +289,23 @@ def _cross_block_kernel(planes, spatial, radius, counts, consts, ridge, bands, t
                 lanes = num.shape[4] if q + LANES >= wc else q + tw  # this group adds into lanes q ... q + TW - 1
                 _zero_lanes(num, den, z0, z1, zeroed, lanes)
                 zeroed = lanes
-                _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch, num, den)
+                _group_rows(planes, spatial, radius, consts, ridge, q, first, last, tw, rows, num, den)
     colours, parts = tw // LANES, bands.shape[0]
     groups = -(-wc // LANES)
     for colour in range(colours):
         for item in numba.prange((bands.shape[0] - 1) * parts):  # a gap's groups of this colour, in parts
             gap, part = item // parts, item % parts
-            scratch = _scratch(radius, s, tw, rows)
             for g in range(colour + colours * part, groups, colours * parts):
                 _group_rows(planes, spatial, radius, consts, ridge, g * LANES, bands[gap, 1], bands[gap + 1, 0],
-                            scratch, num, den)  # fmt: skip
+                            tw, rows, num, den)  # fmt: skip
 
 
 @numba.njit(inline="always")
 def _scratch(radius, s, tw, rows):  # pragma: no cover
-    """`_group_rows`' scratch for chunks of up to `rows` centre rows: (pairs (side^2, PAIR_ROWS, LANES) ~300 KB
-    at radius 8, moments (2, MOMENTS, LANES), gram (3, FEATURES, FEATURES, LANES) float64, rhs
-    (3, FEATURES, LANES) float64, coefs (2, 3 FEATURES, LANES), strip (R, 2, S, 4, tw) with R the pixel rows
-    that a chunk's windows cover, ~135 KB at radius 8), float32 unless said."""
+    """`_group_rows`' scratch (new arrays) for chunks of up to `rows` centre rows: (pairs (side^2, PAIR_ROWS,
+    LANES) ~300 KB at radius 8, moments (2, MOMENTS, LANES), gram (3, FEATURES, FEATURES, LANES) float64,
+    rhs (3, FEATURES, LANES) float64, coefs (2, 3 FEATURES, LANES), strip (R, 2, S, 4, tw) with R the pixel
+    rows that a chunk's windows cover, ~135 KB at radius 8), float32 unless said."""
     side = 2 * radius + 1
     empty = jit_aligned_empty
     return (empty((side * side, PAIR_ROWS, LANES), np.float32), empty((2, MOMENTS, LANES), np.float32),
@@ -316,12 +314,18 @@ def _scratch(radius, s, tw, rows):  # pragma: no cover
             empty(((rows - 1) * s + side, 2, s, 4, tw), np.float32))  # fmt: skip
 
 
-@numba.njit(inline="always", fastmath=True)
-def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch, num, den):  # pragma: no cover
+@numba.njit(fastmath=True, error_model="numpy")
+def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, tw, rows, num, den):  # pragma: no cover
     """Centre columns q ... q + LANES - 1 (a lane group) of centre rows first ... last - 1, one row after the
     other: both regressions' moments (`_pairs_pass`, `_shared_pass`, `_channel_pass`), their solves and
     predictions (`_predict_row`) into the strip of the pixel rows their windows cover, which is then added
-    to num and den. scratch: `_scratch`.
+    to num and den. tw, rows: the strip width and the most centre rows of a chunk, for the scratch
+    (`_scratch`), allocated here: its trailing sizes are constants in this function, so the compiler folds
+    the element offsets, which it cannot for arrays passed in.
+
+    A function of its own, called from the kernel's two parallel loops, not inlined into them: numba's
+    parallel passes take time superlinear in the size of a parallel loop's body, and inlined it was
+    compiled twice (a cold compile of the kernel took 3x as long).
 
     The strip takes each pixel row's sums over all the chunk's centre rows, so num and den are read and
     written once per chunk, not once per centre row whose window covers the row.
@@ -332,7 +336,7 @@ def _group_rows(planes, spatial, radius, consts, ridge, q, first, last, scratch,
 
     While a window row's moments are summed, the plane lines of the next row are prefetched: they come from
     L2 (a window shares all but s rows with the last one), and the pair pass would wait for them."""
-    pairs, moments, gram, rhs, coefs, strip = scratch
+    pairs, moments, gram, rhs, coefs, strip = _scratch(radius, planes.shape[0], tw, rows)
     s, height = planes.shape[0], planes.shape[2]
     c = -(-radius // s) + q  # plane lane of the first centre
     first_lane = q  # of the windows' leftmost pixels, c - pad (strip lane 0; a row: 20 lanes at the paper's window)

@@ -373,42 +373,52 @@ def pack_buffers(
 def _pack_buffers_kernel(
     color_a, color_b, albedo, normal, emission, split, k, clamp, rows, pad, out
 ):  # pragma: no cover - jitted
-    """color_a, color_b, albedo, normal (H, W, 3) -> out, a task per `rows` consecutive frame rows. A task
-    keeps each buffer's log rows y - 1, y, y + 1 (`_log_row`) in a ring of three, frame row yy in slot
-    yy % 3, forms the variance of row y from it (`_variance_row`) and packs the row (`cross_block.pack_row`);
-    the logs of the row before its first and after its last are taken by the neighbouring task as well.
-    When `split`, the logs read each buffer less emission (H, W, 3) from a ring of the three rows around the
-    row taken, frame row yy in slot yy % 3, each row subtracted once (`emission.subtract_row`)."""
+    """color_a, color_b, albedo, normal (H, W, 3) -> out, a task per `rows` consecutive frame rows
+    (`_pack_rows`)."""
     height, width = albedo.shape[:2]
     n = 3 * width
     flat_a, flat_b = color_a.reshape(height, n), color_b.reshape(height, n)
     albedo, normal, emitted = albedo.reshape(height, n), normal.reshape(height, n), emission.reshape(height, n)
     for task in numba.prange(-(-height // rows)):
-        first, last = task * rows, min(height, task * rows + rows)
-        ring_a, ring_b = np.empty((3, 3, width), np.float32), np.empty((3, 3, width), np.float32)
-        var_a, var_b = np.empty(width, np.float32), np.empty(width, np.float32)
-        sums_a, sums_b = np.zeros((3, 4, width), np.float32), np.zeros((3, 4, width), np.float32)  # `_row_sums`
-        less_a, less_b = np.empty((3, n), np.float32), np.empty((3, n), np.float32)
-        taken = max(first - 2, 0)  # frame rows taken less the emission so far end here
-        for after in range(max(first - 1, 0), last + 1):  # row after = y + 1 is taken, then row y is packed
-            r = min(after, height - 1)  # the last row twice, not under an `if` (which stopped the vectorising)
-            if split:  # two calls in two branches: `src = less_a if split else flat_a` kept the logs scalar (2x)
-                for yy in range(taken, min(r + 2, height)):
-                    subtract_row(flat_a[yy], emitted[yy], less_a[yy % 3])
-                    subtract_row(flat_b[yy], emitted[yy], less_b[yy % 3])
-                taken = max(taken, min(r + 2, height))
-                _log_row(less_a, 3, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
-                _log_row(less_b, 3, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
-            else:
-                _log_row(flat_a, height, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
-                _log_row(flat_b, height, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
-            _row_sums(ring_a, r, sums_a)
-            _row_sums(ring_b, r, sums_b)
-            y = after - 1
-            if y >= first:
-                _variance_row(ring_a, sums_a, y, height, var_a)
-                _variance_row(ring_b, sums_b, y, height, var_b)
-                pack_row(ring_a, ring_b, y % 3, var_a, var_b, albedo[y], normal[y], pad, out, y)
+        _pack_rows(flat_a, flat_b, albedo, normal, emitted, split, k, clamp, task * rows,
+                   min(height, task * rows + rows), pad, out)  # fmt: skip
+
+
+@numba.njit(error_model="numpy")
+def _pack_rows(flat_a, flat_b, albedo, normal, emitted, split, k, clamp, first, last, pad, out):  # pragma: no cover
+    """Frame rows first ... last - 1 of `_pack_buffers_kernel` (the layers as (H, 3 W) rows). Each buffer's
+    log rows y - 1, y, y + 1 (`_log_row`) are kept in a ring of three, frame row yy in slot yy % 3, the
+    variance of row y formed from it (`_variance_row`) and the row packed (`cross_block.pack_row`); the logs
+    of the row before `first` and after `last` are taken by the neighbouring task as well. When `split`,
+    the logs read each buffer less emitted (H, 3 W) from a ring of the three rows around the row taken,
+    frame row yy in slot yy % 3, each row subtracted once (`emission.subtract_row`). A function of its own,
+    not the parallel loop's body: numba's parallel passes cost time superlinear in the size of that body."""
+    height, n = flat_a.shape
+    width = n // 3
+    ring_a, ring_b = np.empty((3, 3, width), np.float32), np.empty((3, 3, width), np.float32)
+    var_a, var_b = np.empty(width, np.float32), np.empty(width, np.float32)
+    sums_a, sums_b = np.zeros((3, 4, width), np.float32), np.zeros((3, 4, width), np.float32)  # `_row_sums`
+    less_a, less_b = np.empty((3, n), np.float32), np.empty((3, n), np.float32)
+    taken = max(first - 2, 0)  # frame rows taken less the emission so far end here
+    for after in range(max(first - 1, 0), last + 1):  # row after = y + 1 is taken, then row y is packed
+        r = min(after, height - 1)  # the last row twice, not under an `if` (which stopped the vectorising)
+        if split:  # two calls in two branches: `src = less_a if split else flat_a` kept the logs scalar (2x)
+            for yy in range(taken, min(r + 2, height)):
+                subtract_row(flat_a[yy], emitted[yy], less_a[yy % 3])
+                subtract_row(flat_b[yy], emitted[yy], less_b[yy % 3])
+            taken = max(taken, min(r + 2, height))
+            _log_row(less_a, 3, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
+            _log_row(less_b, 3, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
+        else:
+            _log_row(flat_a, height, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
+            _log_row(flat_b, height, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
+        _row_sums(ring_a, r, sums_a)
+        _row_sums(ring_b, r, sums_b)
+        y = after - 1
+        if y >= first:
+            _variance_row(ring_a, sums_a, y, height, var_a)
+            _variance_row(ring_b, sums_b, y, height, var_b)
+            pack_row(ring_a, ring_b, y % 3, var_a, var_b, albedo[y], normal[y], pad, out, y)
 
 
 def cross_regression_radiance(
@@ -450,37 +460,47 @@ def cross_regression_radiance(
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _finish_kernel(num, den, pad, noisy, emission, split, radius, rows_per_task, out):  # pragma: no cover - jitted
-    """The sums num (2, S, 3, H, L'), den (2, S, H, L') of `cross_block.regress_sums` -> out (H, W, 3): per
-    row, both pilots (`normalise_row`), their `_linear_mean`, interleaved, clipped to the window range of
-    noisy (H, W, 3) (`window_range`), plus emission (H, W, 3) when `split`; a band of rows_per_task rows per
-    task. Returns the count of non-finite values written (`emission.nonfinite`)."""
+    """The sums num (2, S, 3, H, L'), den (2, S, H, L') of `cross_block.regress_sums` -> out (H, W, 3), a band
+    of rows_per_task rows per task (`_finish_rows`). Returns the count of non-finite values written."""
+    height = noisy.shape[0]
+    bad = 0
+    for task in numba.prange(-(-height // rows_per_task)):
+        bad += _finish_rows(num, den, pad, noisy, emission, split, radius, task * rows_per_task,
+                            min(height, task * rows_per_task + rows_per_task), out)  # fmt: skip
+    return bad
+
+
+@numba.njit(error_model="numpy")
+def _finish_rows(num, den, pad, noisy, emission, split, radius, y0, y1, out):  # pragma: no cover - jitted
+    """Rows y0 ... y1 - 1 of `_finish_kernel`: per row, both pilots (`normalise_row`), their `_linear_mean`,
+    interleaved, clipped to the window range of noisy (H, W, 3) (`window_range`), plus emission (H, W, 3)
+    when `split`. Returns the count of non-finite values written (`emission.nonfinite`). A function of its
+    own, not the parallel loop's body (see `_pack_rows`)."""
     height, width, channels = noisy.shape
     n = width * channels
     flat, emitted = noisy.reshape(height, n), emission.reshape(height, n)
     bad = 0
-    for task in numba.prange(-(-height // rows_per_task)):
-        y0 = task * rows_per_task
-        scans, rows = range_scratch(radius, width, channels)
-        inv = np.empty((num.shape[1], num.shape[4]), np.float32)
-        pilots = np.empty((2, channels, 1, width), np.float32)
-        line = np.empty((channels, width), np.float32)
-        mean = np.empty(n, np.float32)
-        for y in range(y0, min(height, y0 + rows_per_task)):
-            normalise_row(num[0], den[0], pad, y, inv, pilots[0], 0)
-            normalise_row(num[1], den[1], pad, y, inv, pilots[1], 0)
-            for m in range(channels):
-                _linear_mean(pilots[0, m, 0], pilots[1, m, 0], line[m])
-            interleave_row(line, mean, False, mean)
-            if window_range(flat, channels, y, y0, radius, scans, rows):
-                emit_range_row(rows[2], rows[3], mean, True, out[y], out[y])
-            else:
-                emit_range_row(rows[0], rows[1], mean, True, out[y], out[y])
-            dst = out[y].reshape(n)
-            if split:
-                bad += add_row(dst, emitted[y], dst)
-            else:
-                for j in range(n):
-                    bad += nonfinite(dst[j])
+    scans, rows = range_scratch(radius, width, channels)
+    inv = np.empty((num.shape[1], num.shape[4]), np.float32)
+    pilots = np.empty((2, channels, 1, width), np.float32)
+    line = np.empty((channels, width), np.float32)
+    mean = np.empty(n, np.float32)
+    for y in range(y0, y1):
+        normalise_row(num[0], den[0], pad, y, inv, pilots[0], 0)
+        normalise_row(num[1], den[1], pad, y, inv, pilots[1], 0)
+        for m in range(channels):
+            _linear_mean(pilots[0, m, 0], pilots[1, m, 0], line[m])
+        interleave_row(line, mean, False, mean)
+        if window_range(flat, channels, y, y0, radius, scans, rows):
+            emit_range_row(rows[2], rows[3], mean, True, out[y], out[y])
+        else:
+            emit_range_row(rows[0], rows[1], mean, True, out[y], out[y])
+        dst = out[y].reshape(n)
+        if split:
+            bad += add_row(dst, emitted[y], dst)
+        else:
+            for j in range(n):
+                bad += nonfinite(dst[j])
     return bad
 
 

@@ -29,3 +29,13 @@ def test_run_writes_the_report(tiny_sequence_dir: Path, tmp_path: Path) -> None:
 def test_bad_size_is_a_usage_error() -> None:
     done = _bench("stability", "--size", "big")
     assert done.returncode == 2 and "is not WxH" in done.stderr
+
+
+def test_cold_start_times_a_first_frame_on_an_empty_cache(tiny_sequence_dir: Path) -> None:
+    done = subprocess.run([sys.executable, "-m", "bench.cold_start", "--pipelines", "bilateral", "--sample",
+                           str(tiny_sequence_dir), "--kernels", "2"], capture_output=True, text=True, timeout=300,
+                          check=False, cwd=Path(__file__).resolve().parents[2])  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("cpus: ") and lines[1].startswith("bilateral: first frame ")
+    assert "s  service.stages." in lines[2]  # a kernel compiled: the cache was empty

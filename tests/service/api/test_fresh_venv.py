@@ -76,6 +76,8 @@ def test_docker_files_install_what_the_fresh_venv_test_installs():
     dockerfile = (ROOT / "docker" / "Dockerfile").read_text()
     for needed in ("USER mcdenoise", "HEALTHCHECK", "/healthz", "pip install .", 'WITH_TORCH" = "1"', '".[train]"'):
         assert needed in dockerfile
+    # every pipeline's kernels compiled at build time, for one CPU class that the image's runtime names too
+    assert "python -m service warm" in dockerfile and dockerfile.count("NUMBA_CPU_NAME=${NUMBA_CPU_NAME}") == 2
     allowed = [line[1:].rstrip("/") for line in (ROOT / "docker" / "Dockerfile.dockerignore").read_text().splitlines()
                if line.startswith("!")]
     assert allowed == list(IMAGE_SOURCES)
