@@ -147,7 +147,7 @@ def score(out: np.ndarray, frame: Frame) -> FrameScore:
     ratio = (tile_means(out_map) + TILE_FLOOR) / (tile_means(noisy_map) + TILE_FLOOR)
     worst = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
     exact = None
-    if "colorA" in frame:
+    if "colorA" in frame and "colorB" in frame:
         exact = exact_mask(frame["colorA"], frame["colorB"], frame["color"], frame.get("emission"))
     exact_error = 0.0
     if exact is not None and exact.any():

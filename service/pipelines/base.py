@@ -115,12 +115,12 @@ class Pipeline(ABC):
         finite = {"color": True} if self.fuses_emission else {}  # name -> True where every value is known finite
         if emission is not None:
             buffers["color"], finite["color"] = add_emission(buffers["color"], emission)
-        if self.guards and "colorA" in given and "colorB" in given:  # within the noise the halves show
-            halves = given["colorA"], given["colorB"]
-            buffers["color"] = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"))
         for name, value in buffers.items():
             if not finite.get(name) and not np.isfinite(value).all():  # a guard: stages are tested never to get here
                 raise FloatingPointError(f"pipeline '{self.name}' produced non-finite '{name}'")
+        if self.guards and "colorA" in given and "colorB" in given:  # within the noise the halves show
+            halves = given["colorA"], given["colorB"]  # (finite in, finite out: the band is finite or +inf)
+            buffers["color"] = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"))
         state.frame_index += 1
         return Frame(buffers, dict(frame.nonfinite)), state
 

@@ -12,8 +12,11 @@ value as emission (subtracts it, denoises the rest, adds it back), so the pixel 
 and none of its radiance reaches a neighbour's fit. Black pixels whose halves agree (no light found at
 low spp) are noise, not exact, and stay in.
 
-Emitter edges, partly covered by geometry, have halves that differ: they are ordinary noisy pixels to
-this stage, and the firefly clamps of the denoisers handle them.
+Emitter edges, partly covered by geometry, usually have halves that differ: they are ordinary noisy
+pixels to this stage, and the firefly clamps of the denoisers handle them. At low spp, though, every
+sample of an edge pixel may hit the emitter (at 1 spp per half, with probability coverage^2): its halves
+agree and it is kept at its noisy value, as noisy as it came in but not worse. With the renderer's
+`emission` layer such a pixel is recognised (its colour is not all emission) and left to the denoiser.
 """
 
 from __future__ import annotations

@@ -8,9 +8,10 @@ value is clipped to
 
     color +- k sd,   sd^2 = mean over the 3x3 window (clipped at the border) of (colorA - colorB)^2 / 4,
 
-per channel. The 3x3 mean gives each sd about nine degrees of freedom, so an sd far below the true one
-(which would freeze noise in place) is rare; where the halves disagree strongly (fireflies, heavy-tailed
-paths) sd is large and the denoiser is free. A region where every sample of both halves was black keeps
+per channel (a band beyond float32, from half differences above ~1e19, does not clip). The 3x3 mean
+gives each sd about nine degrees of freedom, so an sd far below the true one (which would freeze noise in
+place) is rare; where the halves disagree strongly (fireflies, heavy-tailed paths) sd is large and the
+denoiser is free. A region where every sample of both halves was black keeps
 black: that is what the samples say. Exact pixels (`service.stages.exact`) come out exactly as `color`;
 other pixels with emission in the renderer's `emission` layer are not clipped.
 
@@ -50,8 +51,8 @@ def noise_clamp(
     the halves agree by chance, and the emission split already tells the denoiser what is exact). Returns
     a new (H, W, 3) float32 array. One parallel numba pass; `noise_clamp_reference` is the numpy twin.
     """
-    if not k >= 0:
-        raise ValueError(f"noise clamp k must be >= 0, got {k}")
+    if not 0 <= k < np.inf:
+        raise ValueError(f"noise clamp k must be finite and >= 0, got {k}")
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (out, color, color_a, color_b)]
     if emission is not None:
         arrays.append(np.ascontiguousarray(emission, dtype=np.float32))

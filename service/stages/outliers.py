@@ -5,8 +5,9 @@ t-test filter spreads it into a bright disc of its window, a temporal filter int
 regressions (bmfr, flr, cross-regression) clamp their inputs with `local_regression.clamp_fireflies`
 (isolated values, against the 3x3 neighbour range) and `local_regression.clamp_outlier_clusters` (small
 clusters, against a sigma-clipped 7x7 statistic of the log-compressed signal); the filters without a
-regression (bilateral, statistical, svgf) call them here. Exact pixels (a directly visible light) are
-taken out as emission before any pipeline runs (`service.stages.exact`), so they are not clipped.
+regression (bilateral, statistical, svgf) call them here. A directly visible light is not clipped when
+the frame carries its emission: the renderer's `emission` layer, or, for a frame with both halves and no
+emission layer, its exact pixels (`service.stages.exact`, taken out by `Pipeline.step`).
 """
 
 from __future__ import annotations

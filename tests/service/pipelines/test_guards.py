@@ -8,7 +8,7 @@ import pytest
 from bench.methods import anchor_method
 from service import pipelines
 from service.frame import Frame
-from service.pipelines.base import with_exact_emission
+from service.pipelines.base import Pipeline, with_exact_emission
 from service.stages.exact import exact_mask
 
 LIGHT = (slice(10, 13), slice(18, 21))  # 3x3 pixels of a directly visible light
@@ -57,9 +57,33 @@ def test_exact_pixels_become_emission_and_a_renderers_emission_decides(tiny_laye
     assert out["color"][10, 18].max() < 1000.0  # the denoised residual plus the renderer's 400
 
 
-def test_anchors_run_without_guards(tiny_layers):
+class _Brighter(Pipeline):
+    """A test double that adds 100 to every pixel: far outside the noise of the halves."""
+
+    name, summary, requires = "brighter", "test double", ("color",)
+
+    def denoise(self, frame, state):
+        return {"color": frame["color"] + 100.0}, state
+
+
+def test_guards_clip_to_the_noise_and_anchors_run_without_them(tiny_layers):
     noisy = anchor_method("noisy").make()
     assert not noisy.guards and all(pipelines.get(n).guards for n in pipelines.names())
     frame = _with_light(tiny_layers[0])
-    out, _ = noisy.step(frame, noisy.start(24, 40))
-    np.testing.assert_array_equal(out["color"], frame["color"])
+    guarded, unguarded = _Brighter(), _Brighter()
+    unguarded.guards = False
+    free, _ = unguarded.step(frame, unguarded.start(24, 40))
+    np.testing.assert_array_equal(free["color"], frame["color"] + 100.0)
+    clipped, _ = guarded.step(frame, guarded.start(24, 40))
+    assert clipped["color"].max() < 1000.0 + 1e-3 and (clipped["color"] < frame["color"] + 100.0).all()
+    np.testing.assert_array_equal(clipped["color"][LIGHT], frame["color"][LIGHT])
+
+
+def test_a_non_finite_output_is_caught_before_the_clamp(tiny_layers):
+    class Infinite(_Brighter):
+        def denoise(self, frame, state):
+            return {"color": np.full_like(frame["color"], np.inf)}, state
+
+    pipeline = Infinite()
+    with pytest.raises(FloatingPointError, match="non-finite 'color'"):
+        pipeline.step(_with_light(tiny_layers[0]), pipeline.start(24, 40))

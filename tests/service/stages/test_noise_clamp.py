@@ -14,7 +14,7 @@ def _frame(rng, shape, sd=0.2):
     return truth, a, b, ((a + b) / 2).astype(np.float32)
 
 
-@pytest.mark.parametrize("shape", [(1, 1, 3), (2, 7, 3), (41, 29, 3)])
+@pytest.mark.parametrize("shape", [(1, 1, 3), (1, 5, 3), (3, 2, 3), (2, 7, 3), (41, 29, 3)])
 def test_matches_the_numpy_twin(shape):
     rng = np.random.default_rng(0)
     _, a, b, color = _frame(rng, shape)
@@ -72,7 +72,8 @@ def test_refuses_mismatched_shapes_and_negative_k():
     x = np.zeros((4, 4, 3), np.float32)
     with pytest.raises(ValueError, match="share one"):
         noise_clamp(x, x, x, x[:3])
-    with pytest.raises(ValueError, match="k must be >= 0"):
-        noise_clamp(x, x, x, x, k=-1.0)
+    for k in (-1.0, np.inf):
+        with pytest.raises(ValueError, match="k must be finite and >= 0"):
+            noise_clamp(x, x, x, x, k=k)
     with pytest.raises(ValueError, match="share one"):
         noise_clamp(x, x, x, x, emission=x[:, :2])
