@@ -14,7 +14,7 @@ A pipeline passes a case when, on every frame:
 3. pixels the renderer computed exactly (both halves agree and, with an emission layer, the pixel is all
    emission: `service.stages.exact.exact_mask`) come out as they went in, to EXACT_RTOL.
 
-`python -m bench.hard_cases render` renders the sequences (about 4 minutes on 2 cores with Mitsuba's
+`python -m bench.hard_cases render` renders the sequences (5 min 26 s on 2 cores with Mitsuba's
 scalar variant); `python -m bench.hard_cases table [--pipelines ...]` prints relL2 and the worst tile
 ratio per pipeline and case, with OIDN-high when `pyoidn` is installed.
 """

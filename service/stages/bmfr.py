@@ -28,14 +28,13 @@ from service.stages.local_regression import (
     channel_planes,
     channel_planes_reference,
     check_firefly_k,
-    clamp_fireflies,
-    clamp_outlier_clusters,
     from_planes,
     plain_terms,
     standardise,
     standardise_reference,
     to_planes,
 )
+from service.stages.outliers import clamp_outlier_planes
 
 
 @dataclass(frozen=True)
@@ -111,10 +110,7 @@ def bmfr(
     params = params or BmfrParams()
     factor = albedo if params.demodulate else None  # demodulated here, remodulated in the last pass
     planes = (channel_planes_reference if reference else channel_planes)(color, factor)
-    if params.firefly_k is not None:
-        planes = clamp_fireflies(planes, params.firefly_k)
-    if params.robust_clamp:  # clusters of outliers, which the 3x3 clamp cannot see
-        planes = clamp_outlier_clusters(planes)
+    planes = clamp_outlier_planes(planes, params.firefly_k, params.robust_clamp)
     features = (gbuffer_features_reference if reference else gbuffer_features)(albedo, normal, depth)
     block = params.block()
     if block.sigma_position is None:  # flat weights: exact box sums, same result; remodulation fused

@@ -34,14 +34,13 @@ from service.stages.local_regression import (
     channel_planes_reference,
     check_firefly_k,
     cholesky_ridge_solve,
-    clamp_fireflies,
-    clamp_outlier_clusters,
     from_planes,
     interleave_row,
     solve_ridge_reference,
     standardise,
     to_planes,
 )
+from service.stages.outliers import clamp_outlier_planes
 from service.stages.parallel import rows_per_thread
 from service.stages.window import overlap
 
@@ -134,10 +133,7 @@ def local_linear_regression(
     """
     params = params or FlrParams()
     y = (channel_planes_reference if reference else channel_planes)(radiance, albedo)
-    if params.firefly_k is not None:
-        y = clamp_fireflies(y, params.firefly_k)
-    if params.robust_clamp:  # clusters of outliers, which the 3x3 clamp cannot see
-        y = clamp_outlier_clusters(y)
+    y = clamp_outlier_planes(y, params.firefly_k, params.robust_clamp)
     x = standardise(to_planes(guides))
     sums = (cell_sums_reference if reference else cell_sums)(x, y, params.scale)
     sums = (gaussian_blur_reference if reference else gaussian_blur)(sums, params.sigma, params.truncate)

@@ -29,6 +29,7 @@ import numba
 import numpy as np
 
 from service.stages.exact import EXACT_MIN, EXACT_RTOL, agree, exact_mask, pixel_exact
+from service.stages.svgf import box_mean
 
 NOISE_K = 5.0  # half-width of the allowed band, in standard deviations of the pixel estimate
 NOISE_RADIUS = 1  # window half-size of the variance estimate, pixels (3x3)
@@ -67,18 +68,9 @@ def noise_clamp(
 
 
 def noise_sd_reference(color_a: np.ndarray, color_b: np.ndarray) -> np.ndarray:
-    """(H, W, C) float64 sd of the pixel estimate (module docstring); numpy."""
-    d2 = (color_a.astype(np.float64) - color_b.astype(np.float64)) ** 2
-    height, width = d2.shape[:2]
-    total, count = np.zeros_like(d2), np.zeros((height, width, 1))
-    r = NOISE_RADIUS
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            ys, yd = slice(max(dy, 0), height + min(dy, 0)), slice(max(-dy, 0), height + min(-dy, 0))
-            xs, xd = slice(max(dx, 0), width + min(dx, 0)), slice(max(-dx, 0), width + min(-dx, 0))
-            total[yd, xd] += d2[ys, xs]
-            count[yd, xd] += 1.0
-    return np.sqrt(total / count / 4.0)
+    """(H, W, C) float32 sd of the pixel estimate (module docstring); numpy (`svgf.box_mean`)."""
+    d = color_a.astype(np.float32) - color_b.astype(np.float32)
+    return np.sqrt(box_mean(d * d, NOISE_RADIUS) / np.float32(4.0))
 
 
 def noise_clamp_reference(

@@ -39,7 +39,7 @@ def test_a_light_without_emission_layer_stays_exact_and_in_place(name, tiny_laye
     assert color[ring].min() >= 0.0  # no black ring
 
 
-def test_exact_pixels_become_emission_and_a_renderers_emission_decides(tiny_layers, name="crossregression"):
+def test_exact_pixels_become_emission_and_a_renderers_emission_decides(tiny_layers):
     frame = _with_light(tiny_layers[0])
     emission = with_exact_emission(frame)["emission"]
     assert (emission[LIGHT] == 1000.0).all()
@@ -51,7 +51,7 @@ def test_exact_pixels_become_emission_and_a_renderers_emission_decides(tiny_laye
     given[10, 18] = 400.0  # the renderer says this pixel is only partly the light: its halves agree by chance
     with_layer = frame.replace(emission=given)
     assert with_exact_emission(with_layer) is with_layer
-    pipeline = pipelines.get(name)
+    pipeline = pipelines.get("crossregression")
     out, _ = pipeline.step(with_layer, pipeline.start(24, 40))
     assert (out["color"][11, 19] == 1000.0).all()  # exact and all emission: as it came in
     assert out["color"][10, 18].max() < 1000.0  # the denoised residual plus the renderer's 400
