@@ -61,15 +61,16 @@ bench: $(STAMP) bench-data
 		$(addprefix $(BENCH_DATA)/,$(BENCH_SCENES))
 
 # Data set (README, "Rendering data and training"; docs/rendering.md): each models.data library scene with
-# variation seeds 1..3, 8 frames at 256x256, 4 spp noisy input, 1024 spp references, into $(DATA_OUT)
+# variation seeds 2..5 (0 and 1 held out), 8 frames at 128x128, 2/4/8 spp noisy input, 1024 spp references, into $(DATA_OUT)
 # (git-ignored). Finished sequences are skipped, so an interrupted run resumes; a progress bar counts frames.
-DATA_OUT ?= data/train
-DATA_ARGS ?= --sequences-per-scene 3 --frames 8 --size 256x256 --spp 4 --ref-spp 1024
+DATA_OUT ?= data
+DATA_ARGS ?= --sequences-per-scene 4 --frames 8 --size 128x128 --spp 2 4 8 --ref-spp 1024
 
 .PHONY: data llvm
 
 data: $(STAMP) llvm
-	$(PY) -m models.data dataset --out $(DATA_OUT) $(DATA_ARGS)
+	$(PY) -m models.data dataset --out $(DATA_OUT)/train $(DATA_ARGS)
+	$(PY) -m models.data dataset --out $(DATA_OUT)/val $(DATA_ARGS) --sequences-per-scene 1 --first-seed 6
 
 # Mitsuba's llvm variant needs LLVM 19 (Debian: libllvm19). Best effort: installed with apt when missing and
 # running as root; otherwise the renderer falls back to scalar_rgb (slower) by itself.

@@ -12,12 +12,21 @@ edit), then replaces the live session in one assignment. Weights that are not fi
 shapes do not match the graph, are refused (WeightError) and the current session stays. For the 30K
 parameter crossreg U-Net the rebuild takes a few milliseconds (see docs/crossreg.md).
 
+Recurrent state: a network whose metadata lists `state` (ModelInfo.state) takes each hidden state as an
+explicit input and returns its next value as an output (shared ARCHITECTURE.md); the pipeline keeps it
+between frames and calls `OnnxModel.run` with all inputs by name.
+
+Optimisation: swappable models (the default) run at ORT_ENABLE_EXTENDED (see `session_options`); a model
+built with `swappable=False` runs at ORT_ENABLE_ALL (NCHWc convolutions; about 1.3x faster for the
+recurrent autoencoder at 1280x720) and refuses `swap_weights`.
+
 Threads: `threads` argument, else the environment variable MCDENOISE_ORT_THREADS, else ONNX Runtime's
 default (one per physical core).
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import threading
@@ -56,13 +65,37 @@ def weight_files() -> dict[str, Path]:
     return {p.stem: p for folder in folders if folder.is_dir() for p in sorted(folder.glob("*.onnx")) if p.is_file()}
 
 
-def weight_names() -> tuple[str, ...]:
-    """The names of `weight_files`, sorted (the choices of a `weights` option)."""
-    return tuple(sorted(weight_files()))
+def weight_names(network: str | None = None) -> tuple[str, ...]:
+    """The names of `weight_files`, sorted: the choices of a pipeline's `weights` option. With `network`,
+    only the files whose metadata names that network, and the files that are not readable models (so that
+    choosing one says so, see service/pipelines/networks.py)."""
+    files = weight_files()
+    return tuple(sorted(name for name, path in files.items() if network is None or
+                        weight_network(path) in (network, None)))
 
 
-def session_options(threads: int | None = None) -> ort.SessionOptions:
-    """SessionOptions with `threads` intra-op threads (None: $MCDENOISE_ORT_THREADS, else ORT default)."""
+def weight_network(path: Path) -> str | None:
+    """The `network` named in a weights file's metadata; None when it is not a model with our metadata.
+    Cached per (path, modification time, size)."""
+    stat = path.stat()
+    return _network_of(str(path), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=256)
+def _network_of(path: str, _mtime_ns: int, _size: int) -> str | None:
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    options.log_severity_level = 4  # fatal only: a file that is not a model is an answer here, not an error
+    try:
+        text = _session(Path(path).read_bytes(), options).get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+        return str(json.loads(text)["network"]) if text else None
+    except Exception:  # ONNX Runtime raises its own types for a file that is not a model
+        return None
+
+
+def session_options(threads: int | None = None, *, optimize_all: bool = False) -> ort.SessionOptions:
+    """SessionOptions with `threads` intra-op threads (None: $MCDENOISE_ORT_THREADS, else ORT default);
+    `optimize_all`: ORT_ENABLE_ALL instead of EXTENDED (only for models whose weights are never swapped)."""
     if threads is None:
         raw = os.environ.get(THREADS_ENV, "0")
         try:
@@ -78,9 +111,24 @@ def session_options(threads: int | None = None) -> ort.SessionOptions:
     # Not ORT_ENABLE_ALL: in onnxruntime 1.31 its NCHWc layout optimizer bakes the file's initializers into
     # the optimized graph and silently ignores add_initializer overrides (the hot-swap would do nothing;
     # tests/service/online/test_runtime.py catches it). EXTENDED keeps the Conv+ReLU fusions.
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+    level = ort.GraphOptimizationLevel
+    options.graph_optimization_level = level.ORT_ENABLE_ALL if optimize_all else level.ORT_ENABLE_EXTENDED
     options.log_severity_level = 3  # errors only
     return options
+
+
+@dataclass(frozen=True)
+class StateSpec:
+    """One recurrent state tensor: fed as input `input`, its next value returned as output `output`."""
+
+    input: str
+    output: str
+    channels: int
+    scale: int  # the state's height and width are the padded frame's divided by this
+
+    def shape(self, height: int, width: int) -> tuple[int, int, int, int]:
+        """(1, channels, rows, columns) for a padded frame of height x width pixels."""
+        return (1, self.channels, height // self.scale, width // self.scale)
 
 
 @dataclass(frozen=True)
@@ -95,6 +143,7 @@ class ModelInfo:
     output_groups: tuple[ChannelGroup, ...]
     weight_shapes: dict[str, tuple[int, ...]]  # initializer name -> shape: what a hot-swap may replace
     metadata: dict[str, Any]  # everything, as stored
+    state: tuple[StateSpec, ...] = ()  # recurrent state, in the graph's input order
 
     @classmethod
     def from_json(cls, text: str) -> ModelInfo:
@@ -110,6 +159,8 @@ class ModelInfo:
             output_groups=groups_from_json(outputs),
             weight_shapes={k: tuple(v) for k, v in meta["weights"].items()},
             metadata=meta,
+            state=tuple(StateSpec(str(x["input"]), str(x["output"]), int(x["channels"]), int(x["scale"]))
+                        for x in meta.get("state", ())),
         )
 
 
@@ -124,10 +175,11 @@ class OnnxModel:
     another swaps: `run_*` uses whichever session was live when it started.
     """
 
-    def __init__(self, model_bytes: bytes, *, threads: int | None = None):
+    def __init__(self, model_bytes: bytes, *, threads: int | None = None, swappable: bool = True):
         self._bytes = model_bytes
         self._threads = threads
-        self._session_obj = _session(model_bytes, session_options(threads))
+        self.swappable = swappable
+        self._session_obj = _session(model_bytes, session_options(threads, optimize_all=not swappable))
         text = self._session_obj.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
         if text is None:
             raise ValueError(f"ONNX model has no '{METADATA_KEY}' metadata; export it with export/")
@@ -138,16 +190,23 @@ class OnnxModel:
         self._lock = threading.Lock()
 
     @classmethod
-    def from_file(cls, path: str | Path, *, threads: int | None = None) -> OnnxModel:
-        return cls(Path(path).read_bytes(), threads=threads)
+    def from_file(cls, path: str | Path, *, threads: int | None = None, swappable: bool = True) -> OnnxModel:
+        return cls(Path(path).read_bytes(), threads=threads, swappable=swappable)
 
     def copy(self) -> OnnxModel:
         """An independent model (own session, own weights version) on the same graph bytes."""
-        return OnnxModel(self._bytes, threads=self._threads)
+        return OnnxModel(self._bytes, threads=self._threads, swappable=self.swappable)
 
     @property
     def model_bytes(self) -> bytes:
         return self._bytes
+
+    def run(self, feeds: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Every input by name (NCHW float32, height and width multiples of the alignment) -> every output
+        by name."""
+        session = self._session_obj
+        names = [o.name for o in session.get_outputs()]
+        return dict(zip(names, session.run(names, dict(feeds)), strict=True))
 
     def run_nchw(self, x: np.ndarray) -> np.ndarray:
         """x: (N, C_in, H, W) float32, H and W multiples of the alignment -> (N, C_out, H, W) float32."""
@@ -190,6 +249,8 @@ class OnnxModel:
     def swap_weights(self, weights: Mapping[str, np.ndarray]) -> int:
         """Replace (some of) the weights; returns the new version. Weights not named keep their current
         values. On any error the live session and weights stay."""
+        if not self.swappable:
+            raise WeightError(f"network '{self.info.network}' was loaded without weight swapping")
         checked = self.check_weights(weights)
         with self._lock:
             overrides = {**self._overrides, **checked}

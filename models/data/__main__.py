@@ -2,7 +2,7 @@
 
   render   --scene NAME --frames N --spp N --ref-spp N --size WxH --seed S --out DIR [--half]
   scenes   list the library with what each scene stresses
-  dataset  --out DIR [--sequences-per-scene N --frames N --size WxH --spp N --ref-spp N]: the training set
+  dataset  --out DIR [--sequences-per-scene N --frames N --size WxH --spp N [N ...] --ref-spp N]: the training set
   report   DIR...: noisy relL2 and motion/motionDual warp errors of rendered sequence folders
   variant  print the Mitsuba variant this machine renders with
 """
@@ -42,12 +42,14 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("scenes", help="list the scene library")
     data = sub.add_parser("dataset", help="render the training set, skipping finished sequences")
     data.add_argument("--out", required=True)
-    data.add_argument("--sequences-per-scene", type=int, default=3)
+    data.add_argument("--sequences-per-scene", type=int, default=4)
     data.add_argument("--frames", type=int, default=8)
-    data.add_argument("--size", type=_size, default=(256, 256))
-    data.add_argument("--spp", type=int, default=4)
+    data.add_argument("--size", type=_size, default=(128, 128))
+    data.add_argument("--spp", type=int, nargs="+", default=[2, 4, 8],
+                      help="noisy samples per pixel, cycled over the sequences (each >= 2)")
     data.add_argument("--ref-spp", type=int, default=1024)
     data.add_argument("--half", action="store_true")
+    data.add_argument("--first-seed", type=int, default=2, help="first variation seed (>= 2; 0 and 1 are held out)")
     report = sub.add_parser("report", help="noise and warp errors of sequence folders")
     report.add_argument("folders", nargs="+")
     report.add_argument("--json", action="store_true")
@@ -71,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "dataset":
         from models.data.dataset import DatasetOptions, render_dataset
 
-        opts = DatasetOptions(args.sequences_per_scene, args.frames, *args.size, args.spp, args.ref_spp, args.half)
+        opts = DatasetOptions(args.sequences_per_scene, args.frames, *args.size, tuple(args.spp), args.ref_spp,
+                              args.half, args.first_seed)
         done = [seconds for _job, seconds in render_dataset(args.out, opts)]
         print(f"rendered {len(done)} sequences in {sum(done):.0f} s into {args.out}")
         return 0

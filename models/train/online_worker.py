@@ -27,7 +27,7 @@ def run(
     try:
         import torch
 
-        from export.crossreg_unet import initializers
+        from export.onnx import initializers
         from models.nets.crossreg_unet import make_unet
         from models.train.step import (
             load_weights_numpy,

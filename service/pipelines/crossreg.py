@@ -18,6 +18,7 @@ ONNX model of the sequence, the online trainer. Without `online` the shipped war
 
 from __future__ import annotations
 
+import functools
 import logging
 import weakref
 from dataclasses import dataclass, replace
@@ -30,8 +31,9 @@ from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, channel_slices, sta
 from service.online.trainer import OnlineConfig, OnlineTrainer, require_torch
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
-from service.pipelines.options import MAX_THREADS, OptionError, option
-from service.runtime import OnnxModel, WeightError, default_init, weight_files, weight_names
+from service.pipelines.networks import load_network
+from service.pipelines.options import MAX_THREADS, option
+from service.runtime import OnnxModel, WeightError, default_init, weight_names
 from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
 from service.stages.reprojection import ReprojectionParams, reproject
 from service.stages.spatiotemporal_filter import FilterOutput, screen_history, spatiotemporal_filter
@@ -48,7 +50,7 @@ REPROJECTION = ReprojectionParams(erode=True)
 class CrossregOptions:
     # U-Net weights: a name from the registry (service.runtime.weight_files: shipped models/weights/*.onnx
     # and $MCDENOISE_WEIGHTS_DIR), never a path
-    weights: str = option(DEFAULT_WEIGHTS, choices=weight_names)
+    weights: str = option(DEFAULT_WEIGHTS, choices=functools.partial(weight_names, NETWORK))
     online: bool = option(False)  # fine-tune online in a torch worker process (needs the `train` extra)
     publish_every: int = option(4, low=1, high=1000)  # K: frames the worker trains between weight publications
     # side of the random training crop sent to the worker, pixels (0: whole frame)
@@ -214,18 +216,7 @@ class CrossregPipeline(Pipeline):
         """The sequence-shared U-Net of the `weights` named (OptionError when the file is gone or holds
         no crossreg U-Net: an operator's folder may change after the option was checked)."""
         if self._model is None:
-            name = self.options.weights
-            path = weight_files().get(name)
-            if path is None:
-                raise OptionError(f"weights '{name}' are no longer in the registry", "weights")
-            try:
-                model = OnnxModel.from_file(path, threads=self.options.threads or None)
-            except Exception as err:  # ONNX Runtime raises its own types for a file that is not a model
-                raise OptionError(f"weights '{name}' are not a loadable ONNX model ({type(err).__name__})",
-                                  "weights") from err
-            if model.info.network != NETWORK:
-                raise OptionError(f"weights '{name}' hold network '{model.info.network}', not {NETWORK}", "weights")
-            self._model = model
+            self._model = load_network(self.options.weights, NETWORK, threads=self.options.threads or None)
         return self._model
 
     def new_state(self, height: int, width: int) -> CrossregState:

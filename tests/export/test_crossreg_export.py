@@ -8,7 +8,8 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
-from export.crossreg_unet import export_bytes, initializers  # noqa: E402
+from export.crossreg_unet import export_bytes  # noqa: E402
+from export.onnx import initializers  # noqa: E402
 from models.nets.crossreg_unet import make_unet  # noqa: E402
 from service.layout import CROSSREG_INPUTS, CROSSREG_OUTPUTS, pad_planes  # noqa: E402
 from service.runtime import ModelInfo, OnnxModel  # noqa: E402

@@ -1,0 +1,45 @@
+"""`python -m models.train NET --data DIR --val DIR --out DIR [--steps N] [--resume]`: train an offline network.
+
+NET is one of models.train.train.RECIPES (`rae`). DIR folders hold sequence folders rendered by
+`python -m models.data dataset`. See models/train/train.py for what the output folder holds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+from models.train.train import RECIPES, TrainOptions, train
+
+
+def _parser() -> argparse.ArgumentParser:
+    defaults = {f.name: f.default for f in dataclasses.fields(TrainOptions) if f.default is not dataclasses.MISSING}
+    p = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.splitlines()[0])
+    p.add_argument("net", choices=sorted(RECIPES))
+    p.add_argument("--data", required=True, help="folder of training sequence folders")
+    p.add_argument("--val", required=True, help="folder of held-out sequence folders (validation)")
+    p.add_argument("--out", required=True, help="output folder: checkpoints, log.csv, curves.png")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    for name in ("steps", "batch", "warmup", "seed", "threads", "val_every", "log_every", "checkpoint_every"):
+        p.add_argument("--" + name.replace("_", "-"), type=int, default=defaults[name])
+    p.add_argument("--lr", type=float, default=defaults["lr"])
+    p.add_argument("--minutes", type=float, default=defaults["minutes"], help="wall-time limit (0: none)")
+    p.add_argument("--warp", action="store_true", help="warp the recurrent state by motion between frames")
+    p.add_argument("--init", default="", help="start from this checkpoint's weights (fine-tune)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = vars(_parser().parse_args(argv))
+    resume = args.pop("resume")
+    try:
+        opts = TrainOptions(**args)
+    except ValueError as exc:
+        raise SystemExit(f"python -m models.train: {exc}") from None
+    ckpt = train(opts, resume=resume)
+    print(f"step {ckpt['step']}: best held-out relL2 {ckpt['best_val_rel_l2']:.4f}; files in {opts.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,157 @@
+"""Training windows for the offline-trained networks, cut from rendered sequence folders (models.data).
+
+A `SequenceBank` holds every frame of the given folders in memory, already split the way the serving
+pipeline splits them: emission subtracted from the noisy radiance and from the reference (Pipeline.step
+does the same before `denoise`), demodulated by the albedo. A `Window` is what one training example is:
+T consecutive frames of one sequence, as float32 torch tensors.
+
+Sampling (`SequenceBank.sample`), following Chaitanya 2017 sec. 4.3:
+- a random sequence and a random start; forward or backward playback at random;
+- a random square crop whose side is a multiple of the network's alignment;
+- a random rotation by 0/90/180/270 degrees;
+- a random modulation in [0, 2] of each colour channel, applied to the whole window;
+- which noisy estimate feeds the network: the full `color` (p = 1/2) or one half buffer, `colorA` or
+  `colorB` (p = 1/4 each: half the samples). This stretches the sample counts the set covers downwards
+  (2-8 spp renders give 1-8 spp inputs). The paper's camera stops (same frame, new noise) are not
+  sampled: our sequences carry one noise realisation per frame and half of it is in the other buffer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from service.exr import list_sequence, read_frame, read_metadata
+from service.stages.albedo import ALBEDO_EPS
+from service.stages.rae_inputs import demodulated, guide_planes
+
+NOISY = ("color", "colorA", "colorB")  # the estimates a window may take its noisy input from
+NOISY_P = (0.5, 0.25, 0.25)
+
+
+@dataclass
+class Sequence:
+    """One sequence folder in memory (F frames of H x W). Radiance without emission, demodulated."""
+
+    name: str
+    noisy: np.ndarray  # (3, F, 3, H, W) float32: color, colorA, colorB demodulated, >= 0
+    target: np.ndarray  # (F, 3, H, W) float32 reference demodulated, >= 0
+    guides: np.ndarray  # (F, 5, H, W) float32: normal (3), log1p relative depth (1), roughness (1)
+    albedo: np.ndarray  # (F, 3, H, W) float32 albedo + ALBEDO_EPS (the remodulation factor)
+    emission: np.ndarray  # (F, 3, H, W) float32 emission layer (zeros when absent)
+    motion: np.ndarray  # (F, 2, H, W) float32 backward motion, pixels (zeros when absent)
+    reference: np.ndarray  # (F, 3, H, W) float32 reference radiance (with emission), for validation scores
+    spp: int  # samples per pixel of `color` (from sequence.json; 0 when unknown)
+
+    @property
+    def frames(self) -> int:
+        return self.target.shape[0]
+
+
+def _planes(arr: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(arr.transpose(2, 0, 1), np.float32)
+
+
+def load_sequence(folder: str | Path) -> Sequence:
+    """Read a rendered folder (every frame needs color, colorA, colorB, albedo, normal, depth, reference)."""
+    folder = Path(folder)
+    noisy, target, guides, albedo, emission, motion, reference = [], [], [], [], [], [], []
+    for path in list_sequence(folder):
+        frame = read_frame(path)
+        missing = [k for k in (*NOISY, "albedo", "normal", "depth", "reference") if k not in frame]
+        if missing:
+            raise ValueError(f"{path}: training frames need layers {missing}")
+        h, w = frame.height, frame.width
+        emit = frame.get("emission")
+        emit = np.zeros((h, w, 3), np.float32) if emit is None else emit
+        noisy.append([_planes(demodulated(frame[k] - emit, frame["albedo"])) for k in NOISY])
+        target.append(_planes(demodulated(frame["reference"] - emit, frame["albedo"])))
+        guides.append(guide_planes(frame["normal"], frame["depth"], frame.get("roughness")))
+        albedo.append(_planes(np.maximum(frame["albedo"], 0) + ALBEDO_EPS))
+        emission.append(_planes(emit))
+        move = frame.get("motion")
+        motion.append(_planes(np.zeros((h, w, 2), np.float32) if move is None else move))
+        reference.append(_planes(frame["reference"]))
+    if not target:
+        raise ValueError(f"{folder}: no frames")
+    meta = read_metadata(folder) or {}
+    return Sequence(folder.name, np.stack(noisy, axis=1), np.stack(target), np.stack(guides), np.stack(albedo),
+                    np.stack(emission), np.stack(motion), np.stack(reference), int(meta.get("spp", 0)))
+
+
+def sequence_folders(root: str | Path) -> list[Path]:
+    """The sequence folders under `root` (those with a sequence.json), sorted; `root` itself if it is one."""
+    root = Path(root)
+    if (root / "sequence.json").is_file():
+        return [root]
+    return sorted(p.parent for p in root.glob("*/sequence.json"))
+
+
+@dataclass
+class Window:
+    """A training example: T frames, as torch tensors (batch axis added by `collate`)."""
+
+    noisy: torch.Tensor  # (T, 3, S, S) demodulated noisy radiance, linear, >= 0
+    target: torch.Tensor  # (T, 3, S, S) demodulated reference, linear, >= 0
+    guides: torch.Tensor  # (T, 5, S, S) normal, log1p relative depth, roughness
+    motion: torch.Tensor  # (T, 2, S, S) backward motion in pixels, in the window's orientation
+
+
+def _rotate_motion(motion: np.ndarray, k: int) -> np.ndarray:
+    """(..., 2, S, S) motion (x right, y down) of an image rotated by np.rot90(k) (counter-clockwise)."""
+    mx, my = motion[..., 0, :, :], motion[..., 1, :, :]
+    for _ in range(k % 4):  # a CCW quarter turn maps the displacement (x, y) to (y, -x) in image axes
+        mx, my = my, -mx
+    return np.stack([mx, my], axis=-3)
+
+
+class SequenceBank:
+    """The sequences of a training set in memory, with the window sampler of the module docstring."""
+
+    def __init__(self, sequences: list[Sequence]):
+        if not sequences:
+            raise ValueError("no sequences")
+        self.sequences = sequences
+
+    @classmethod
+    def from_root(cls, root: str | Path) -> SequenceBank:
+        folders = sequence_folders(root)
+        if not folders:
+            raise ValueError(f"{root}: no sequence folders (folders with sequence.json)")
+        return cls([load_sequence(f) for f in folders])
+
+    def sample(self, rng: np.random.Generator, frames: int, crop: int, *, reverse: bool = True) -> Window:
+        """One random window of `frames` frames and a `crop` x `crop` square (module docstring). `reverse`:
+        allow backward playback (then the window's motion is zero: only backward motion is stored)."""
+        seq = self.sequences[rng.integers(len(self.sequences))]
+        if seq.frames < frames:
+            raise ValueError(f"sequence {seq.name} has {seq.frames} frames; windows need {frames}")
+        h, w = seq.target.shape[-2:]
+        if crop > min(h, w):
+            raise ValueError(f"crop {crop} is larger than sequence {seq.name} ({w}x{h})")
+        start = int(rng.integers(seq.frames - frames + 1))
+        order = np.arange(start, start + frames)
+        if reverse and rng.random() < 0.5:
+            order = order[::-1]
+        y, x = int(rng.integers(h - crop + 1)), int(rng.integers(w - crop + 1))
+        window = (order, slice(None), slice(y, y + crop), slice(x, x + crop))
+        source = int(rng.choice(len(NOISY), p=NOISY_P))
+        scale = rng.uniform(0.0, 2.0, size=(1, 3, 1, 1)).astype(np.float32)
+        k = int(rng.integers(4))
+        motion = seq.motion[window]
+        if order[0] > order[-1]:  # played backwards: no forward motion is stored, so none is given
+            motion = np.zeros_like(motion)
+
+        def turn(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.ascontiguousarray(np.rot90(a, k, axes=(-2, -1))))
+
+        return Window(turn(seq.noisy[source][window] * scale), turn(seq.target[window] * scale),
+                      turn(seq.guides[window]), turn(_rotate_motion(motion, k)))
+
+
+def collate(windows: list[Window]) -> Window:
+    """Stack windows along a new batch axis 0: tensors (N, T, C, S, S)."""
+    return Window(*(torch.stack([getattr(w, f) for w in windows]) for f in ("noisy", "target", "guides", "motion")))

@@ -1,0 +1,207 @@
+"""The offline training loop shared by every offline-trained network (`python -m models.train NET ...`).
+
+One run writes into its output folder:
+- `checkpoint.pt`: network constructor args and weights, optimizer, step, random-generator states and the
+  run's arguments, every `checkpoint_every` steps and at the end; `--resume` continues from it exactly;
+- `best.pt`: the checkpoint with the lowest validation relL2 so far (what export/ exports);
+- `log.csv`: one row per `log_every` steps (mean loss terms, learning rate, sequences per second) and one
+  per validation (relL2 and temporal error on the held-out sequences, service/metrics.py);
+- `curves.png`: the training loss and the validation scores against the step.
+
+Optimiser (Chaitanya 2017 sec. 5.3): Adam, lr 1e-3, betas (0.9, 0.99), minibatches of 4 windows; the learning
+rate ramps up tenfold geometrically over the first `warmup` steps, then falls as 1/sqrt(step).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from models.train.dataset import SequenceBank, collate
+from models.train.rae import RaeRecipe
+from service.metrics import rel_l2, temporal_rel_l2
+
+RECIPES = {"rae": RaeRecipe}  # NET name -> how to build, feed and score it (constructed with warp=)
+CHECKPOINT = "checkpoint.pt"
+BEST = "best.pt"
+LOG = "log.csv"
+CURVES = "curves.png"
+LOG_FIELDS = ("step", "kind", "loss", "spatial", "gradient", "temporal", "lr", "seq_per_s", "val_rel_l2",
+              "val_temporal", "seconds")
+
+
+@dataclass(frozen=True)
+class TrainOptions:
+    """One training run."""
+
+    net: str  # key of RECIPES
+    data: str  # folder of training sequence folders (models.data dataset)
+    val: str  # folder of held-out sequence folders scored at every validation
+    out: str  # output folder
+    steps: int = 4000  # optimiser steps in all (a resumed run continues to this count)
+    batch: int = 4  # windows per step (Chaitanya 2017: 4)
+    lr: float = 1e-3  # peak learning rate (Chaitanya 2017: 0.001)
+    warmup: int = 200  # steps of the tenfold geometric ramp-up
+    seed: int = 0  # network initialisation and window sampling
+    threads: int = 0  # torch threads (0: torch's default)
+    val_every: int = 250  # steps between validations
+    log_every: int = 25  # steps per log.csv row
+    checkpoint_every: int = 250  # steps between checkpoints
+    minutes: float = 0.0  # stop (with a checkpoint) after this much wall time; 0: no limit
+    warp: bool = False  # warp recurrent state by motion between frames (the pipeline option of the same name)
+    init: str = ""  # start from this checkpoint's weights (a fine-tune; a fresh optimiser and step 0)
+
+    def __post_init__(self):
+        if self.net not in RECIPES:
+            raise ValueError(f"unknown network '{self.net}'; networks: {', '.join(RECIPES)}")
+        for name in ("steps", "batch", "warmup", "val_every", "log_every", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 < self.lr <= 1:
+            raise ValueError(f"lr must be in (0, 1], got {self.lr}")
+
+
+def learning_rate(step: int, peak: float, warmup: int) -> float:
+    """Chaitanya 2017 sec. 5.3: peak / 10 ramped geometrically to `peak` over `warmup` steps, then
+    peak * sqrt(warmup / step)."""
+    if step < warmup:
+        return peak * 10.0 ** (step / warmup - 1.0)
+    return peak * math.sqrt(warmup / max(step, 1))
+
+
+def validate(recipe: RaeRecipe, net: torch.nn.Module, bank: SequenceBank) -> tuple[float, float]:
+    """(mean relL2, mean temporal relL2) of the network over the held-out sequences: per frame and per
+    pair of consecutive frames, averaged per sequence, then over sequences (the benchmark's metrics)."""
+    net.eval()
+    errors, temporal = [], []
+    for seq in bank.sequences:
+        out = recipe.denoise(net, seq).numpy().transpose(0, 2, 3, 1)
+        ref = seq.reference.transpose(0, 2, 3, 1)
+        errors.append(np.mean([rel_l2(o, r) for o, r in zip(out, ref, strict=True)]))
+        temporal.append(np.mean([temporal_rel_l2(out[i - 1], out[i], ref[i - 1], ref[i]) for i in range(1, len(out))]))
+    net.train()
+    return float(np.mean(errors)), float(np.mean(temporal))
+
+
+def _state(net, optimizer, step, rng, opts, best, extra) -> dict[str, Any]:
+    return {"net": net.__class__.__name__, "config": asdict(net.config), "state_dict": net.state_dict(),
+            "optimizer": optimizer.state_dict(), "step": step, "rng": rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(), "options": asdict(opts), "best_val_rel_l2": best, **extra}
+
+
+def _append_log(path: Path, row: dict[str, Any]) -> None:
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=LOG_FIELDS)
+        if new:
+            writer.writeheader()
+        writer.writerow({k: row.get(k, "") for k in LOG_FIELDS})
+
+
+def plot_curves(log_path: Path, png_path: Path) -> None:
+    """curves.png from log.csv: training loss (left) and validation relL2 / temporal error (right)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with log_path.open() as f:
+        rows = list(csv.DictReader(f))
+    train = [(int(r["step"]), float(r["loss"])) for r in rows if r["kind"] == "train"]
+    val = [(int(r["step"]), float(r["val_rel_l2"]), float(r["val_temporal"])) for r in rows if r["kind"] == "val"]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.6))
+    if train:
+        a.plot(*zip(*train, strict=True))
+    a.set(xlabel="step", ylabel="training loss", title="loss (Chaitanya 2017 sec. 4.4)", yscale="log")
+    if val:
+        steps, rel, tmp = zip(*val, strict=True)
+        b.plot(steps, rel, "o-", label="relL2")
+        b.plot(steps, tmp, "s-", label="temporal relL2")
+        b.legend()
+    b.set(xlabel="step", ylabel="error", title="held-out sequences", yscale="log")
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=100)
+    plt.close(fig)
+
+
+def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
+    """Run (or resume) training; returns the final checkpoint dict."""
+    from tqdm import tqdm
+
+    if opts.threads:
+        torch.set_num_threads(opts.threads)
+    out = Path(opts.out)
+    out.mkdir(parents=True, exist_ok=True)
+    recipe = RECIPES[opts.net](warp=opts.warp)
+    bank, held_out = SequenceBank.from_root(opts.data), SequenceBank.from_root(opts.val)
+    ckpt_path, log_path = out / CHECKPOINT, out / LOG
+    if resume and ckpt_path.is_file():
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        net = recipe.load(ckpt["config"])
+        net.load_state_dict(ckpt["state_dict"])
+        step, best = int(ckpt["step"]), float(ckpt["best_val_rel_l2"])
+        rng = np.random.default_rng()
+        rng.bit_generator.state = ckpt["rng"]
+        torch.set_rng_state(ckpt["torch_rng"])
+    else:
+        if resume:
+            raise FileNotFoundError(f"--resume: no {ckpt_path}")
+        log_path.unlink(missing_ok=True)
+        net, step, best, rng = recipe.build(None, opts.seed), 0, math.inf, np.random.default_rng(opts.seed)
+        torch.manual_seed(opts.seed)
+        if opts.init:
+            start = torch.load(opts.init, map_location="cpu", weights_only=False)
+            net = recipe.load(start["config"])
+            net.load_state_dict(start["state_dict"])
+    optimizer = torch.optim.Adam(net.parameters(), lr=opts.lr, betas=(0.9, 0.99))
+    if resume and ckpt_path.is_file():
+        optimizer.load_state_dict(ckpt["optimizer"])
+    extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences]}
+    started, sums, count, tick = time.perf_counter(), np.zeros(4), 0, time.perf_counter()
+    bar = tqdm(total=opts.steps, initial=step, unit="step", disable=not progress, desc=opts.net)
+    net.train()
+    while step < opts.steps:
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(step, opts.lr, opts.warmup)
+        batch = collate([bank.sample(rng, recipe.frames, recipe.crop, reverse=recipe.reverse)
+                         for _ in range(opts.batch)])
+        terms = recipe.loss(net, batch)
+        optimizer.zero_grad(set_to_none=True)
+        terms.total.backward()
+        optimizer.step()
+        step += 1
+        sums += [t.item() for t in (terms.total, terms.spatial, terms.gradient, terms.temporal)]
+        count += 1
+        bar.update(1)
+        if step % opts.log_every == 0:
+            now = time.perf_counter()
+            rate = count * opts.batch / (now - tick)
+            mean = sums / count
+            _append_log(log_path, {"step": step, "kind": "train", "loss": mean[0], "spatial": mean[1],
+                                   "gradient": mean[2], "temporal": mean[3], "lr": optimizer.param_groups[0]["lr"],
+                                   "seq_per_s": rate, "seconds": now - started})
+            bar.set_postfix(loss=f"{mean[0]:.4f}", seq_s=f"{rate:.2f}")
+            sums, count, tick = np.zeros(4), 0, now
+        timed_out = opts.minutes > 0 and time.perf_counter() - started > 60 * opts.minutes
+        if step % opts.val_every == 0 or step == opts.steps or timed_out:
+            rel, tmp = validate(recipe, net, held_out)
+            _append_log(log_path, {"step": step, "kind": "val", "val_rel_l2": rel, "val_temporal": tmp,
+                                   "seconds": time.perf_counter() - started})
+            plot_curves(log_path, out / CURVES)
+            bar.write(f"step {step}: held-out relL2 {rel:.4f}, temporal {tmp:.4f}")
+            if rel < best:
+                best = rel
+                torch.save(_state(net, optimizer, step, rng, opts, best, extra), out / BEST)
+        if step % opts.checkpoint_every == 0 or step == opts.steps or timed_out:
+            torch.save(_state(net, optimizer, step, rng, opts, best, extra), ckpt_path)
+        if timed_out:
+            break
+    bar.close()
+    return torch.load(ckpt_path, map_location="cpu", weights_only=False)

@@ -1,0 +1,106 @@
+"""`rae`: the recurrent denoising autoencoder (Chaitanya et al. 2017), trained offline, run in ONNX Runtime.
+
+Stages, per frame (emission already split off by Pipeline.step, added back after):
+  1. input planes: demodulated log1p radiance, normal, relative depth, roughness (service/stages/rae_inputs.py),
+     padded by edge replication to the network's alignment
+  2. optional (`warp`): each level's hidden state moved by the frame's motion (service/stages/hidden_warp.py)
+  3. the network in ONNX Runtime: (features, hidden states) -> (log1p demodulated radiance, next hidden states)
+  4. expm1 and remodulation by the albedo, cropped back to the frame
+State: the network's hidden states (explicit ONNX inputs and outputs, ModelInfo.state), zeros at the first
+frame of every sequence. A sequence has one size (Pipeline.check refuses a frame of another size, as the
+streaming sessions do), so a renderer that changes resolution starts a new sequence, and with it a new state.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from service.frame import Frame
+from service.layout import pad_planes
+from service.pipelines import register
+from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.networks import load_network
+from service.pipelines.options import MAX_THREADS, option
+from service.runtime import OnnxModel, weight_names
+from service.stages.hidden_warp import warp_state
+from service.stages.rae_inputs import radiance_from_output, rae_planes
+
+NETWORK = "rae"  # the network a `weights` file must hold (its ONNX metadata)
+DEFAULT_WEIGHTS = "rae"  # models/weights/rae.onnx (manifest: rae.json)
+
+
+@dataclass(frozen=True)
+class RaeOptions:
+    # network weights: a name from the registry (service.runtime.weight_files), never a path
+    weights: str = option(DEFAULT_WEIGHTS, choices=functools.partial(weight_names, NETWORK))
+    # move the hidden state by `motion` between frames (an extension of the paper); None: as the weights
+    # were trained (their metadata)
+    warp: bool | None = option(None)
+    # ONNX Runtime intra-op threads (0: $MCDENOISE_ORT_THREADS or ORT's default)
+    threads: int = option(0, low=0, high=MAX_THREADS)
+
+
+@dataclass
+class RaeState(SequenceState):
+    """hidden: the network's state tensors (1, C_l, H_pad / s_l, W_pad / s_l) float32, in ModelInfo.state
+    order; empty before the first frame."""
+
+    hidden: list[np.ndarray] = field(default_factory=list)
+
+
+def trained_with_warp(model: OnnxModel) -> bool:
+    """Whether the weights were trained with the hidden-state warp (their `training.options.warp`)."""
+    training = model.info.metadata.get("training") or {}
+    return bool((training.get("options") or {}).get("warp", False))
+
+
+@register
+class RaePipeline(Pipeline):
+    name = "rae"
+    summary = "recurrent denoising autoencoder (Chaitanya 2017), trained offline; ONNX Runtime, temporal"
+    requires = ("color", "albedo", "normal", "depth")
+    optional = ("roughness", "motion", "emission")
+    temporal = True
+    Options = RaeOptions
+
+    def __init__(self, **options: Any):
+        super().__init__(**options)
+        self._model: OnnxModel | None = None  # loaded on first use; sessions share it (no state inside)
+
+    def model(self) -> OnnxModel:
+        if self._model is None:
+            self._model = load_network(self.options.weights, NETWORK, threads=self.options.threads or None,
+                                       swappable=False)
+        return self._model
+
+    @property
+    def warps(self) -> bool:
+        warp = self.options.warp
+        return trained_with_warp(self.model()) if warp is None else warp
+
+    def new_state(self, height: int, width: int) -> RaeState:
+        self.model()  # a bad `weights` file fails at the start of the sequence, not at its first frame
+        return RaeState(height, width)
+
+    def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        model = self.model()
+        info = model.info
+        albedo = frame["albedo"]
+        planes = rae_planes(frame["color"], albedo, frame["normal"], frame["depth"], frame.get("roughness"))
+        padded = np.ascontiguousarray(pad_planes(planes, info.alignment))
+        height, width = padded.shape[1:]
+        hidden = state.hidden
+        if not hidden:
+            hidden = [np.zeros(spec.shape(height, width), np.float32) for spec in info.state]
+        elif self.warps and "motion" in frame:
+            motion = pad_planes(frame["motion"].transpose(2, 0, 1), info.alignment).transpose(1, 2, 0)
+            hidden = [warp_state(h, motion, spec.scale) for h, spec in zip(hidden, info.state, strict=True)]
+        feeds = {info.input_name: padded[None], **{spec.input: h for spec, h in zip(info.state, hidden, strict=True)}}
+        outputs = model.run(feeds)
+        state.hidden = [outputs[spec.output] for spec in info.state]
+        radiance = outputs[info.output_name][0, :, : frame.height, : frame.width]
+        return {"color": radiance_from_output(radiance, albedo)}, state

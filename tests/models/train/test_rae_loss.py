@@ -1,0 +1,63 @@
+"""The recurrent autoencoder's loss (Chaitanya 2017 sec. 4.4): the paper's frame weights, the HFEN kernel,
+and each term's analytic behaviour."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from models.train.rae_loss import GAMMA, TONE_EPS, WEIGHTS, frame_weights, hfen, log_kernel, rae_loss  # noqa: E402
+
+
+def test_frame_weights_are_the_papers_for_seven_frames():
+    paper = (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1.0)
+    np.testing.assert_allclose(frame_weights(7).numpy(), paper, atol=6e-4)
+
+
+def test_log_kernel_sees_no_edge_in_a_constant_or_a_ramp():
+    assert abs(log_kernel().sum().item()) < 1e-6
+    ramp = torch.arange(32.0).view(1, 1, 1, 32).expand(1, 1, 32, 32)
+    assert hfen(ramp)[..., 8:-8, 8:-8].abs().max() < 1e-4  # the Laplacian of a linear function is 0
+    step = (torch.arange(32.0) >= 16).float().view(1, 1, 1, 32).expand(1, 1, 32, 32)
+    assert hfen(step)[..., 16, 14:18].abs().max() > 0.05
+
+
+def _window(n=1, t=3, h=16, w=16, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, t, 3, h, w, generator=g) * 4
+
+
+def test_a_perfect_prediction_costs_nothing():
+    target = _window()
+    terms = rae_loss(torch.log1p(target), target)
+    assert terms.total.item() < 1e-5
+
+
+def test_spatial_term_is_the_mean_absolute_error_after_the_power():
+    target = torch.zeros(1, 1, 3, 8, 8)
+    pred = torch.log1p(torch.full_like(target, 1.0))  # predicts 1 everywhere
+    terms = rae_loss(pred, target)
+    expected = (1 + TONE_EPS) ** GAMMA - TONE_EPS**GAMMA
+    assert terms.spatial.item() == pytest.approx(expected, rel=1e-5)
+    assert terms.gradient.item() < 1e-6 and terms.temporal.item() == 0.0  # constant, one frame
+    assert terms.total.item() == pytest.approx(WEIGHTS[0] * expected, rel=1e-5)
+
+
+def test_temporal_term_ignores_a_steady_bias_and_sees_flicker():
+    target = _window(t=4, seed=1)
+    steady = ((target + TONE_EPS) ** GAMMA + 0.1) ** (1 / GAMMA) - TONE_EPS  # +0.1 in the loss's domain, every frame
+    biased = rae_loss(torch.log1p(steady), target)
+    assert biased.spatial.item() == pytest.approx(0.1, rel=1e-3)
+    flicker = torch.stack([target[:, i] * (1.5 if i % 2 else 1.0) for i in range(4)], dim=1)
+    flickering = rae_loss(torch.log1p(flicker), target)
+    assert biased.temporal.item() < 1e-6
+    assert flickering.temporal.item() > 0.05
+
+
+def test_loss_is_finite_for_extreme_predictions():
+    target = _window(seed=2)
+    pred = torch.tensor([-1e30, 1e30, float(3e38)]).repeat(target.numel() // 3 + 1)[: target.numel()]
+    pred = pred.view_as(target).requires_grad_()
+    terms = rae_loss(pred, target)
+    terms.total.backward()
+    assert torch.isfinite(terms.total) and torch.isfinite(pred.grad).all()

@@ -1,0 +1,96 @@
+"""The training ground on the bundled sample: windows as the paper samples them, the training CLI's files,
+an exact resume, and validation scores on the benchmark's metrics."""
+
+import csv
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from models.data import SAMPLE_DIRS  # noqa: E402
+from models.train.dataset import SequenceBank, _rotate_motion, collate, load_sequence  # noqa: E402
+from models.train.train import BEST, CHECKPOINT, CURVES, LOG, TrainOptions, learning_rate, train  # noqa: E402
+from service.exr import read_sequence  # noqa: E402
+from service.stages.rae_inputs import demodulated  # noqa: E402
+
+SAMPLE = SAMPLE_DIRS[0]
+
+
+@pytest.fixture(scope="module")
+def bank():
+    return SequenceBank([load_sequence(SAMPLE)])
+
+
+def test_sequences_lose_their_emission_and_albedo_as_the_pipeline_splits_them(bank):
+    seq = bank.sequences[0]
+    frame = next(iter(read_sequence(SAMPLE)))[1]
+    expected = demodulated(frame["reference"] - frame["emission"], frame["albedo"]).transpose(2, 0, 1)
+    np.testing.assert_allclose(seq.target[0], expected, rtol=1e-6)
+    assert seq.noisy.shape == (3, 8, 3, 120, 120) and seq.guides.shape == (8, 5, 120, 120)
+
+
+def test_windows_have_the_requested_shape_and_stay_within_the_data(bank):
+    rng = np.random.default_rng(0)
+    windows = [bank.sample(rng, 7, 96) for _ in range(8)]
+    batch = collate(windows)
+    assert batch.noisy.shape == (8, 7, 3, 96, 96) and batch.guides.shape == (8, 7, 5, 96, 96)
+    assert batch.motion.shape == (8, 7, 2, 96, 96)
+    assert (batch.noisy >= 0).all() and (batch.target >= 0).all()
+    # the colour modulation is one factor per channel for the whole window, the same for noisy and target
+    seq = bank.sequences[0]
+    assert batch.target.max() <= 2 * float(seq.target.max()) + 1e-3
+
+
+def test_forward_only_windows_keep_their_motion(bank):
+    rng = np.random.default_rng(1)
+    moving = [bank.sample(rng, 7, 96, reverse=False) for _ in range(4)]
+    assert all(w.motion.abs().max() > 0 for w in moving)
+
+
+def test_rotating_motion_with_the_image_keeps_it_pointing_at_the_same_content():
+    """A pixel that moved right (+x) moves up (-y) after a counter-clockwise quarter turn (np.rot90)."""
+    motion = np.zeros((2, 4, 4), np.float32)
+    motion[0] = 1.0
+    turned = _rotate_motion(motion, 1)
+    assert (turned[0] == 0).all() and (turned[1] == -1).all()
+    assert np.array_equal(_rotate_motion(motion, 4), motion)
+
+
+def test_learning_rate_ramps_tenfold_then_falls_as_one_over_sqrt():
+    assert learning_rate(0, 1e-3, 100) == pytest.approx(1e-4)
+    assert learning_rate(100, 1e-3, 100) == pytest.approx(1e-3)
+    assert learning_rate(400, 1e-3, 100) == pytest.approx(5e-4)
+
+
+def _opts(tmp_path, steps, name="run"):
+    return TrainOptions(net="rae", data=str(SAMPLE), val=str(SAMPLE), out=str(tmp_path / name), steps=steps,
+                        batch=1, warmup=2, threads=1, val_every=2, log_every=1, checkpoint_every=2)
+
+
+def test_training_writes_its_files_and_resumes_exactly(tmp_path):
+    straight = train(_opts(tmp_path, 4, "straight"), progress=False)
+    train(_opts(tmp_path, 2, "resumed"), progress=False)
+    resumed = train(_opts(tmp_path, 4, "resumed"), resume=True, progress=False)
+    assert straight["step"] == resumed["step"] == 4
+    for name, value in straight["state_dict"].items():
+        assert torch.equal(value, resumed["state_dict"][name]), name
+    out = tmp_path / "straight"
+    assert all((out / f).is_file() for f in (CHECKPOINT, BEST, LOG, CURVES))
+    rows = list(csv.DictReader((out / LOG).open()))
+    val = [r for r in rows if r["kind"] == "val"]
+    assert [int(r["step"]) for r in val] == [2, 4]
+    assert all(np.isfinite(float(r["val_rel_l2"])) and float(r["val_temporal"]) > 0 for r in val)
+    assert len([r for r in rows if r["kind"] == "train"]) == 4
+
+
+def test_resume_without_a_checkpoint_says_so(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no .*checkpoint.pt"):
+        train(_opts(tmp_path, 2), resume=True, progress=False)
+
+
+def test_options_are_validated():
+    with pytest.raises(ValueError, match="unknown network 'nope'"):
+        TrainOptions(net="nope", data="d", val="v", out="o")
+    with pytest.raises(ValueError, match="steps must be >= 1"):
+        TrainOptions(net="rae", data="d", val="v", out="o", steps=0)

@@ -1,0 +1,68 @@
+"""The recurrent autoencoder's input planes and output transform: hand-computed values, scale-free depth,
+the round trip, and parity with the torch side that training feeds the network with."""
+
+import numpy as np
+import pytest
+
+from service.layout import RAE_INPUTS, channel_slices
+from service.stages.albedo import ALBEDO_EPS
+from service.stages.rae_inputs import DEPTH_CLIP, demodulated, guide_planes, radiance_from_output, rae_planes
+
+
+def _frame(h=6, w=7, seed=0):
+    rng = np.random.default_rng(seed)
+    color = rng.gamma(1.0, 2.0, (h, w, 3)).astype(np.float32)
+    albedo = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    normal = rng.standard_normal((h, w, 3)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    depth = rng.uniform(1, 5, (h, w, 1)).astype(np.float32)
+    rough = rng.uniform(0, 1, (h, w, 1)).astype(np.float32)
+    return color, albedo, normal, depth, rough
+
+
+def test_planes_follow_the_layout_with_hand_computed_values():
+    color, albedo, normal, depth, rough = _frame()
+    color[0, 0] = (-1.0, 0.0, 3.0)  # negative radiance reads as 0
+    albedo[0, 0] = (0.0, 0.5, 0.99)
+    depth[:] = 2.0
+    depth[0, 0] = 1e10  # a miss: clipped
+    planes = rae_planes(color, albedo, normal, depth, rough)
+    where = channel_slices(RAE_INPUTS)
+    assert planes.shape == (8, 6, 7) and planes.dtype == np.float32
+    np.testing.assert_allclose(planes[where["radiance"], 0, 0],
+                               [0.0, 0.0, np.log1p(3.0 / (0.99 + ALBEDO_EPS))], rtol=1e-6)
+    np.testing.assert_array_equal(planes[where["normal"]], normal.transpose(2, 0, 1))
+    assert planes[where["depth"], 1, 1] == pytest.approx(np.log1p(1.0))  # median 2: relative 1
+    assert planes[where["depth"], 0, 0] == pytest.approx(np.log1p(DEPTH_CLIP))
+    np.testing.assert_array_equal(planes[where["roughness"]][0], rough[..., 0])
+    assert (rae_planes(color, albedo, normal, depth, None)[where["roughness"]] == 0).all()
+
+
+def test_depth_in_millimetres_or_metres_gives_the_same_planes():
+    color, albedo, normal, depth, rough = _frame(seed=1)
+    np.testing.assert_allclose(guide_planes(normal, depth, rough), guide_planes(normal, depth * 1000, rough),
+                               rtol=1e-6)
+
+
+def test_output_transform_inverts_the_input_transform():
+    color, albedo, *_ = _frame(seed=2)
+    planes = np.log1p(demodulated(color, albedo)).transpose(2, 0, 1)
+    np.testing.assert_allclose(radiance_from_output(planes, albedo), color, rtol=1e-5)
+
+
+def test_output_is_finite_and_non_negative_for_any_network_output():
+    albedo = np.full((2, 2, 3), 0.5, np.float32)
+    wild = np.array([-1e30, -1.0, 1e3, 3e38], np.float32).reshape(1, 2, 2).repeat(3, axis=0)
+    out = radiance_from_output(wild, albedo)
+    assert np.isfinite(out).all() and (out >= 0).all()
+
+
+def test_torch_training_inputs_match_the_serving_planes():
+    torch = pytest.importorskip("torch")
+    from models.train.rae import RaeRecipe
+
+    color, albedo, normal, depth, rough = _frame(seed=3)
+    served = rae_planes(color, albedo, normal, depth, rough)
+    noisy = torch.from_numpy(demodulated(color, albedo).transpose(2, 0, 1).copy())
+    trained = RaeRecipe.inputs(noisy, torch.from_numpy(guide_planes(normal, depth, rough)))
+    np.testing.assert_allclose(trained.numpy(), served, rtol=1e-6, atol=1e-7)
