@@ -7,10 +7,14 @@ dynamic, multiples of the alignment (the serving side pads). The metadata lists 
 first frame without knowing the network.
 
     python -m export rae CHECKPOINT.pt OUT.onnx      (a models.train checkpoint: best.pt or checkpoint.pt)
+
+writes OUT.onnx and its manifest OUT.json (`manifest`).
 """
 
 from __future__ import annotations
 
+import csv
+import json
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -19,6 +23,7 @@ import torch
 
 from export import onnx as onnx_export
 from models.nets.rae import SPACE_TO_DEPTH, RecurrentAutoencoder, load_network
+from models.train.train import LOG
 from service.layout import RAE_INPUTS, RAE_OUTPUTS, groups_to_json
 
 NETWORK = "rae"
@@ -52,10 +57,47 @@ def export_bytes(net: RecurrentAutoencoder, *, extra: dict[str, Any] | None = No
     return onnx_export.export_bytes(net, inputs, [OUTPUT_NAME, *(o for _, o in names)], metadata, named_weights=False)
 
 
+def manifest(ckpt: dict[str, Any], checkpoint: Path, onnx_path: Path) -> dict[str, Any]:
+    """What the shipped weights are and how they were made: the network, the training run (options as
+    a command line, data, seed, steps, losses, time, machine) from the checkpoint and the log.csv beside it."""
+    opts = ckpt.get("options") or {}
+    flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
+                     if k not in ("net", "warp", "init") and v not in ("", None))
+    flags += " --warp" * bool(opts.get("warp")) + (f" --init {opts['init']}" if opts.get("init") else "")
+    log = checkpoint.parent / LOG
+    rows = list(csv.DictReader(log.open())) if log.is_file() else []
+    train_rows = [r for r in rows if r["kind"] == "train"]
+    val_rows = [r for r in rows if r["kind"] == "val"]
+    net = load_network(ckpt)
+    return {
+        "network": NETWORK,
+        "file": onnx_path.name,
+        "bytes": onnx_path.stat().st_size,
+        "parameters": sum(p.numel() for p in net.parameters()),
+        "config": ckpt["config"],
+        "commands": ["make data", f"python -m models.train {NETWORK} {flags}",
+                     f"python -m export {NETWORK} {checkpoint} {onnx_path}"],
+        "seed": opts.get("seed"),
+        "step": ckpt.get("step"),
+        "data": ckpt.get("data"),
+        "validation": ckpt.get("val"),
+        "best_val_rel_l2": ckpt.get("best_val_rel_l2"),
+        "final_train_loss": {k: float(train_rows[-1][k]) for k in ("loss", "spatial", "gradient", "temporal")}
+        if train_rows else None,
+        "validation_curve": [{"step": int(r["step"]), "rel_l2": float(r["val_rel_l2"]),
+                              "temporal": float(r["val_temporal"])} for r in val_rows],
+        "training_seconds": float(rows[-1]["seconds"]) if rows else None,
+        "machine": ckpt.get("machine"),
+    }
+
+
 def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
-    """Export a models.train checkpoint; its training options, step and validation score go into the
-    metadata under `training`."""
+    """Export a models.train checkpoint to `out` (.onnx) and its manifest to `out` with .json. The training
+    options, step and validation score also go into the ONNX metadata under `training`."""
+    checkpoint, out = Path(checkpoint), Path(out)
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
     training = {"options": ckpt.get("options"), "step": ckpt.get("step"),
-                "best_val_rel_l2": ckpt.get("best_val_rel_l2")}
-    return onnx_export.write(export_bytes(load_network(ckpt), extra={"training": training}), out)
+                "best_val_rel_l2": ckpt.get("best_val_rel_l2"), "machine": ckpt.get("machine")}
+    path = onnx_export.write(export_bytes(load_network(ckpt), extra={"training": training}), out)
+    path.with_suffix(".json").write_text(json.dumps(manifest(ckpt, checkpoint, path), indent=1) + "\n")
+    return path

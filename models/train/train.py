@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import csv
 import math
+import os
+import platform
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -90,10 +92,23 @@ def validate(recipe: RaeRecipe, net: torch.nn.Module, bank: SequenceBank) -> tup
     return float(np.mean(errors)), float(np.mean(temporal))
 
 
-def _state(net, optimizer, step, rng, opts, best, extra) -> dict[str, Any]:
+def machine() -> dict[str, Any]:
+    """Where training runs: device, CPU model, torch threads and version (stored in every checkpoint)."""
+    cpu = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        names = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
+                 if line.startswith("model name")]
+        cpu = names[0] if names else cpu
+    return {"device": "cpu", "cpu": cpu, "cores": os.cpu_count(), "threads": torch.get_num_threads(),
+            "torch": torch.__version__, "python": platform.python_version()}
+
+
+def _state(net, optimizer, step, rng, opts, best, seconds, extra) -> dict[str, Any]:
     return {"net": net.__class__.__name__, "config": asdict(net.config), "state_dict": net.state_dict(),
             "optimizer": optimizer.state_dict(), "step": step, "rng": rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(), "options": asdict(opts), "best_val_rel_l2": best, **extra}
+            "torch_rng": torch.get_rng_state(), "options": asdict(opts), "best_val_rel_l2": best,
+            "seconds": seconds, **extra}
 
 
 def _append_log(path: Path, row: dict[str, Any]) -> None:
@@ -131,6 +146,31 @@ def plot_curves(log_path: Path, png_path: Path) -> None:
     plt.close(fig)
 
 
+def _start(opts: TrainOptions, recipe: RaeRecipe, ckpt_path: Path, resume: bool):
+    """(net, optimizer, step, best validation relL2, sampling rng, seconds trained so far): from the
+    checkpoint with `resume`, else fresh (from `opts.init`'s weights when given) with fixed seeds."""
+    if resume:
+        if not ckpt_path.is_file():
+            raise FileNotFoundError(f"--resume: no {ckpt_path}")
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        net = recipe.load(ckpt["config"])
+        net.load_state_dict(ckpt["state_dict"])
+        optimizer = torch.optim.Adam(net.parameters(), lr=opts.lr, betas=(0.9, 0.99))
+        optimizer.load_state_dict(ckpt["optimizer"])
+        rng = np.random.default_rng()
+        rng.bit_generator.state = ckpt["rng"]
+        torch.set_rng_state(ckpt["torch_rng"])
+        return net, optimizer, int(ckpt["step"]), float(ckpt["best_val_rel_l2"]), rng, float(ckpt["seconds"])
+    torch.manual_seed(opts.seed)
+    net = recipe.build(None, opts.seed)
+    if opts.init:
+        start = torch.load(opts.init, map_location="cpu", weights_only=False)
+        net = recipe.load(start["config"])
+        net.load_state_dict(start["state_dict"])
+    optimizer = torch.optim.Adam(net.parameters(), lr=opts.lr, betas=(0.9, 0.99))
+    return net, optimizer, 0, math.inf, np.random.default_rng(opts.seed), 0.0
+
+
 def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
     """Run (or resume) training; returns the final checkpoint dict."""
     from tqdm import tqdm
@@ -142,29 +182,13 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
     recipe = RECIPES[opts.net](warp=opts.warp)
     bank, held_out = SequenceBank.from_root(opts.data), SequenceBank.from_root(opts.val)
     ckpt_path, log_path = out / CHECKPOINT, out / LOG
-    if resume and ckpt_path.is_file():
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        net = recipe.load(ckpt["config"])
-        net.load_state_dict(ckpt["state_dict"])
-        step, best = int(ckpt["step"]), float(ckpt["best_val_rel_l2"])
-        rng = np.random.default_rng()
-        rng.bit_generator.state = ckpt["rng"]
-        torch.set_rng_state(ckpt["torch_rng"])
-    else:
-        if resume:
-            raise FileNotFoundError(f"--resume: no {ckpt_path}")
+    net, optimizer, step, best, rng, elapsed = _start(opts, recipe, ckpt_path, resume)
+    if step == 0:
         log_path.unlink(missing_ok=True)
-        net, step, best, rng = recipe.build(None, opts.seed), 0, math.inf, np.random.default_rng(opts.seed)
-        torch.manual_seed(opts.seed)
-        if opts.init:
-            start = torch.load(opts.init, map_location="cpu", weights_only=False)
-            net = recipe.load(start["config"])
-            net.load_state_dict(start["state_dict"])
-    optimizer = torch.optim.Adam(net.parameters(), lr=opts.lr, betas=(0.9, 0.99))
-    if resume and ckpt_path.is_file():
-        optimizer.load_state_dict(ckpt["optimizer"])
-    extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences]}
-    started, sums, count, tick = time.perf_counter(), np.zeros(4), 0, time.perf_counter()
+    extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences],
+             "machine": machine()}
+    started = time.perf_counter() - elapsed  # wall time counts across resumes
+    sums, count, tick = np.zeros(4), 0, time.perf_counter()
     bar = tqdm(total=opts.steps, initial=step, unit="step", disable=not progress, desc=opts.net)
     net.train()
     while step < opts.steps:
@@ -189,7 +213,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
                                    "seq_per_s": rate, "seconds": now - started})
             bar.set_postfix(loss=f"{mean[0]:.4f}", seq_s=f"{rate:.2f}")
             sums, count, tick = np.zeros(4), 0, now
-        timed_out = opts.minutes > 0 and time.perf_counter() - started > 60 * opts.minutes
+        timed_out = opts.minutes > 0 and time.perf_counter() - started - elapsed > 60 * opts.minutes
         if step % opts.val_every == 0 or step == opts.steps or timed_out:
             rel, tmp = validate(recipe, net, held_out)
             _append_log(log_path, {"step": step, "kind": "val", "val_rel_l2": rel, "val_temporal": tmp,
@@ -198,9 +222,11 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
             bar.write(f"step {step}: held-out relL2 {rel:.4f}, temporal {tmp:.4f}")
             if rel < best:
                 best = rel
-                torch.save(_state(net, optimizer, step, rng, opts, best, extra), out / BEST)
+                torch.save(_state(net, optimizer, step, rng, opts, best, time.perf_counter() - started, extra),
+                           out / BEST)
         if step % opts.checkpoint_every == 0 or step == opts.steps or timed_out:
-            torch.save(_state(net, optimizer, step, rng, opts, best, extra), ckpt_path)
+            torch.save(_state(net, optimizer, step, rng, opts, best, time.perf_counter() - started, extra),
+                       ckpt_path)
         if timed_out:
             break
     bar.close()

@@ -94,3 +94,38 @@ def test_options_are_validated():
         TrainOptions(net="nope", data="d", val="v", out="o")
     with pytest.raises(ValueError, match="steps must be >= 1"):
         TrainOptions(net="rae", data="d", val="v", out="o", steps=0)
+
+
+def test_export_writes_the_model_and_a_manifest_of_how_it_was_made(tmp_path):
+    pytest.importorskip("onnx")
+    import json
+
+    from export.rae import export_checkpoint
+    from service.pipelines.rae import trained_with_warp
+    from service.runtime import OnnxModel
+
+    train(_opts(tmp_path, 2), progress=False)
+    path = export_checkpoint(tmp_path / "run" / BEST, tmp_path / "weights" / "rae.onnx")
+    info = json.loads(path.with_suffix(".json").read_text())
+    assert info["step"] == 2 and info["seed"] == 0 and info["data"] == [SAMPLE.name]
+    assert info["commands"][1].startswith("python -m models.train rae --data ")
+    assert info["machine"]["device"] == "cpu" and info["final_train_loss"]["loss"] > 0
+    assert [v["step"] for v in info["validation_curve"]] == [2]
+    model = OnnxModel.from_file(path, swappable=False)
+    assert model.info.network == "rae" and not trained_with_warp(model)
+
+
+def test_the_three_commands_chain(tmp_path, capsys):
+    """`python -m models.train` then `python -m export`, as docs/training.md gives them."""
+    pytest.importorskip("onnx")
+    from export.__main__ import main as export_main
+    from models.train.__main__ import main as train_main
+
+    out = tmp_path / "run"
+    assert train_main(["rae", "--data", str(SAMPLE), "--val", str(SAMPLE), "--out", str(out), "--steps", "1",
+                       "--batch", "1", "--threads", "1"]) == 0
+    assert "best held-out relL2" in capsys.readouterr().out
+    assert export_main(["rae", str(out / BEST), str(tmp_path / "rae.onnx")]) == 0
+    assert (tmp_path / "rae.onnx").is_file() and (tmp_path / "rae.json").is_file()
+    with pytest.raises(SystemExit, match="steps must be >= 1"):
+        train_main(["rae", "--data", "d", "--val", "v", "--out", "o", "--steps", "0"])
