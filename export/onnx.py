@@ -48,7 +48,7 @@ def export_bytes(net: torch.nn.Module, inputs: Mapping[str, torch.Tensor], outpu
     names = [*inputs, *outputs]
     buffer = io.BytesIO()
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation and tracer notices
+        warnings.simplefilter("ignore", DeprecationWarning)  # the TorchScript exporter; no onnxscript here
         torch.onnx.export(
             net, tuple(inputs.values()), buffer, input_names=list(inputs), output_names=list(outputs),
             dynamic_axes={name: dynamic_axes(name) for name in names}, opset_version=OPSET, do_constant_folding=True,

@@ -22,6 +22,7 @@ from typing import Any
 import torch
 
 from export import onnx as onnx_export
+from models.nets import count_parameters
 from models.nets.rae import SPACE_TO_DEPTH, RecurrentAutoencoder, load_network
 from models.train.train import LOG
 from service.layout import RAE_INPUTS, RAE_OUTPUTS, groups_to_json
@@ -68,12 +69,11 @@ def manifest(ckpt: dict[str, Any], checkpoint: Path, onnx_path: Path) -> dict[st
     rows = list(csv.DictReader(log.open())) if log.is_file() else []
     train_rows = [r for r in rows if r["kind"] == "train"]
     val_rows = [r for r in rows if r["kind"] == "val"]
-    net = load_network(ckpt)
     return {
         "network": NETWORK,
         "file": onnx_path.name,
         "bytes": onnx_path.stat().st_size,
-        "parameters": sum(p.numel() for p in net.parameters()),
+        "parameters": count_parameters(load_network(ckpt)),
         "config": ckpt["config"],
         "commands": ["make data", f"python -m models.train {NETWORK} {flags}",
                      f"python -m export {NETWORK} {checkpoint} {onnx_path}"],

@@ -23,7 +23,7 @@ TRANSFORM_NONE = "none"
 TRANSFORM_LOG1P = "log1p"  # log(1 + x) of linear HDR radiance (Bako et al. 2017; Choi 2024 sec. 4.4)
 # log(1 + max(x, 0) / (albedo + ALBEDO_EPS)): albedo-demodulated radiance (Chaitanya 2017 sec. 3.2), log1p-compressed
 TRANSFORM_LOG1P_DEMODULATED = "log1p_demodulated"
-# log(1 + min(depth / median depth of the frame, 16)): scale-free depth (service/stages/rae_inputs.py)
+# log(1 + min(depth / median depth of the frame's hits, 16)): scale-free depth (service/stages/rae_inputs.py)
 TRANSFORM_LOG1P_RELATIVE_DEPTH = "log1p_relative_depth"
 
 
@@ -77,7 +77,7 @@ RAE_INPUTS: tuple[ChannelGroup, ...] = (
     ChannelGroup("radiance", 3, TRANSFORM_LOG1P_DEMODULATED, "noisy radiance without emission, demodulated"),
     ChannelGroup("normal", 3, TRANSFORM_NONE, "world-space unit shading normal, [-1, 1], 0 where nothing was hit"),
     ChannelGroup("depth", 1, TRANSFORM_LOG1P_RELATIVE_DEPTH, "camera distance relative to the frame's median"),
-    ChannelGroup("roughness", 1, TRANSFORM_NONE, "surface roughness, [0, 1], 0 when the frame has none"),
+    ChannelGroup("roughness", 1, TRANSFORM_NONE, "surface roughness, [0, 1]; -1 when the frame has none"),
 )
 RAE_OUTPUTS: tuple[ChannelGroup, ...] = (
     ChannelGroup("radiance", 3, TRANSFORM_LOG1P_DEMODULATED, "denoised radiance without emission, demodulated"),

@@ -73,10 +73,6 @@ class CrossRegUNet(nn.Module):
         return torch.cat([precisions, torch.sigmoid(alpha)], dim=1)
 
 
-def count_parameters(net: nn.Module) -> int:
-    return sum(p.numel() for p in net.parameters())
-
-
 def make_unet(config: UNetConfig | None = None, *, seed: int | None = None) -> CrossRegUNet:
     """A freshly (randomly, PyTorch default) initialised network; `seed` makes it reproducible."""
     if seed is not None:

@@ -13,8 +13,9 @@ Choices where the paper is silent or where we depart from it (each tested in tes
   whole time on a 2-core CPU at 1280x720; the issue asks for half of OIDN-high's time. Texture detail
   comes back through the albedo remodulation, so the illumination the network sees is smooth enough for
   a half-resolution network whose first layer sees every full-resolution sample.
-- Widths: `RaeConfig.widths`, one per encoder level, default (32, 40, 48, 64, 80) with a bottleneck of
-  the last width: the paper's 32...101 growth (x1.33 a level) trimmed at the coarse end.
+- Widths: `RaeConfig.widths`, one per encoder level, default (32, 48, 64, 80) with a bottleneck of the last
+  width, four levels: the half-resolution input plus four poolings puts the bottleneck at 1/32 of the frame,
+  as the paper's five poolings do; its 32...101 widths are trimmed at the coarse end.
 - The encoder level is the recurrent block itself: its first convolution maps the level's input to the
   level's width (the paper draws an extra convolution before the block).
 - Each decoder level's two convolutions have the width of the encoder level they join.
@@ -135,10 +136,6 @@ class RecurrentAutoencoder(nn.Module):
             x = _act(second(x))
         out = F.pixel_shuffle(self.head(x), SPACE_TO_DEPTH)
         return (out, *new_hidden)
-
-
-def count_parameters(net: nn.Module) -> int:
-    return sum(p.numel() for p in net.parameters())
 
 
 def make_rae(config: RaeConfig | None = None, *, seed: int | None = None) -> RecurrentAutoencoder:

@@ -12,7 +12,9 @@ Sampling (`SequenceBank.sample`), following Chaitanya 2017 sec. 4.3:
 - a random modulation in [0, 2] of each colour channel, applied to the whole window;
 - which noisy estimate feeds the network: the full `color` (p = 1/2) or one half buffer, `colorA` or
   `colorB` (p = 1/4 each: half the samples). This stretches the sample counts the set covers downwards
-  (2-8 spp renders give 1-8 spp inputs). The paper's camera stops (same frame, new noise) are not
+  (2-8 spp renders give 1-8 spp inputs);
+- the roughness plane replaced by ROUGHNESS_ABSENT (p = ROUGHNESS_DROP), as a frame without the optional
+  `roughness` layer gives it. The paper's camera stops (same frame, new noise) are not
   sampled: our sequences carry one noise realisation per frame and half of it is in the other buffer.
 """
 
@@ -25,11 +27,13 @@ import numpy as np
 import torch
 
 from service.exr import list_sequence, read_frame, read_metadata
-from service.stages.albedo import ALBEDO_EPS
-from service.stages.rae_inputs import demodulated, guide_planes
+from service.stages.albedo import remodulate
+from service.stages.rae_inputs import ROUGHNESS_ABSENT, demodulated, guide_planes
 
 NOISY = ("color", "colorA", "colorB")  # the estimates a window may take its noisy input from
 NOISY_P = (0.5, 0.25, 0.25)
+ROUGHNESS_DROP = 0.2  # share of windows that see no roughness
+ROUGHNESS_PLANE = 4  # index of roughness in the guides (service.stages.rae_inputs.guide_planes)
 
 
 @dataclass
@@ -40,7 +44,7 @@ class Sequence:
     noisy: np.ndarray  # (3, F, 3, H, W) float32: color, colorA, colorB demodulated, >= 0
     target: np.ndarray  # (F, 3, H, W) float32 reference demodulated, >= 0
     guides: np.ndarray  # (F, 5, H, W) float32: normal (3), log1p relative depth (1), roughness (1)
-    albedo: np.ndarray  # (F, 3, H, W) float32 albedo + ALBEDO_EPS (the remodulation factor)
+    albedo: np.ndarray  # (F, 3, H, W) float32 remodulation factor (service.stages.albedo.remodulate of 1)
     emission: np.ndarray  # (F, 3, H, W) float32 emission layer (zeros when absent)
     motion: np.ndarray  # (F, 2, H, W) float32 backward motion, pixels (zeros when absent)
     reference: np.ndarray  # (F, 3, H, W) float32 reference radiance (with emission), for validation scores
@@ -70,7 +74,7 @@ def load_sequence(folder: str | Path) -> Sequence:
         noisy.append([_planes(demodulated(frame[k] - emit, frame["albedo"])) for k in NOISY])
         target.append(_planes(demodulated(frame["reference"] - emit, frame["albedo"])))
         guides.append(guide_planes(frame["normal"], frame["depth"], frame.get("roughness")))
-        albedo.append(_planes(np.maximum(frame["albedo"], 0) + ALBEDO_EPS))
+        albedo.append(_planes(remodulate(np.ones((h, w, 3), np.float32), frame["albedo"])))
         emission.append(_planes(emit))
         move = frame.get("motion")
         motion.append(_planes(np.zeros((h, w, 2), np.float32) if move is None else move))
@@ -141,6 +145,10 @@ class SequenceBank:
         source = int(rng.choice(len(NOISY), p=NOISY_P))
         scale = rng.uniform(0.0, 2.0, size=(1, 3, 1, 1)).astype(np.float32)
         k = int(rng.integers(4))
+        guides = seq.guides[window]
+        if rng.random() < ROUGHNESS_DROP:
+            guides = guides.copy()
+            guides[:, ROUGHNESS_PLANE] = ROUGHNESS_ABSENT
         motion = seq.motion[window]
         if order[0] > order[-1]:  # played backwards: no forward motion is stored, so none is given
             motion = np.zeros_like(motion)
@@ -149,7 +157,7 @@ class SequenceBank:
             return torch.from_numpy(np.ascontiguousarray(np.rot90(a, k, axes=(-2, -1))))
 
         return Window(turn(seq.noisy[source][window] * scale), turn(seq.target[window] * scale),
-                      turn(seq.guides[window]), turn(_rotate_motion(motion, k)))
+                      turn(guides), turn(_rotate_motion(motion, k)))
 
 
 def collate(windows: list[Window]) -> Window:

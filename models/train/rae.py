@@ -38,6 +38,7 @@ class RaeRecipe:
         return make_rae(config_from_dict(config) if config else RaeConfig(), seed=seed)
 
     def load(self, config: dict[str, Any]) -> RecurrentAutoencoder:
+        """An untrained network of a checkpoint's stored constructor args (weights loaded by the caller)."""
         return RecurrentAutoencoder(config_from_dict(config))
 
     @staticmethod

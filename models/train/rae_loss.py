@@ -31,7 +31,7 @@ GAMMA = 0.2  # Chaitanya 2017 sec. 4.4: "a more aggressive value of 0.2"
 TONE_EPS = 1e-3  # added before the power: d/dx (x + eps)^0.2 <= 0.2 * eps^-0.8 ~ 50 at x = 0
 WEIGHTS = (0.8, 0.1, 0.1)  # ws, wg, wt (Chaitanya 2017 sec. 4.4)
 HFEN_SIGMA = 1.5  # Laplacian-of-Gaussian sigma, pixels (Ravishankar and Bresler 2011, as in the paper)
-HFEN_RADIUS = 5  # kernel half-width, pixels: ceil(3 sigma) + 1 (11 taps)
+HFEN_RADIUS = 5  # kernel half-width, pixels: 11 taps, out to 3.3 sigma
 
 
 def frame_weights(frames: int) -> torch.Tensor:
@@ -51,12 +51,14 @@ def log_kernel(sigma: float = HFEN_SIGMA, radius: int = HFEN_RADIUS) -> torch.Te
 
 def tone(x: torch.Tensor) -> torch.Tensor:
     """Linear demodulated radiance (>= 0) -> (x + TONE_EPS)^GAMMA, the loss's domain."""
-    return (x.clamp_min(0) + TONE_EPS) ** GAMMA
+    return (x + TONE_EPS) ** GAMMA
 
 
 def prediction_to_linear(pred: torch.Tensor) -> torch.Tensor:
-    """The network's log1p output -> linear demodulated radiance, as radiance_from_output clips it."""
-    return torch.expm1(pred.clamp(0.0, LOG_RADIANCE_MAX))
+    """The network's log1p output -> linear demodulated radiance, clipped as radiance_from_output clips it.
+    The clip passes gradients straight through, so a prediction below 0 still learns where to go."""
+    clipped = pred + (pred.clamp(0.0, LOG_RADIANCE_MAX) - pred).detach()
+    return torch.expm1(clipped)
 
 
 def hfen(image: torch.Tensor) -> torch.Tensor:

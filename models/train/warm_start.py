@@ -27,7 +27,8 @@ import numpy as np
 import torch
 
 from export.crossreg_unet import export_onnx
-from models.nets.crossreg_unet import count_parameters, make_unet, save_checkpoint
+from models.nets import count_parameters
+from models.nets.crossreg_unet import make_unet, save_checkpoint
 from models.train.step import LEARNING_RATE, forward, make_optimizer, samples_to_tensor
 from service.exr import list_sequence, read_frame
 from service.frame import RADIANCE_LAYERS, Frame

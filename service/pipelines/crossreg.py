@@ -31,7 +31,7 @@ from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, channel_slices, sta
 from service.online.trainer import OnlineConfig, OnlineTrainer, require_torch
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
-from service.pipelines.networks import load_network
+from service.pipelines.networks import registered_model
 from service.pipelines.options import MAX_THREADS, option
 from service.runtime import OnnxModel, WeightError, default_init, weight_names
 from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
@@ -216,7 +216,7 @@ class CrossregPipeline(Pipeline):
         """The sequence-shared U-Net of the `weights` named (OptionError when the file is gone or holds
         no crossreg U-Net: an operator's folder may change after the option was checked)."""
         if self._model is None:
-            self._model = load_network(self.options.weights, NETWORK, threads=self.options.threads or None)
+            self._model = registered_model(self.options.weights, NETWORK, threads=self.options.threads or None)
         return self._model
 
     def new_state(self, height: int, width: int) -> CrossregState:

@@ -6,7 +6,7 @@ from service.pipelines.options import OptionError
 from service.runtime import OnnxModel, weight_files
 
 
-def load_network(name: str, network: str, *, threads: int | None, swappable: bool = True) -> OnnxModel:
+def registered_model(name: str, network: str, *, threads: int | None, swappable: bool = True) -> OnnxModel:
     """The registry's `name` as an OnnxModel. OptionError on option `weights` when the file is gone (an
     operator's folder may change after the option was checked), is not a loadable model, or holds another
     network than `network`."""

@@ -23,7 +23,7 @@ from service.frame import Frame
 from service.layout import pad_planes
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
-from service.pipelines.networks import load_network
+from service.pipelines.networks import registered_model
 from service.pipelines.options import MAX_THREADS, option
 from service.runtime import OnnxModel, weight_names
 from service.stages.hidden_warp import warp_state
@@ -73,8 +73,8 @@ class RaePipeline(Pipeline):
 
     def model(self) -> OnnxModel:
         if self._model is None:
-            self._model = load_network(self.options.weights, NETWORK, threads=self.options.threads or None,
-                                       swappable=False)
+            self._model = registered_model(self.options.weights, NETWORK, threads=self.options.threads or None,
+                                           swappable=False)
         return self._model
 
     @property
@@ -86,6 +86,12 @@ class RaePipeline(Pipeline):
         self.model()  # a bad `weights` file fails at the start of the sequence, not at its first frame
         return RaeState(height, width)
 
+    def check(self, frame: Frame, state: SequenceState) -> None:
+        """Pipeline.check, and `motion` is required while the hidden state is warped."""
+        super().check(frame, state)
+        if self.warps:
+            frame.require(("motion",), who=f"pipeline '{self.name}' with warp")
+
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         model = self.model()
         info = model.info
@@ -96,11 +102,15 @@ class RaePipeline(Pipeline):
         hidden = state.hidden
         if not hidden:
             hidden = [np.zeros(spec.shape(height, width), np.float32) for spec in info.state]
-        elif self.warps and "motion" in frame:
+        elif self.warps:
             motion = pad_planes(frame["motion"].transpose(2, 0, 1), info.alignment).transpose(1, 2, 0)
             hidden = [warp_state(h, motion, spec.scale) for h, spec in zip(hidden, info.state, strict=True)]
         feeds = {info.input_name: padded[None], **{spec.input: h for spec, h in zip(info.state, hidden, strict=True)}}
         outputs = model.run(feeds)
+        if not all(np.isfinite(value).all() for value in outputs.values()):
+            state.hidden = []  # a non-finite state would fail every later frame: the next starts afresh
+            raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite values; "
+                                     "its recurrent state was reset")
         state.hidden = [outputs[spec.output] for spec in info.state]
         radiance = outputs[info.output_name][0, :, : frame.height, : frame.width]
         return {"color": radiance_from_output(radiance, albedo)}, state

@@ -3,9 +3,12 @@ RAE_OUTPUTS). Training (models/train/dataset.py) and serving (service/pipelines/
 the channel order and transforms exist once.
 
 Radiance is albedo-demodulated (Chaitanya 2017 sec. 3.2) with service.stages.albedo's offset and compressed
-with log1p (negative radiance, legal input, counts as 0). Depth is divided by the frame's median hit depth,
-clipped at DEPTH_CLIP (misses: renderers write any large value) and log1p-compressed, so the network sees
-the same numbers for a scene modelled in millimetres or in metres.
+with log1p (the paper raises its input to the power 0.2; log1p compresses HDR as the other networks here do;
+negative radiance, legal input, counts as 0). Depth is divided by the median depth of the frame's surface
+hits (a nonzero normal; misses carry any large value a renderer writes and stay out of the median),
+clipped at DEPTH_CLIP and log1p-compressed, so the network sees the same numbers for a scene modelled in
+millimetres or in metres, whatever share of the frame is sky. Roughness, optional in the frame format, is
+ROUGHNESS_ABSENT when a frame has none (training drops it to that value at random, so the network knows it).
 """
 
 from __future__ import annotations
@@ -13,39 +16,43 @@ from __future__ import annotations
 import numpy as np
 
 from service.layout import RAE_INPUTS, total_channels
-from service.stages.albedo import ALBEDO_EPS
+from service.stages.albedo import demodulate, remodulate
+from service.stages.reprojection import NORMAL_HIT
 
 DEPTH_CLIP = 16.0  # relative depth above this (misses, far background) reads as this
 DEPTH_STRIDE = 4  # the median depth is taken over every 4th row and column (a 1/16 subsample)
 LOG_RADIANCE_MAX = 30.0  # log1p output clipped here before expm1: demodulated radiance up to ~1e13
 PLANES = total_channels(RAE_INPUTS)  # 8
 GUIDES = PLANES - 3  # normal, depth, roughness
+ROUGHNESS_ABSENT = -1.0  # the roughness plane of a frame without `roughness` (outside the range [0, 1])
 
 
-def median_depth(depth: np.ndarray) -> float:
-    """depth: (H, W, 1) float32 camera distance (any unit). The median of the positive finite values of a
-    DEPTH_STRIDE subsample, in the same unit; 1 when there is none."""
+def median_depth(depth: np.ndarray, normal: np.ndarray) -> float:
+    """depth: (H, W, 1) float32 camera distance (any unit); normal: (H, W, 3) float32 (zero where nothing was
+    hit). The median depth of the surface hits of a DEPTH_STRIDE subsample, in depth's unit; 1 when none."""
+    n = normal[::DEPTH_STRIDE, ::DEPTH_STRIDE]
     sample = depth[::DEPTH_STRIDE, ::DEPTH_STRIDE, 0]
-    sample = sample[np.isfinite(sample) & (sample > 0)]
-    return float(np.median(sample)) if sample.size else 1.0
+    hit = (np.einsum("hwc,hwc->hw", n, n) > NORMAL_HIT) & np.isfinite(sample) & (sample > 0)
+    return float(np.median(sample[hit])) if hit.any() else 1.0
 
 
 def demodulated(color: np.ndarray, albedo: np.ndarray) -> np.ndarray:
     """color: (..., 3) float32 linear radiance without emission; albedo: (..., 3) float32 in [0, 1].
-    Returns max(color, 0) / (albedo + ALBEDO_EPS), same shape, float32 >= 0 (before log1p)."""
-    return np.maximum(color, 0) / (np.maximum(albedo, 0) + ALBEDO_EPS)
+    Returns service.stages.albedo.demodulate of max(color, 0): same shape, float32 >= 0 (before log1p)."""
+    return demodulate(np.maximum(color, 0), albedo)
 
 
 def guide_planes(normal: np.ndarray, depth: np.ndarray, roughness: np.ndarray | None) -> np.ndarray:
     """The non-radiance inputs. normal: (H, W, 3) float32 unit or zero; depth: (H, W, 1) float32 camera
-    distance; roughness: (H, W, 1) float32 in [0, 1] or None (zeros). Returns (5, H, W) float32 planes in
-    RAE_INPUTS order after the radiance: normal, log1p relative depth, roughness."""
+    distance; roughness: (H, W, 1) float32 in [0, 1] or None (ROUGHNESS_ABSENT). Returns (5, H, W) float32
+    planes in RAE_INPUTS order after the radiance: normal, log1p relative depth, roughness."""
     h, w = normal.shape[:2]
     out = np.empty((GUIDES, h, w), np.float32)
     out[0:3] = normal.transpose(2, 0, 1)
-    relative = np.minimum(np.maximum(depth[..., 0], 0) / np.float32(median_depth(depth)), np.float32(DEPTH_CLIP))
+    scale = np.float32(median_depth(depth, normal))
+    relative = np.minimum(np.maximum(depth[..., 0], 0) / scale, np.float32(DEPTH_CLIP))
     out[3] = np.log1p(np.nan_to_num(relative, nan=0.0))
-    out[4] = 0.0 if roughness is None else roughness[..., 0]
+    out[4] = ROUGHNESS_ABSENT if roughness is None else roughness[..., 0]
     return out
 
 
@@ -60,5 +67,5 @@ def rae_planes(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray, depth:
 def radiance_from_output(planes: np.ndarray, albedo: np.ndarray) -> np.ndarray:
     """planes: (3, H, W) float32 network output (log1p demodulated radiance); albedo: (H, W, 3) float32.
     Returns (H, W, 3) float32 linear radiance (without emission), >= 0 and finite."""
-    log = np.clip(planes.transpose(1, 2, 0), 0.0, LOG_RADIANCE_MAX)
-    return np.expm1(log) * (np.maximum(albedo, 0) + ALBEDO_EPS)
+    log = np.clip(np.nan_to_num(planes.transpose(1, 2, 0), nan=0.0), 0.0, LOG_RADIANCE_MAX)
+    return remodulate(np.expm1(log), albedo)

@@ -37,7 +37,8 @@ def test_torch_and_onnxruntime_agree_over_recurrent_steps(exported, size, swappa
         if hidden_np is None:
             hidden_np = [np.zeros(spec.shape(ph, pw), np.float32) for spec in info.state]
             hidden_t = net.zero_hidden(1, ph, pw)
-        out = model.run({info.input_name: planes[None], **{s.input: a for s, a in zip(info.state, hidden_np)}})
+        state = {s.input: a for s, a in zip(info.state, hidden_np, strict=True)}
+        out = model.run({info.input_name: planes[None], **state})
         with torch.no_grad():
             ref, *hidden_t = net(torch.from_numpy(planes[None]), *hidden_t)
         np.testing.assert_allclose(out[info.output_name], ref.numpy(), atol=ORT_ATOL, rtol=1e-4)

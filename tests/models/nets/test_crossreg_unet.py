@@ -5,10 +5,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from models.nets import count_parameters  # noqa: E402
 from models.nets.crossreg_unet import (  # noqa: E402
     CrossRegUNet,
     UNetConfig,
-    count_parameters,
     load_checkpoint,
     make_unet,
     save_checkpoint,

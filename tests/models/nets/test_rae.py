@@ -5,11 +5,11 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from models.nets import count_parameters  # noqa: E402
 from models.nets.rae import (  # noqa: E402
     LEAKY_SLOPE,
     SPACE_TO_DEPTH,
     RaeConfig,
-    count_parameters,
     load_network,
     make_rae,
     state_for,

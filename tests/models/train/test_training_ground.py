@@ -9,10 +9,17 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from models.data import SAMPLE_DIRS  # noqa: E402
-from models.train.dataset import SequenceBank, _rotate_motion, collate, load_sequence  # noqa: E402
+from models.train.dataset import (  # noqa: E402
+    ROUGHNESS_PLANE,
+    Sequence,
+    SequenceBank,
+    _rotate_motion,
+    collate,
+    load_sequence,
+)
 from models.train.train import BEST, CHECKPOINT, CURVES, LOG, TrainOptions, learning_rate, train  # noqa: E402
 from service.exr import read_sequence  # noqa: E402
-from service.stages.rae_inputs import demodulated  # noqa: E402
+from service.stages.rae_inputs import ROUGHNESS_ABSENT, demodulated  # noqa: E402
 
 SAMPLE = SAMPLE_DIRS[0]
 
@@ -37,9 +44,26 @@ def test_windows_have_the_requested_shape_and_stay_within_the_data(bank):
     assert batch.noisy.shape == (8, 7, 3, 96, 96) and batch.guides.shape == (8, 7, 5, 96, 96)
     assert batch.motion.shape == (8, 7, 2, 96, 96)
     assert (batch.noisy >= 0).all() and (batch.target >= 0).all()
-    # the colour modulation is one factor per channel for the whole window, the same for noisy and target
+
+
+def test_colour_modulation_is_one_factor_per_channel_for_noisy_and_target_alike(bank):
     seq = bank.sequences[0]
-    assert batch.target.max() <= 2 * float(seq.target.max()) + 1e-3
+    ones = Sequence("ones", np.ones_like(seq.noisy), np.ones_like(seq.target), seq.guides, seq.albedo,
+                    seq.emission, seq.motion, seq.reference, seq.spp)
+    rng = np.random.default_rng(2)
+    for _ in range(4):
+        window = SequenceBank([ones]).sample(rng, 7, 96)
+        scale = window.target[0, :, 0, 0]
+        assert ((0 <= scale) & (scale <= 2)).all()
+        assert torch.equal(window.target, scale.view(1, 3, 1, 1).expand_as(window.target))
+        assert torch.equal(window.noisy, window.target)
+
+
+def test_some_windows_see_no_roughness(bank):
+    rng = np.random.default_rng(3)
+    dropped = [bool((bank.sample(rng, 7, 96).guides[:, ROUGHNESS_PLANE] == ROUGHNESS_ABSENT).all())
+               for _ in range(40)]
+    assert 0 < sum(dropped) < 40
 
 
 def test_forward_only_windows_keep_their_motion(bank):
@@ -82,6 +106,13 @@ def test_training_writes_its_files_and_resumes_exactly(tmp_path):
     assert [int(r["step"]) for r in val] == [2, 4]
     assert all(np.isfinite(float(r["val_rel_l2"])) and float(r["val_temporal"]) > 0 for r in val)
     assert len([r for r in rows if r["kind"] == "train"]) == 4
+
+
+def test_resume_with_other_options_is_refused(tmp_path):
+    train(_opts(tmp_path, 1), progress=False)
+    changed = TrainOptions(**{**_opts(tmp_path, 2).__dict__, "lr": 5e-4})
+    with pytest.raises(ValueError, match=r"other options than the run had .*lr 0.001 -> 0.0005"):
+        train(changed, resume=True, progress=False)
 
 
 def test_resume_without_a_checkpoint_says_so(tmp_path):

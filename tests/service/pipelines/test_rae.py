@@ -10,7 +10,7 @@ from service import pipelines
 from service.exr import read_sequence
 from service.frame import Frame, FrameError
 from service.metrics import rel_l2, temporal_rel_l2
-from service.pipelines.rae import RaePipeline, trained_with_warp
+from service.pipelines.rae import RaePipeline
 
 SAMPLE = SAMPLE_DIRS[0]
 
@@ -80,7 +80,43 @@ def test_warp_option_moves_the_state_and_zero_motion_changes_nothing(frames):
     assert not np.allclose(moving[2], plain_moving[2])
 
 
-def test_warp_defaults_to_how_the_weights_were_trained():
+def test_warp_defaults_to_how_the_weights_were_trained(tmp_path, monkeypatch):
+    """A weights file whose training metadata says warp makes the pipeline warp unless told otherwise."""
+    import json
+
+    import onnx
+
+    from service.runtime import METADATA_KEY, SHIPPED_WEIGHTS, WEIGHTS_DIR_ENV
+
+    model = onnx.load(SHIPPED_WEIGHTS / "rae.onnx")
+    entry = next(p for p in model.metadata_props if p.key == METADATA_KEY)
+    meta = json.loads(entry.value)
+    meta["training"] = {**(meta.get("training") or {}), "options": {"warp": True}}
+    entry.value = json.dumps(meta)
+    onnx.save(model, tmp_path / "rae_warped.onnx")
+    monkeypatch.setenv(WEIGHTS_DIR_ENV, str(tmp_path))
+    assert RaePipeline(weights="rae_warped").warps
+    assert not RaePipeline(weights="rae_warped", warp=False).warps
+    assert RaePipeline(warp=True).warps
+
+
+def test_warping_needs_motion(frames):
+    pipeline = pipelines.get("rae", warp=True)
+    frame = Frame({k: v for k, v in frames[0].buffers.items() if k != "motion"}, {})
+    with pytest.raises(FrameError, match="missing layer 'motion' required by pipeline 'rae' with warp"):
+        pipeline.step(frame, pipeline.start(120, 120))
+
+
+def test_a_non_finite_network_output_resets_the_state_and_the_sequence_goes_on(frames, monkeypatch):
     pipeline = pipelines.get("rae")
-    assert pipeline.warps == trained_with_warp(pipeline.model())
-    assert RaePipeline(warp=True).warps and not RaePipeline(warp=False).warps
+    state = pipeline.start(120, 120)
+    _, state = pipeline.step(frames[0], state)
+    model = pipeline.model()
+    real = model.run
+    monkeypatch.setattr(model, "run", lambda feeds: {k: v * np.nan for k, v in real(feeds).items()})
+    with pytest.raises(FloatingPointError, match="recurrent state was reset"):
+        pipeline.step(frames[1], state)
+    assert state.hidden == []
+    monkeypatch.setattr(model, "run", real)
+    out, state = pipeline.step(frames[2], state)
+    assert np.isfinite(out["color"]).all() and len(state.hidden) == 4

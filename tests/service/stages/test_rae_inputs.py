@@ -6,7 +6,14 @@ import pytest
 
 from service.layout import RAE_INPUTS, channel_slices
 from service.stages.albedo import ALBEDO_EPS
-from service.stages.rae_inputs import DEPTH_CLIP, demodulated, guide_planes, radiance_from_output, rae_planes
+from service.stages.rae_inputs import (
+    DEPTH_CLIP,
+    ROUGHNESS_ABSENT,
+    demodulated,
+    guide_planes,
+    radiance_from_output,
+    rae_planes,
+)
 
 
 def _frame(h=6, w=7, seed=0):
@@ -35,13 +42,30 @@ def test_planes_follow_the_layout_with_hand_computed_values():
     assert planes[where["depth"], 1, 1] == pytest.approx(np.log1p(1.0))  # median 2: relative 1
     assert planes[where["depth"], 0, 0] == pytest.approx(np.log1p(DEPTH_CLIP))
     np.testing.assert_array_equal(planes[where["roughness"]][0], rough[..., 0])
-    assert (rae_planes(color, albedo, normal, depth, None)[where["roughness"]] == 0).all()
+    assert (rae_planes(color, albedo, normal, depth, None)[where["roughness"]] == ROUGHNESS_ABSENT).all()
 
 
 def test_depth_in_millimetres_or_metres_gives_the_same_planes():
     color, albedo, normal, depth, rough = _frame(seed=1)
     np.testing.assert_allclose(guide_planes(normal, depth, rough), guide_planes(normal, depth * 1000, rough),
                                rtol=1e-6)
+
+
+def test_sky_does_not_move_the_depth_scale():
+    """Misses (zero normal, any large depth) stay out of the median: the planes of the surfaces do not
+    change when most of the frame turns to sky."""
+    color, albedo, normal, depth, rough = _frame(h=16, w=16, seed=4)
+    some_sky, most_sky = (normal.copy(), depth.copy()), (normal.copy(), depth.copy())
+    some_sky[0][:4], some_sky[1][:4] = 0.0, 1e10
+    most_sky[0][:12], most_sky[1][:12] = 0.0, 1e10
+    a = guide_planes(*some_sky, rough)
+    b = guide_planes(*most_sky, rough)
+    surface = slice(12, 16)
+    scale_a = np.median(depth[4::4, ::4])  # the hits of the stride-4 subsample
+    scale_b = np.median(depth[12::4, ::4])
+    np.testing.assert_allclose(a[3, surface], np.log1p(depth[surface, :, 0] / scale_a), rtol=1e-5)
+    np.testing.assert_allclose(b[3, surface], np.log1p(depth[surface, :, 0] / scale_b), rtol=1e-5)
+    assert (b[3, :12] == np.float32(np.log1p(DEPTH_CLIP))).all()
 
 
 def test_output_transform_inverts_the_input_transform():
