@@ -24,7 +24,7 @@ import torch
 from export import onnx as onnx_export
 from models.nets import count_parameters
 from models.nets.rae import SPACE_TO_DEPTH, RecurrentAutoencoder, load_network
-from models.train.train import LOG
+from models.train.train import LOG, inference_state
 from service.layout import RAE_INPUTS, RAE_OUTPUTS, groups_to_json
 
 NETWORK = "rae"
@@ -58,13 +58,29 @@ def export_bytes(net: RecurrentAutoencoder, *, extra: dict[str, Any] | None = No
     return onnx_export.export_bytes(net, inputs, [OUTPUT_NAME, *(o for _, o in names)], metadata, named_weights=False)
 
 
+def train_command(opts: dict[str, Any], step: int) -> str:
+    """The `python -m models.train` command line that remakes a run's checkpoint of step `step` from its
+    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps;
+    training is deterministic for a given thread count)."""
+    opts = {"ema": 0.0, **opts, "steps": step, "minutes": 0.0}  # runs from before the `ema` option used raw weights
+    flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
+                     if k not in ("net", "warp", "init", "minutes") and v not in ("", None))
+    flags += " --warp" * bool(opts.get("warp")) + (f" --init {opts['init']}" if opts.get("init") else "")
+    return f"python -m models.train {opts.get('net', NETWORK)} {flags}"
+
+
 def manifest(ckpt: dict[str, Any], checkpoint: Path, onnx_path: Path) -> dict[str, Any]:
     """What the shipped weights are and how they were made: the network, the training run (options as
-    a command line, data, seed, steps, losses, time, machine) from the checkpoint and the log.csv beside it."""
+    a command line, preceded by the runs it fine-tuned, oldest first; data, seed, steps, losses, time,
+    machine) from the checkpoint and the log.csv beside it."""
     opts = ckpt.get("options") or {}
-    flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
-                     if k not in ("net", "warp", "init") and v not in ("", None))
-    flags += " --warp" * bool(opts.get("warp")) + (f" --init {opts['init']}" if opts.get("init") else "")
+    runs, base, init = [train_command(opts, ckpt["step"])], [], opts.get("init")
+    while init and Path(init).is_file():  # the runs this one fine-tuned, oldest first
+        start = torch.load(init, map_location="cpu", weights_only=False)
+        runs.insert(0, train_command(start["options"], start["step"]))
+        base.insert(0, {"checkpoint": init, "step": start.get("step"), "seconds": start.get("seconds"),
+                        "best_val_rel_l2": start.get("best_val_rel_l2")})
+        init = start["options"].get("init")
     log = checkpoint.parent / LOG
     rows = list(csv.DictReader(log.open())) if log.is_file() else []
     train_rows = [r for r in rows if r["kind"] == "train"]
@@ -73,10 +89,9 @@ def manifest(ckpt: dict[str, Any], checkpoint: Path, onnx_path: Path) -> dict[st
         "network": NETWORK,
         "file": onnx_path.name,
         "bytes": onnx_path.stat().st_size,
-        "parameters": count_parameters(load_network(ckpt)),
+        "parameters": count_parameters(load_network(inference_state(ckpt))),
         "config": ckpt["config"],
-        "commands": ["make data", f"python -m models.train {NETWORK} {flags}",
-                     f"python -m export {NETWORK} {checkpoint} {onnx_path}"],
+        "commands": ["make data", *runs, f"python -m export {NETWORK} {checkpoint} {onnx_path}"],
         "seed": opts.get("seed"),
         "step": ckpt.get("step"),
         "data": ckpt.get("data"),
@@ -87,6 +102,7 @@ def manifest(ckpt: dict[str, Any], checkpoint: Path, onnx_path: Path) -> dict[st
         "validation_curve": [{"step": int(r["step"]), "rel_l2": float(r["val_rel_l2"]),
                               "temporal": float(r["val_temporal"])} for r in val_rows],
         "training_seconds": float(rows[-1]["seconds"]) if rows else None,
+        "fine_tuned_from": base,
         "machine": ckpt.get("machine"),
     }
 
@@ -98,6 +114,6 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
     training = {"options": ckpt.get("options"), "step": ckpt.get("step"),
                 "best_val_rel_l2": ckpt.get("best_val_rel_l2"), "machine": ckpt.get("machine")}
-    path = onnx_export.write(export_bytes(load_network(ckpt), extra={"training": training}), out)
+    path = onnx_export.write(export_bytes(load_network(inference_state(ckpt)), extra={"training": training}), out)
     path.with_suffix(".json").write_text(json.dumps(manifest(ckpt, checkpoint, path), indent=1) + "\n")
     return path

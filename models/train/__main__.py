@@ -23,6 +23,7 @@ def _parser() -> argparse.ArgumentParser:
     for name in ("steps", "batch", "warmup", "seed", "threads", "val_every", "log_every", "checkpoint_every"):
         p.add_argument("--" + name.replace("_", "-"), type=int, default=defaults[name])
     p.add_argument("--lr", type=float, default=defaults["lr"])
+    p.add_argument("--ema", type=float, default=defaults["ema"], help="weight-average decay (0: raw weights)")
     p.add_argument("--minutes", type=float, default=defaults["minutes"], help="wall-time limit (0: none)")
     p.add_argument("--warp", action="store_true", help="warp the recurrent state by motion between frames")
     p.add_argument("--init", default="", help="start from this checkpoint's weights (fine-tune)")

@@ -3,7 +3,8 @@
 One run writes into its output folder:
 - `checkpoint.pt`: network constructor args and weights, optimizer, step, random-generator states and the
   run's arguments, every `checkpoint_every` steps and at the end; `--resume` continues from it exactly;
-- `best.pt`: the checkpoint with the lowest validation relL2 so far (what export/ exports);
+- `best.pt`: the checkpoint with the lowest validation relL2 so far (what export/ exports: its weight average,
+  `inference_state`);
 - `log.csv`: one row per `log_every` steps (mean loss terms, learning rate, sequences per second) and one
   per validation (relL2 and temporal error on the held-out sequences, service/metrics.py);
 - `curves.png`: the training loss and the validation scores against the step.
@@ -15,6 +16,7 @@ rate ramps up tenfold geometrically over the first `warmup` steps (from 1e-4 to 
 
 from __future__ import annotations
 
+import copy
 import csv
 import math
 import os
@@ -62,6 +64,8 @@ class TrainOptions:
     minutes: float = 0.0  # stop (with a checkpoint) after this much wall time of this invocation; 0: no limit
     warp: bool = False  # warp recurrent state by motion between frames (the pipeline option of the same name)
     init: str = ""  # start from this checkpoint's weights (a fine-tune; a fresh optimiser and step 0)
+    ema: float = 0.999  # decay of the exponential moving average of the weights that is validated and
+    # exported (Polyak averaging; 0: the raw weights). Batches of 4 windows make single steps noisy.
 
     def __post_init__(self):
         if self.net not in RECIPES:
@@ -71,6 +75,8 @@ class TrainOptions:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 < self.lr <= 1:
             raise ValueError(f"lr must be in (0, 1], got {self.lr}")
+        if not 0 <= self.ema < 1:
+            raise ValueError(f"ema must be in [0, 1), got {self.ema}")
 
 
 def learning_rate(step: int, peak: float, warmup: int) -> float:
@@ -113,8 +119,8 @@ def machine() -> dict[str, Any]:
             "torch": torch.__version__, "python": platform.python_version()}
 
 
-def _state(net, optimizer, step, rng, opts, best, seconds, extra) -> dict[str, Any]:
-    return {"net": net.__class__.__name__, **state_for(net),
+def _state(net, ema, optimizer, step, rng, opts, best, seconds, extra) -> dict[str, Any]:
+    return {"net": net.__class__.__name__, **state_for(net), "ema_state_dict": ema.state_dict(),
             "optimizer": optimizer.state_dict(), "step": step, "rng": rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(), "options": asdict(opts), "best_val_rel_l2": best,
             "seconds": seconds, **extra}
@@ -155,8 +161,22 @@ def plot_curves(log_path: Path, png_path: Path) -> None:
     plt.close(fig)
 
 
+def inference_state(ckpt: dict[str, Any]) -> dict[str, Any]:
+    """{'config', 'state_dict'} of the weights a checkpoint serves with: the averaged ones when it has them."""
+    return {"config": ckpt["config"], "state_dict": ckpt.get("ema_state_dict") or ckpt["state_dict"]}
+
+
+def update_average(ema: torch.nn.Module, net: torch.nn.Module, decay: float, step: int) -> None:
+    """ema <- d ema + (1 - d) net with d = min(decay, (1 + step) / (10 + step)) (a short average early on);
+    decay 0 copies the weights."""
+    d = min(decay, (1 + step) / (10 + step))
+    with torch.no_grad():
+        for average, weight in zip(ema.parameters(), net.parameters(), strict=True):
+            average.mul_(d).add_(weight, alpha=1 - d)
+
+
 def _start(opts: TrainOptions, recipe: RaeRecipe, ckpt_path: Path, resume: bool):
-    """(net, optimizer, step, best validation relL2, sampling rng, seconds trained so far): from the
+    """(net, weight average, optimizer, step, best validation relL2, sampling rng, seconds trained so far): from the
     checkpoint with `resume`, else fresh (from `opts.init`'s weights when given) with fixed seeds."""
     if resume:
         if not ckpt_path.is_file():
@@ -174,15 +194,17 @@ def _start(opts: TrainOptions, recipe: RaeRecipe, ckpt_path: Path, resume: bool)
         rng = np.random.default_rng()
         rng.bit_generator.state = ckpt["rng"]
         torch.set_rng_state(ckpt["torch_rng"])
-        return net, optimizer, int(ckpt["step"]), float(ckpt["best_val_rel_l2"]), rng, float(ckpt["seconds"])
+        ema = copy.deepcopy(net)
+        ema.load_state_dict(ckpt["ema_state_dict"])
+        return net, ema, optimizer, int(ckpt["step"]), float(ckpt["best_val_rel_l2"]), rng, float(ckpt["seconds"])
     torch.manual_seed(opts.seed)
     net = recipe.build(None, opts.seed)
     if opts.init:
-        start = torch.load(opts.init, map_location="cpu", weights_only=False)
+        start = inference_state(torch.load(opts.init, map_location="cpu", weights_only=False))
         net = recipe.load(start["config"])
         net.load_state_dict(start["state_dict"])
     optimizer = torch.optim.Adam(net.parameters(), lr=opts.lr, betas=(0.9, 0.99))
-    return net, optimizer, 0, math.inf, np.random.default_rng(opts.seed), 0.0
+    return net, copy.deepcopy(net), optimizer, 0, math.inf, np.random.default_rng(opts.seed), 0.0
 
 
 def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
@@ -196,7 +218,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
     recipe = RECIPES[opts.net](warp=opts.warp)
     bank, held_out = SequenceBank.from_root(opts.data), SequenceBank.from_root(opts.val)
     ckpt_path, log_path = out / CHECKPOINT, out / LOG
-    net, optimizer, step, best, rng, elapsed = _start(opts, recipe, ckpt_path, resume)
+    net, ema, optimizer, step, best, rng, elapsed = _start(opts, recipe, ckpt_path, resume)
     if step == 0:
         log_path.unlink(missing_ok=True)
     extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences],
@@ -214,6 +236,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
         optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
         optimizer.step()
+        update_average(ema, net, opts.ema, step)
         step += 1
         sums += [t.item() for t in (terms.total, terms.spatial, terms.gradient, terms.temporal)]
         count += 1
@@ -229,17 +252,17 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
             sums, count, tick = np.zeros(4), 0, now
         timed_out = opts.minutes > 0 and time.perf_counter() - started - elapsed > 60 * opts.minutes
         if step % opts.val_every == 0 or step == opts.steps or timed_out:
-            rel, tmp = validate(recipe, net, held_out)
+            rel, tmp = validate(recipe, ema, held_out)
             _append_log(log_path, {"step": step, "kind": "val", "val_rel_l2": rel, "val_temporal": tmp,
                                    "seconds": time.perf_counter() - started})
             plot_curves(log_path, out / CURVES)
             bar.write(f"step {step}: held-out relL2 {rel:.4f}, temporal {tmp:.4f}")
             if rel < best:
                 best = rel
-                torch.save(_state(net, optimizer, step, rng, opts, best, time.perf_counter() - started, extra),
+                torch.save(_state(net, ema, optimizer, step, rng, opts, best, time.perf_counter() - started, extra),
                            out / BEST)
         if step % opts.checkpoint_every == 0 or step == opts.steps or timed_out:
-            torch.save(_state(net, optimizer, step, rng, opts, best, time.perf_counter() - started, extra),
+            torch.save(_state(net, ema, optimizer, step, rng, opts, best, time.perf_counter() - started, extra),
                        ckpt_path)
         if timed_out:
             break

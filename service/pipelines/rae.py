@@ -6,6 +6,12 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
   2. optional (`warp`): each level's hidden state moved by the frame's motion (service/stages/hidden_warp.py)
   3. the network in ONNX Runtime: (features, hidden states) -> (log1p demodulated radiance, next hidden states)
   4. expm1 and remodulation by the albedo, cropped back to the frame
+The background (pixels where nothing was hit: zero normal) passes through as it came, and the network sees
+zero radiance there. Our training renders carry the directly seen environment in their `emission` layer,
+so the network learned radiance without it; a frame whose renderer writes no `emission` layer, or one
+without the environment (Blender's Emit pass), would otherwise hand it a sky of radiance / ALBEDO_EPS that
+it never saw (the `glints` hard case: a sky tile 16x worse than the noisy input). The environment seen
+directly is nearly noise-free in a path tracer (one lookup per sample), so passing it through costs little.
 State: the network's hidden states (explicit ONNX inputs and outputs, ModelInfo.state), zeros at the first
 frame of every sequence. A sequence has one size (Pipeline.check refuses a frame of another size, as the
 streaming sessions do), so a renderer that changes resolution starts a new sequence, and with it a new state.
@@ -28,6 +34,7 @@ from service.pipelines.options import MAX_THREADS, option
 from service.runtime import OnnxModel, weight_names
 from service.stages.hidden_warp import warp_state
 from service.stages.rae_inputs import radiance_from_output, rae_planes
+from service.stages.reprojection import NORMAL_HIT
 
 NETWORK = "rae"  # the network a `weights` file must hold (its ONNX metadata)
 DEFAULT_WEIGHTS = "rae"  # models/weights/rae.onnx (manifest: rae.json)
@@ -50,6 +57,12 @@ class RaeState(SequenceState):
     order; empty before the first frame."""
 
     hidden: list[np.ndarray] = field(default_factory=list)
+
+
+def background_mask(normal: np.ndarray) -> np.ndarray:
+    """normal: (H, W, 3) float32 world-space normal, zero where nothing was hit. Returns (H, W, 1) bool,
+    True on the background (|n|^2 <= NORMAL_HIT, the reprojection stage's test)."""
+    return (np.einsum("hwc,hwc->hw", normal, normal) <= NORMAL_HIT)[..., None]
 
 
 def trained_with_warp(model: OnnxModel) -> bool:
@@ -95,8 +108,10 @@ class RaePipeline(Pipeline):
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         model = self.model()
         info = model.info
-        albedo = frame["albedo"]
-        planes = rae_planes(frame["color"], albedo, frame["normal"], frame["depth"], frame.get("roughness"))
+        albedo, color = frame["albedo"], frame["color"]
+        background = background_mask(frame["normal"])
+        planes = rae_planes(np.where(background, np.float32(0), color), albedo, frame["normal"], frame["depth"],
+                            frame.get("roughness"))
         padded = np.ascontiguousarray(pad_planes(planes, info.alignment))
         height, width = padded.shape[1:]
         hidden = state.hidden
@@ -112,5 +127,5 @@ class RaePipeline(Pipeline):
             raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite values; "
                                      "its recurrent state was reset")
         state.hidden = [outputs[spec.output] for spec in info.state]
-        radiance = outputs[info.output_name][0, :, : frame.height, : frame.width]
-        return {"color": radiance_from_output(radiance, albedo)}, state
+        radiance = radiance_from_output(outputs[info.output_name][0, :, : frame.height, : frame.width], albedo)
+        return {"color": np.where(background, color, radiance)}, state

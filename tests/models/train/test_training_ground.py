@@ -160,3 +160,22 @@ def test_the_three_commands_chain(tmp_path, capsys):
     assert (tmp_path / "rae.onnx").is_file() and (tmp_path / "rae.json").is_file()
     with pytest.raises(SystemExit, match="steps must be >= 1"):
         train_main(["rae", "--data", "d", "--val", "v", "--out", "o", "--steps", "0"])
+
+
+def test_weight_average_follows_the_weights_and_is_what_a_checkpoint_serves():
+    from models.nets.rae import RaeConfig, make_rae
+    from models.train.train import inference_state, update_average
+
+    net, ema = make_rae(RaeConfig(widths=(4,)), seed=0), make_rae(RaeConfig(widths=(4,)), seed=1)
+    update_average(ema, net, 0.0, step=100)  # decay 0: a copy
+    assert all(torch.equal(a, b) for a, b in zip(ema.parameters(), net.parameters(), strict=True))
+    before = [p.clone() for p in ema.parameters()]
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(1.0)
+    update_average(ema, net, 0.9, step=1000)  # d = 0.9: a tenth of the way
+    for old, new in zip(before, ema.parameters(), strict=True):
+        torch.testing.assert_close(new, old + 0.1)
+    ckpt = {"config": {}, "state_dict": {"w": 1}, "ema_state_dict": {"w": 2}}
+    assert inference_state(ckpt)["state_dict"] == {"w": 2}
+    assert inference_state({"config": {}, "state_dict": {"w": 1}})["state_dict"] == {"w": 1}

@@ -120,3 +120,16 @@ def test_a_non_finite_network_output_resets_the_state_and_the_sequence_goes_on(f
     monkeypatch.setattr(model, "run", real)
     out, state = pipeline.step(frames[2], state)
     assert np.isfinite(out["color"]).all() and len(state.hidden) == 4
+
+
+def test_the_background_passes_through_as_it_came(frames):
+    """Where nothing was hit (zero normal) the output is the input: the network never saw the environment
+    as radiance (our renders carry it in `emission`)."""
+    f = frames[0]
+    normal = f["normal"].copy()
+    normal[:30] = 0.0  # the top quarter is sky now
+    sky = Frame({**{k: v for k, v in f.buffers.items() if k not in ("reference", "emission")}, "normal": normal}, {})
+    pipeline = pipelines.get("rae")
+    out, _ = pipeline.step(sky, pipeline.start(120, 120))
+    np.testing.assert_array_equal(out["color"][:30], sky["color"][:30])
+    assert not np.array_equal(out["color"][30:], sky["color"][30:])
