@@ -62,7 +62,8 @@ def train_command(opts: dict[str, Any], step: int) -> str:
     """The `python -m models.train` command line that remakes a run's checkpoint of step `step` from its
     stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps;
     training is deterministic for a given thread count)."""
-    opts = {"ema": 0.0, **opts, "steps": step, "minutes": 0.0}  # runs from before the `ema` option used raw weights
+    opts = {**opts, "steps": step, "minutes": 0.0}
+    opts.setdefault("ema", 0.0)  # runs from before the `ema` option used raw weights
     flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
                      if k not in ("net", "warp", "init", "minutes") and v not in ("", None))
     flags += " --warp" * bool(opts.get("warp")) + (f" --init {opts['init']}" if opts.get("init") else "")

@@ -1,8 +1,24 @@
 """One module per network (shared ARCHITECTURE.md)."""
 
+from collections.abc import Callable
+from typing import TypeVar
+
+import torch
 from torch import nn
+
+Net = TypeVar("Net", bound=nn.Module)
 
 
 def count_parameters(net: nn.Module) -> int:
     """The number of scalar weights of `net`."""
     return sum(p.numel() for p in net.parameters())
+
+
+def seeded(make: Callable[[], Net], seed: int | None) -> Net:
+    """make() with torch's generator seeded by `seed` in a forked RNG state (the global state untouched);
+    seed None: make() on the global generator."""
+    if seed is None:
+        return make()
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        return make()

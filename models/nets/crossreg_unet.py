@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
+from models.nets import seeded
 from service.layout import CROSSREG_INPUTS, CROSSREG_OUTPUTS, total_channels
 
 BANDWIDTH_EPS = 1e-4  # Choi 2024 eq. 9 epsilon; the authors' code uses 1e-4 (band = 1 / (theta^2 + 1e-4))
@@ -75,11 +76,7 @@ class CrossRegUNet(nn.Module):
 
 def make_unet(config: UNetConfig | None = None, *, seed: int | None = None) -> CrossRegUNet:
     """A freshly (randomly, PyTorch default) initialised network; `seed` makes it reproducible."""
-    if seed is not None:
-        with torch.random.fork_rng():
-            torch.manual_seed(seed)
-            return CrossRegUNet(config)
-    return CrossRegUNet(config)
+    return seeded(lambda: CrossRegUNet(config), seed)
 
 
 def save_checkpoint(path: str, net: CrossRegUNet, **extra: object) -> None:

@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from models.nets import seeded
 from service.layout import RAE_INPUTS, RAE_OUTPUTS, total_channels
 
 LEAKY_SLOPE = 0.1  # Chaitanya 2017 sec. 5.3: leaky ReLU with alpha = 0.1
@@ -140,11 +141,7 @@ class RecurrentAutoencoder(nn.Module):
 
 def make_rae(config: RaeConfig | None = None, *, seed: int | None = None) -> RecurrentAutoencoder:
     """A freshly He-initialised network; `seed` makes it reproducible."""
-    if seed is not None:
-        with torch.random.fork_rng():
-            torch.manual_seed(seed)
-            return RecurrentAutoencoder(config)
-    return RecurrentAutoencoder(config)
+    return seeded(lambda: RecurrentAutoencoder(config), seed)
 
 
 def config_from_dict(values: dict) -> RaeConfig:
