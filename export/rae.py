@@ -84,7 +84,7 @@ def manifest(ckpt: dict[str, Any], checkpoint: Path, onnx_path: Path) -> dict[st
         init = start["options"].get("init")
     log = checkpoint.parent / LOG
     rows = list(csv.DictReader(log.open())) if log.is_file() else []
-    train_rows = [r for r in rows if r["kind"] == "train"]
+    train_rows = [r for r in rows if r["kind"] == "train" and int(r["step"]) <= ckpt["step"]]
     val_rows = [r for r in rows if r["kind"] == "val"]
     return {
         "network": NETWORK,
@@ -99,10 +99,11 @@ def manifest(ckpt: dict[str, Any], checkpoint: Path, onnx_path: Path) -> dict[st
         "validation": ckpt.get("val"),
         "best_val_rel_l2": ckpt.get("best_val_rel_l2"),
         "final_train_loss": {k: float(train_rows[-1][k]) for k in ("loss", "spatial", "gradient", "temporal")}
-        if train_rows else None,
+        if train_rows else None,  # the last log row at or before the exported step
         "validation_curve": [{"step": int(r["step"]), "rel_l2": float(r["val_rel_l2"]),
-                              "temporal": float(r["val_temporal"])} for r in val_rows],
-        "training_seconds": float(rows[-1]["seconds"]) if rows else None,
+                              "temporal": float(r["val_temporal"])} for r in val_rows
+                             if int(r["step"]) <= ckpt["step"]],
+        "training_seconds": ckpt.get("seconds"),  # wall time of this run up to the exported checkpoint
         "fine_tuned_from": base,
         "machine": ckpt.get("machine"),
     }
