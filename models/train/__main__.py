@@ -23,8 +23,6 @@ def _parser() -> argparse.ArgumentParser:
     for name in ("steps", "batch", "warmup", "seed", "threads", "val_every", "log_every", "checkpoint_every"):
         p.add_argument("--" + name.replace("_", "-"), type=int, default=defaults[name])
     p.add_argument("--lr", type=float, default=defaults["lr"])
-    p.add_argument("--energy", type=float, default=defaults["energy"],
-                   help="weight of the block-energy term beyond the paper's loss (0: the paper's loss)")
     p.add_argument("--ema", type=float, default=defaults["ema"], help="weight-average decay (0: raw weights)")
     p.add_argument("--minutes", type=float, default=defaults["minutes"], help="wall-time limit (0: none)")
     p.add_argument("--warp", action="store_true", help="warp the recurrent state by motion between frames")

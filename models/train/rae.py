@@ -30,9 +30,8 @@ class RaeRecipe:
     frames = WINDOW_FRAMES
     crop = CROP
 
-    def __init__(self, warp: bool = False, energy: float = 0.0):
+    def __init__(self, warp: bool = False):
         self.warp = warp
-        self.energy = energy  # weight of the optional energy term (models/train/rae_loss.py)
         self.reverse = not warp  # backward playback has no motion to warp by
 
     def build(self, config: dict[str, Any] | None, seed: int) -> RecurrentAutoencoder:
@@ -63,8 +62,7 @@ class RaeRecipe:
         return torch.stack(outputs, dim=1)
 
     def loss(self, net: RecurrentAutoencoder, batch: Window) -> LossTerms:
-        pred = self.run(net, self.inputs(batch.noisy, batch.guides), batch.motion)
-        return rae_loss(pred, batch.target, energy=self.energy)
+        return rae_loss(self.run(net, self.inputs(batch.noisy, batch.guides), batch.motion), batch.target)
 
     @torch.no_grad()
     def denoise(self, net: RecurrentAutoencoder, seq: Sequence) -> torch.Tensor:

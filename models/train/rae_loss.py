@@ -12,13 +12,6 @@ and the window's loss is sum_t g_t L_t / sum_t g_t with the paper's Gaussian fra
 (0.011, 0.044, 0.135, 0.325, 0.607, 0.882, 1) for T = 7, i.e. exp(-(t - T + 1)^2 / 8) for any T. Dividing by
 sum_t g_t (the paper does not say) only rescales the loss.
 
-Optional, beyond the paper (`energy` > 0, TrainOptions.energy): a term on local energy,
-    Le = mean |log(box8(P_lin) + 0.01) - log(box8(T_lin) + 0.01)|
-on 8x8 block means of the linear demodulated prediction and target, weighted over frames like the others
-and added as energy * Le. The L1 terms on radiance^0.2 reward the median of what the reference could be
-given the noisy input, which lies below its mean where light arrives as rare bright samples (caustics, a
-dim room lit by a small light); Le asks for the mean over blocks.
-
 Domain: the network predicts log1p of demodulated radiance (service.layout.RAE_OUTPUTS); it is mapped back
 with expm1 (clipped at LOG_RADIANCE_MAX, the serving side's clip) before the power. TONE_EPS keeps the
 power's derivative finite at 0.
@@ -38,8 +31,6 @@ GAMMA = 0.2  # Chaitanya 2017 sec. 4.4: "a more aggressive value of 0.2"
 TONE_EPS = 1e-3  # added before the power: d/dx (x + eps)^0.2 <= 0.2 * eps^-0.8 ~ 50 at x = 0
 WEIGHTS = (0.8, 0.1, 0.1)  # ws, wg, wt (Chaitanya 2017 sec. 4.4)
 HFEN_SIGMA = 1.5  # Laplacian-of-Gaussian sigma, pixels (Ravishankar and Bresler 2011, as in the paper)
-ENERGY_BLOCK = 8  # pixels: side of the block means of the optional energy term
-ENERGY_EPS = 1e-2  # demodulated radiance units, added before the log of a block mean
 HFEN_RADIUS = 5  # kernel half-width, pixels: 11 taps, out to 3.3 sigma
 
 
@@ -86,24 +77,13 @@ class LossTerms:
     spatial: torch.Tensor
     gradient: torch.Tensor
     temporal: torch.Tensor
-    energy: torch.Tensor  # the optional energy term (computed, and weighted into `total`, only when asked)
 
 
-def energy_error(linear: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """(N, T, 3, H, W) linear prediction and target -> (T,) mean |log| ratio of their 8x8 block means."""
-    n, t = linear.shape[:2]
-    a = F.avg_pool2d(linear.flatten(0, 1), ENERGY_BLOCK, ceil_mode=True)
-    b = F.avg_pool2d(target.flatten(0, 1), ENERGY_BLOCK, ceil_mode=True)
-    return (torch.log(a + ENERGY_EPS) - torch.log(b + ENERGY_EPS)).abs().reshape(n, t, -1).mean(dim=(0, 2))
-
-
-def rae_loss(pred: torch.Tensor, target: torch.Tensor, *, energy: float = 0.0) -> LossTerms:
+def rae_loss(pred: torch.Tensor, target: torch.Tensor) -> LossTerms:
     """pred: (N, T, 3, H, W) network output (log1p demodulated radiance); target: (N, T, 3, H, W) linear
-    demodulated reference; energy: weight of the optional energy term. Returns the loss of the module
-    docstring."""
+    demodulated reference. Returns the loss of the module docstring."""
     n, t = pred.shape[:2]
-    linear = prediction_to_linear(pred)
-    p = tone(linear)
+    p = tone(prediction_to_linear(pred))
     q = tone(target)
     spatial = (p - q).abs().mean(dim=(0, 2, 3, 4))  # (T,)
     gradient = (hfen(p.flatten(0, 1)) - hfen(q.flatten(0, 1))).abs().reshape(n, t, -1).mean(dim=(0, 2))
@@ -115,5 +95,4 @@ def rae_loss(pred: torch.Tensor, target: torch.Tensor, *, energy: float = 0.0) -
     g = g / g.sum()
     terms = [(g * term).sum() for term in (spatial, gradient, temporal)]
     total = sum(w * term for w, term in zip(WEIGHTS, terms, strict=True))
-    block = (g * energy_error(linear, target)).sum() if energy > 0 else torch.zeros_like(total)
-    return LossTerms(total + energy * block, *terms, block)
+    return LossTerms(total, *terms)

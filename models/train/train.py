@@ -40,7 +40,7 @@ CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"
 LOG = "log.csv"
 CURVES = "curves.png"
-LOG_FIELDS = ("step", "kind", "loss", "spatial", "gradient", "temporal", "energy", "lr", "seq_per_s", "val_rel_l2",
+LOG_FIELDS = ("step", "kind", "loss", "spatial", "gradient", "temporal", "lr", "seq_per_s", "val_rel_l2",
               "val_temporal", "seconds")
 
 
@@ -64,7 +64,6 @@ class TrainOptions:
     minutes: float = 0.0  # stop (with a checkpoint) after this much wall time of this invocation; 0: no limit
     warp: bool = False  # warp recurrent state by motion between frames (the pipeline option of the same name)
     init: str = ""  # start from this checkpoint's weights (a fine-tune; a fresh optimiser and step 0)
-    energy: float = 0.0  # weight of the optional energy term beyond the paper's loss (models/train/rae_loss.py)
     ema: float = 0.999  # decay of the exponential moving average of the weights that is validated and
     # exported (Polyak averaging; 0: the raw weights). Batches of 4 windows make single steps noisy.
 
@@ -76,8 +75,6 @@ class TrainOptions:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 < self.lr <= 1:
             raise ValueError(f"lr must be in (0, 1], got {self.lr}")
-        if not 0 <= self.energy <= 10:
-            raise ValueError(f"energy must be in [0, 10], got {self.energy}")
         if not 0 <= self.ema < 1:
             raise ValueError(f"ema must be in [0, 1), got {self.ema}")
 
@@ -218,7 +215,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
         torch.set_num_threads(opts.threads)
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
-    recipe = RECIPES[opts.net](warp=opts.warp, energy=opts.energy)
+    recipe = RECIPES[opts.net](warp=opts.warp)
     bank, held_out = SequenceBank.from_root(opts.data), SequenceBank.from_root(opts.val)
     ckpt_path, log_path = out / CHECKPOINT, out / LOG
     net, ema, optimizer, step, best, rng, elapsed = _start(opts, recipe, ckpt_path, resume)
@@ -227,7 +224,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
     extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences],
              "machine": machine()}
     started = time.perf_counter() - elapsed  # wall time counts across resumes
-    sums, count, tick = np.zeros(5), 0, time.perf_counter()
+    sums, count, tick = np.zeros(4), 0, time.perf_counter()
     bar = tqdm(total=opts.steps, initial=step, unit="step", disable=not progress, desc=opts.net)
     net.train()
     while step < opts.steps:
@@ -241,7 +238,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
         optimizer.step()
         update_average(ema, net, opts.ema, step)
         step += 1
-        sums += [t.item() for t in (terms.total, terms.spatial, terms.gradient, terms.temporal, terms.energy)]
+        sums += [t.item() for t in (terms.total, terms.spatial, terms.gradient, terms.temporal)]
         count += 1
         bar.update(1)
         if step % opts.log_every == 0:
@@ -249,11 +246,10 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
             rate = count * opts.batch / (now - tick)
             mean = sums / count
             _append_log(log_path, {"step": step, "kind": "train", "loss": mean[0], "spatial": mean[1],
-                                   "gradient": mean[2], "temporal": mean[3], "energy": mean[4],
-                                   "lr": optimizer.param_groups[0]["lr"],
+                                   "gradient": mean[2], "temporal": mean[3], "lr": optimizer.param_groups[0]["lr"],
                                    "seq_per_s": rate, "seconds": now - started})
             bar.set_postfix(loss=f"{mean[0]:.4f}", seq_s=f"{rate:.2f}")
-            sums, count, tick = np.zeros(5), 0, now
+            sums, count, tick = np.zeros(4), 0, now
         timed_out = opts.minutes > 0 and time.perf_counter() - started - elapsed > 60 * opts.minutes
         if step % opts.val_every == 0 or step == opts.steps or timed_out:
             rel, tmp = validate(recipe, ema, held_out)
