@@ -60,8 +60,7 @@ def export_bytes(net: RecurrentAutoencoder, *, extra: dict[str, Any] | None = No
 
 def train_command(opts: dict[str, Any], step: int) -> str:
     """The `python -m models.train` command line that remakes a run's checkpoint of step `step` from its
-    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps;
-    training is deterministic for a given thread count)."""
+    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps)."""
     opts = {**opts, "steps": step, "minutes": 0.0}
     opts.setdefault("ema", 0.0)  # runs from before the `ema` option used raw weights
     flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
