@@ -161,3 +161,19 @@ def test_online_flag_is_a_pipeline_option_and_its_state_is_reported(make_server,
     assert 'mcdenoise_online_sessions{state="training"} 1' in metrics
     assert call(url, "DELETE", f"/v1/sessions/{online['id']}").status == 200
     assert [bool(s.closed) for s in OnlineEcho.states] == [True, False]  # the ended session's state was closed
+
+
+def test_rae_session_carries_its_recurrent_state_like_the_cli(server, sequence_exr, sequence_dir, tmp_path):
+    """The recurrent autoencoder over a REST session gives the CLI's frames: its hidden state lives in the
+    session's state between requests, as in the CLI's frame loop."""
+    from service.cli import main
+
+    assert main(["denoise", "--pipeline", "rae", str(sequence_dir), str(tmp_path)]) == 0
+    expected = [read_frame(p)["color"] for p in sorted(tmp_path.glob("*.exr"))]
+    info = open_session(server, pipeline="rae")
+    path = f"/v1/sessions/{info['id']}"
+    for data, want in zip(sequence_exr, expected, strict=True):
+        answer = exr_post(server, f"{path}/frames", data)
+        assert answer.status == 200, answer.body
+        np.testing.assert_allclose(read_frame(answer.body)["color"], want, rtol=1e-5, atol=1e-6)
+    assert call(server, "DELETE", path).status == 200
