@@ -61,7 +61,7 @@ def export_bytes(net: RecurrentAutoencoder, *, extra: dict[str, Any] | None = No
 def train_command(opts: dict[str, Any], step: int) -> str:
     """The `python -m models.train` command line that remakes a run's checkpoint of step `step` from its
     stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps)."""
-    opts = {**opts, "steps": step, "minutes": 0.0}
+    opts = {**opts, "steps": step}
     opts.setdefault("ema", 0.0)  # runs from before the `ema` option used raw weights
     flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
                      if k not in ("net", "warp", "init", "minutes") and v not in ("", None))
@@ -69,7 +69,7 @@ def train_command(opts: dict[str, Any], step: int) -> str:
     return f"python -m models.train {opts.get('net', NETWORK)} {flags}"
 
 
-def manifest(ckpt: dict[str, Any], checkpoint: Path, onnx_path: Path) -> dict[str, Any]:
+def manifest(ckpt: dict[str, Any], net: RecurrentAutoencoder, checkpoint: Path, onnx_path: Path) -> dict[str, Any]:
     """What the shipped weights are and how they were made: the network, the training run (options as
     a command line, preceded by the runs it fine-tuned, oldest first; data, seed, steps, losses, time,
     machine) from the checkpoint and the log.csv beside it."""
@@ -89,7 +89,7 @@ def manifest(ckpt: dict[str, Any], checkpoint: Path, onnx_path: Path) -> dict[st
         "network": NETWORK,
         "file": onnx_path.name,
         "bytes": onnx_path.stat().st_size,
-        "parameters": count_parameters(load_network(inference_state(ckpt))),
+        "parameters": count_parameters(net),
         "config": ckpt["config"],
         "commands": ["make data", *runs, f"python -m export {NETWORK} {checkpoint} {onnx_path}"],
         "seed": opts.get("seed"),
@@ -115,6 +115,7 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path) -> Path:
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
     training = {"options": ckpt.get("options"), "step": ckpt.get("step"),
                 "best_val_rel_l2": ckpt.get("best_val_rel_l2"), "machine": ckpt.get("machine")}
-    path = onnx_export.write(export_bytes(load_network(inference_state(ckpt)), extra={"training": training}), out)
-    path.with_suffix(".json").write_text(json.dumps(manifest(ckpt, checkpoint, path), indent=1) + "\n")
+    net = load_network(inference_state(ckpt))
+    path = onnx_export.write(export_bytes(net, extra={"training": training}), out)
+    path.with_suffix(".json").write_text(json.dumps(manifest(ckpt, net, checkpoint, path), indent=1) + "\n")
     return path

@@ -17,8 +17,8 @@ explicit input and returns its next value as an output (shared ARCHITECTURE.md);
 between frames and calls `OnnxModel.run` with all inputs by name.
 
 Optimisation: swappable models (the default) run at ORT_ENABLE_EXTENDED (see `session_options`); a model
-built with `swappable=False` runs at ORT_ENABLE_ALL (NCHWc convolutions; about 1.3x faster for the
-recurrent autoencoder at 1280x720) and refuses `swap_weights`.
+built with `swappable=False` runs at ORT_ENABLE_ALL (NCHWc convolutions, faster) and refuses
+`swap_weights`.
 
 Threads: `threads` argument, else the environment variable MCDENOISE_ORT_THREADS, else ONNX Runtime's
 default (one per physical core).

@@ -34,7 +34,7 @@ from service.pipelines.options import MAX_THREADS, option
 from service.runtime import OnnxModel, weight_names
 from service.stages.hidden_warp import warp_state
 from service.stages.rae_inputs import radiance_from_output, rae_planes
-from service.stages.reprojection import NORMAL_HIT
+from service.stages.reprojection import surface_hit
 
 NETWORK = "rae"  # the network a `weights` file must hold (its ONNX metadata)
 DEFAULT_WEIGHTS = "rae"  # models/weights/rae.onnx (manifest: rae.json)
@@ -57,12 +57,6 @@ class RaeState(SequenceState):
     order; empty before the first frame."""
 
     hidden: list[np.ndarray] = field(default_factory=list)
-
-
-def background_mask(normal: np.ndarray) -> np.ndarray:
-    """normal: (H, W, 3) float32 world-space normal, zero where nothing was hit. Returns (H, W, 1) bool,
-    True on the background (|n|^2 <= NORMAL_HIT, the reprojection stage's test)."""
-    return (np.einsum("hwc,hwc->hw", normal, normal) <= NORMAL_HIT)[..., None]
 
 
 def trained_with_warp(model: OnnxModel) -> bool:
@@ -109,7 +103,7 @@ class RaePipeline(Pipeline):
         model = self.model()
         info = model.info
         albedo, color = frame["albedo"], frame["color"]
-        background = background_mask(frame["normal"])
+        background = ~surface_hit(frame["normal"])[..., None]  # (H, W, 1): nothing was hit
         planes = rae_planes(np.where(background, np.float32(0), color), albedo, frame["normal"], frame["depth"],
                             frame.get("roughness"))
         padded = np.ascontiguousarray(pad_planes(planes, info.alignment))

@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit, prange
 
 from service.stages.bilateral import neg_exp
-from service.stages.reprojection import NORMAL_HIT  # squared normal length of a surface hit
+from service.stages.reprojection import surface_hit
 from service.stages.window import overlap
 
 B3_SPLINE = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)  # Dammertz 2010 / Schied 2017 sec. 4.3: 1D B3-spline taps
@@ -66,7 +66,7 @@ class EdgeGuides:
     @cached_property
     def hit(self) -> np.ndarray:
         """(H, W) float32: 1 where a surface was hit (|n|^2 > NORMAL_HIT), else 0; computed once per frame."""
-        return (np.einsum("hwc,hwc->hw", self.normal, self.normal) > NORMAL_HIT).astype(np.float32)
+        return surface_hit(self.normal).astype(np.float32)
 
     @cached_property
     def normal_planes(self) -> np.ndarray:
@@ -148,7 +148,7 @@ def edge_aware_filter_numpy(
     height, width, channels = values.shape
     radius = kernel.size // 2
     one = np.float32(1.0)
-    hit = np.einsum("hwc,hwc->hw", guides.normal, guides.normal) > NORMAL_HIT
+    hit = surface_hit(guides.normal)
     phi_z = np.float32(sigma_depth) * guides.depth_gradient * np.float32(step)
     num = np.zeros((height, width, channels), np.float32)
     den = np.zeros((height, width), np.float32)

@@ -17,7 +17,7 @@ import numpy as np
 
 from service.layout import RAE_INPUTS, total_channels
 from service.stages.albedo import demodulate, remodulate
-from service.stages.reprojection import NORMAL_HIT
+from service.stages.reprojection import surface_hit
 
 DEPTH_CLIP = 16.0  # relative depth above this (misses, far background) reads as this
 DEPTH_STRIDE = 4  # the median depth is taken over every 4th row and column (a 1/16 subsample)
@@ -32,7 +32,7 @@ def median_depth(depth: np.ndarray, normal: np.ndarray) -> float:
     hit). The median depth of the surface hits of a DEPTH_STRIDE subsample, in depth's unit; 1 when none."""
     n = normal[::DEPTH_STRIDE, ::DEPTH_STRIDE]
     sample = depth[::DEPTH_STRIDE, ::DEPTH_STRIDE, 0]
-    hit = (np.einsum("hwc,hwc->hw", n, n) > NORMAL_HIT) & np.isfinite(sample) & (sample > 0)
+    hit = surface_hit(n) & np.isfinite(sample) & (sample > 0)
     return float(np.median(sample[hit])) if hit.any() else 1.0
 
 
@@ -42,16 +42,18 @@ def demodulated(color: np.ndarray, albedo: np.ndarray) -> np.ndarray:
     return demodulate(np.maximum(color, 0), albedo)
 
 
-def guide_planes(normal: np.ndarray, depth: np.ndarray, roughness: np.ndarray | None) -> np.ndarray:
+def guide_planes(normal: np.ndarray, depth: np.ndarray, roughness: np.ndarray | None,
+                 out: np.ndarray | None = None) -> np.ndarray:
     """The non-radiance inputs. normal: (H, W, 3) float32 unit or zero; depth: (H, W, 1) float32 camera
-    distance; roughness: (H, W, 1) float32 in [0, 1] or None (ROUGHNESS_ABSENT). Returns (5, H, W) float32
-    planes in RAE_INPUTS order after the radiance: normal, log1p relative depth, roughness."""
+    distance, finite (the frame contract repairs NaN and Inf); roughness: (H, W, 1) float32 in [0, 1] or
+    None (ROUGHNESS_ABSENT). Returns (5, H, W) float32 planes in RAE_INPUTS order after the radiance:
+    normal, log1p relative depth, roughness; written into `out` when given."""
     h, w = normal.shape[:2]
-    out = np.empty((GUIDES, h, w), np.float32)
+    out = np.empty((GUIDES, h, w), np.float32) if out is None else out
     out[0:3] = normal.transpose(2, 0, 1)
     scale = np.float32(median_depth(depth, normal))
     relative = np.minimum(np.maximum(depth[..., 0], 0) / scale, np.float32(DEPTH_CLIP))
-    out[3] = np.log1p(np.nan_to_num(relative, nan=0.0))
+    out[3] = np.log1p(relative)
     out[4] = ROUGHNESS_ABSENT if roughness is None else roughness[..., 0]
     return out
 
@@ -60,12 +62,15 @@ def rae_planes(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray, depth:
                roughness: np.ndarray | None) -> np.ndarray:
     """The network input of one frame: (8, H, W) float32 planes in RAE_INPUTS order, from color (H, W, 3)
     float32 linear radiance without emission and the layers of `demodulated` and `guide_planes`."""
-    radiance = np.log1p(demodulated(color, albedo)).transpose(2, 0, 1)
-    return np.concatenate([radiance, guide_planes(normal, depth, roughness)], axis=0)
+    out = np.empty((PLANES, *color.shape[:2]), np.float32)
+    out[:3] = np.log1p(demodulated(color, albedo)).transpose(2, 0, 1)
+    guide_planes(normal, depth, roughness, out[3:])
+    return out
 
 
 def radiance_from_output(planes: np.ndarray, albedo: np.ndarray) -> np.ndarray:
-    """planes: (3, H, W) float32 network output (log1p demodulated radiance); albedo: (H, W, 3) float32.
-    Returns (H, W, 3) float32 linear radiance (without emission), >= 0 and finite."""
-    log = np.clip(np.nan_to_num(planes.transpose(1, 2, 0), nan=0.0), 0.0, LOG_RADIANCE_MAX)
+    """planes: (3, H, W) float32 finite network output (log1p demodulated radiance; the pipeline refuses a
+    non-finite one); albedo: (H, W, 3) float32. Returns (H, W, 3) float32 linear radiance (without emission),
+    >= 0 and finite."""
+    log = np.clip(planes.transpose(1, 2, 0), 0.0, LOG_RADIANCE_MAX)
     return remodulate(np.expm1(log), albedo)

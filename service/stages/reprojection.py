@@ -26,6 +26,11 @@ DEPTH_FLOOR = 1e-6  # scene units; denominators of relative depth differences ar
 NORMAL_HIT = 0.25  # squared length above which a normal is a surface hit (zero normal: nothing hit)
 
 
+def surface_hit(normal: np.ndarray) -> np.ndarray:
+    """normal: (..., 3) float32 normals, zero where nothing was hit. Returns (...) bool: |n|^2 > NORMAL_HIT."""
+    return np.einsum("...c,...c->...", normal, normal) > NORMAL_HIT
+
+
 @dataclass(frozen=True)
 class ReprojectionParams:
     depth_tolerance: float = 0.1  # max relative depth change |z - z_prev| / z of a consistent tap
@@ -74,8 +79,7 @@ def _consistent(
         ok &= np.abs(z - z_prev) <= params.depth_tolerance * np.maximum(np.abs(z), DEPTH_FLOOR)
     if normal is not None and prev_normal is not None:
         n_prev = prev_normal.reshape(-1, 3)[index]
-        hit = np.einsum("hwc,hwc->hw", normal, normal) > NORMAL_HIT
-        hit_prev = np.einsum("hwc,hwc->hw", n_prev, n_prev) > NORMAL_HIT
+        hit, hit_prev = surface_hit(normal), surface_hit(n_prev)
         cos = np.einsum("hwc,hwc->hw", normal, n_prev)
         ok &= (hit == hit_prev) & (~hit | (cos >= params.normal_cos_min))
     return ok
