@@ -68,12 +68,17 @@ class Pipeline(ABC):
         self.options = build_options(self.Options, options, f"pipeline '{self.name}'")
 
     @classmethod
+    def declared(cls) -> tuple[str, ...]:
+        """`color` (the frame contract fills it in, every pipeline may read it), required and optional layers."""
+        return tuple(dict.fromkeys(("color", *cls.requires, *cls.optional)))
+
+    @classmethod
     def reads(cls) -> tuple[str, ...]:
         """Every layer the pipeline's step may read: `color` (the frame contract fills it in), required,
         optional, and with `guards` the halves and `emission` (exact pixels, noise clamp). Readers decode
         only these (service/api/codec.py)."""
         guarded = ("colorA", "colorB", "emission") if cls.guards else ()
-        return tuple(dict.fromkeys(("color", *cls.requires, *cls.optional, *guarded)))
+        return tuple(dict.fromkeys((*cls.declared(), *guarded)))
 
     def start(self, height: int, width: int) -> SequenceState:
         """State for a new sequence of frames of `height` x `width` pixels."""
@@ -105,9 +110,9 @@ class Pipeline(ABC):
             frame = with_exact_emission(frame)
         emission = frame.get("emission") if not self.fuses_emission else None  # the emission the step splits off
         if emission is not None:
-            # `color` always (the frame contract fills it in, every pipeline may read it); the halves only
-            # where the pipeline declares them: each layer subtracted is a full frame read and written.
-            declared = ("color", *self.requires, *self.optional)
+            # the halves only where the pipeline declares them: each layer subtracted is a full frame read and
+            # written
+            declared = self.declared()
             names = [k for k in RADIANCE_LAYERS if k in frame and k in declared]  # "color" at least
             split = subtract_emission([frame[k] for k in names], emission)
             frame = frame.replace(**dict(zip(names, split, strict=True)))
