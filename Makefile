@@ -13,12 +13,15 @@ DEMO_PIPELINE ?= auto
 setup: $(STAMP)
 
 # torch is installed first and pinned: this machine has the CPU build of 2.13.0 as a local file, and
-# anything that asks for a newer torch would pull the multi-GB CUDA build.
+# anything that asks for a newer torch would pull the multi-GB CUDA build. Then every pipeline's numba
+# kernels are compiled into the cache (one process per CPU, a line per pipeline), so that no first frame
+# waits for them; a kernel edited later compiles at its next first frame.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[train,data,bench,dev]'
+	$(PY) -m service warm --jobs 0
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -140,8 +140,10 @@ def main() -> int:
 
     args = parser.parse_args()
     from bench.environment import configure_threads
+    from service.process import configure
 
     configure_threads(args.threads)
+    configure()
     return args.func(args)
 
 

@@ -28,11 +28,12 @@ import numpy as np
 from bench.methods import OidnFastAnchor, OidnHighAnchor, OidnHighDefaultAnchor
 from bench.synthetic import synthetic_frame
 from service import pipelines
-from service.cli import parse_options
+from service.cli.sequence_args import parse_options
 from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import TRIM_FRACTION, rel_l2
 from service.pipelines import Pipeline
+from service.process import configure
 
 DEFAULT_PIPELINES = ("crossregression", "bmfr", "flr")
 # Untimed rounds before the timed ones. After only one, the steps of a method taking turns with OIDN
@@ -87,6 +88,7 @@ def sample_rel_l2(methods: dict[str, Pipeline], folder: str) -> tuple[dict[str, 
 
 
 def main() -> int:
+    configure()
     parser = argparse.ArgumentParser(prog="python -m bench.classical_speed", description=__doc__.split("\n")[0])
     parser.add_argument("--pipelines", nargs="+", default=list(DEFAULT_PIPELINES),
                         help="registered pipeline names, or NAME:KEY=VALUE,... with options")

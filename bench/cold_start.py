@@ -20,12 +20,15 @@ import sys
 import tempfile
 import time
 
+from service.process import configure
+
 DEFAULT_PIPELINES = ("crossregression", "flr", "bmfr")
 DEFAULT_SAMPLE = "models/data/samples/shadows"
 
 
 def child(name: str, sample: str, kernels: int) -> dict:
     """In the cold process: time the pipeline on the sample's first two frames, collect compile times."""
+    configure()
     from numba.core.dispatcher import Dispatcher
 
     from service import pipelines

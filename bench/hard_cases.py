@@ -32,6 +32,7 @@ from service.exr import read_sequence
 from service.frame import Frame
 from service.metrics import rel_l2_map
 from service.pipelines.base import Pipeline
+from service.process import configure
 from service.stages.exact import exact_mask
 
 HARD_DIR = Path(__file__).resolve().parents[1] / "models" / "data" / "samples" / "hard"
@@ -214,6 +215,7 @@ def table(pipeline_names: list[str], oidn: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()
     parser = argparse.ArgumentParser(prog="python -m bench.hard_cases", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)

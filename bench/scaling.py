@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from service.process import configure
+
 SIZES = ((128, 128), (256, 256), (512, 512), (1280, 720), (1920, 1080))  # (width, height)
 WORKER_TIMEOUT_S = 900  # per (method, size) process
 
@@ -164,5 +166,6 @@ def plot(records: list[dict[str, Any]], path: Path) -> None:
 
 
 if __name__ == "__main__":  # worker: python -m bench.scaling '["name", width, height, frames]'
+    configure()
     name, w, h, n = json.loads(sys.argv[1])
     print(json.dumps(measure(name, w, h, n)))

@@ -9,6 +9,9 @@ import pytest
 
 from bench.synthetic import synthetic_sequence, write_synthetic_sequence
 from service.frame import Frame
+from service.process import configure
+
+configure()  # the test session is an entry point: the kernels' versioned cache folder, OpenMP waiting
 
 
 @pytest.fixture(scope="session")

@@ -17,6 +17,7 @@ from service.api.deadline import BodyDeadline
 from service.api.deps import authenticate
 from service.api.routes import denoise, docs, health, metrics, pipelines, sessions, stream
 from service.api.state import Services
+from service.process import configure
 
 DESCRIPTION = """Denoises Monte Carlo path-traced frames (OpenEXR in, OpenEXR or PNG out) with every registered
 pipeline: single frames over REST, or a session per sequence over REST or a WebSocket stream.
@@ -24,7 +25,9 @@ With MCDENOISE_API_KEY set, send `Authorization: Bearer <key>` to every route bu
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """The app; `settings` default to the environment (`Settings.from_env`)."""
+    """The app; `settings` default to the environment (`Settings.from_env`). The server's entry point (uvicorn
+calls it in each worker process), so it applies `service.process.configure()`."""
+    configure()
     settings = settings or Settings.from_env()
 
     @asynccontextmanager

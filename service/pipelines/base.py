@@ -8,8 +8,8 @@
 and the sequence size (before any work), find the exact pixels when the frame has halves but no
 `emission` layer (`service.stages.exact`: they become its emission), split off `emission` from the
 radiance layers, call the denoiser's `denoise`, add emission back, keep the result within the noise the
-halves show (`service.stages.noise_clamp`), and make sure nothing non-finite leaves. A denoiser that sets
-`fuses_emission` does the split itself, inside its own passes, and checks its `color`.
+halves show (`service.stages.noise_clamp`), and make sure nothing non-finite leaves. The split is
+`Pipeline.denoise_split`, which a denoiser able to do it inside its own passes overrides.
 """
 
 from __future__ import annotations
@@ -41,6 +41,10 @@ class SequenceState:
         """Release what the state holds (an online worker); called once the sequence ends."""
 
 
+# What `Pipeline.denoise_split` returns: the buffers, the names of those known to be finite, the state
+Split = tuple[dict[str, np.ndarray], set[str], SequenceState]
+
+
 @dataclass(frozen=True)
 class NoOptions:
     """A pipeline without options."""
@@ -55,10 +59,6 @@ class Pipeline(ABC):
     optional: ClassVar[tuple[str, ...]] = ()  # layers used when present
     temporal: ClassVar[bool] = False  # whether the output depends on earlier frames
     Options: ClassVar[type] = NoOptions  # frozen dataclass of algorithm options
-    # True: `denoise` gets `emission` with the radiance layers as sent, takes it out of every radiance layer
-    # it reads and adds it back to `color` itself (the same values as the step's split, without the step's
-    # full-frame passes), and returns a finite `color` (FloatingPointError otherwise)
-    fuses_emission: ClassVar[bool] = False
     # True: the step's hard-case guards run (exact pixels as emission, the noise clamp); the benchmark's
     # anchors turn them off, so that OIDN is measured as its users call it
     guards: ClassVar[bool] = True
@@ -108,26 +108,31 @@ class Pipeline(ABC):
         given = frame
         if self.guards:
             frame = with_exact_emission(frame)
-        emission = frame.get("emission") if not self.fuses_emission else None  # the emission the step splits off
-        if emission is not None:
-            # the halves only where the pipeline declares them: each layer subtracted is a full frame read and
-            # written
-            declared = self.declared()
-            names = [k for k in RADIANCE_LAYERS if k in frame and k in declared]  # "color" at least
-            split = subtract_emission([frame[k] for k in names], emission)
-            frame = frame.replace(**dict(zip(names, split, strict=True)))
-        buffers, state = self.denoise(frame, state)
-        finite = {"color": True} if self.fuses_emission else {}  # name -> True where every value is known finite
-        if emission is not None:
-            buffers["color"], finite["color"] = add_emission(buffers["color"], emission)
+        buffers, finite, state = self.denoise_split(frame, state)
         for name, value in buffers.items():
-            if not finite.get(name) and not np.isfinite(value).all():  # a guard: stages are tested never to get here
+            if name not in finite and not np.isfinite(value).all():  # a guard: stages are tested never to get here
                 raise FloatingPointError(f"pipeline '{self.name}' produced non-finite '{name}'")
         if self.guards and "colorA" in given and "colorB" in given:  # within the noise the halves show
             halves = given["colorA"], given["colorB"]  # (finite in, finite out: the band is finite or +inf)
             buffers["color"] = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"))
         state.frame_index += 1
         return Frame(buffers, dict(frame.nonfinite)), state
+
+    def denoise_split(self, frame: Frame, state: SequenceState) -> Split:
+        """`denoise` with the frame's `emission` (when it has one) taken out of the radiance layers the
+        pipeline declares and added back to the result's `color`. Returns (buffers, the names of those known
+        to be finite, state)."""
+        emission = frame.get("emission")
+        if emission is None:
+            buffers, state = self.denoise(frame, state)
+            return buffers, set(), state
+        # the halves only where the pipeline declares them: each layer subtracted is a full frame read and written
+        declared = self.declared()
+        names = [k for k in RADIANCE_LAYERS if k in frame and k in declared]  # "color" at least
+        split = subtract_emission([frame[k] for k in names], emission)
+        buffers, state = self.denoise(frame.replace(**dict(zip(names, split, strict=True))), state)
+        buffers["color"], finite = add_emission(buffers["color"], emission)
+        return buffers, {"color"} if finite else set(), state
 
     @abstractmethod
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:

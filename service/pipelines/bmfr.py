@@ -17,7 +17,7 @@ from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.pipelines.options import MAX_SPARSITY, MAX_WINDOW, check_sparsity, option
 from service.stages.bmfr import BmfrParams, bmfr
-from service.stages.local_regression import FIREFLY_K
+from service.stages.outliers import FIREFLY_K
 from service.stages.range_clamp import clamp_to_local_range
 
 

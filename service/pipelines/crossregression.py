@@ -3,7 +3,7 @@
 Stages: cross-regression of the two half buffers in log space (service/stages/cross_regression.py)
 -> the two pilot estimates back to linear radiance -> their mean -> clipped to the noisy frame's range
 over the regression window (the last three in one pass, `cross_regression_radiance`), the emission taken
-out in the packing pass and added back in the last one (`fuses_emission`). No network, no
+out in the packing pass and added back in the last one (`denoise_split`). No network, no
 temporal filter: the input that the online denoiser (`crossreg`) refines, useful on its own as a fast,
 detail-preserving spatial filter for frames that carry colorA/colorB.
 """
@@ -16,10 +16,10 @@ import numpy as np
 
 from service.frame import Frame
 from service.pipelines import register
-from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.base import Pipeline, SequenceState, Split
 from service.pipelines.options import MAX_SPARSITY, MAX_WINDOW, check_sparsity, option
 from service.stages.cross_regression import CrossRegressionParams, cross_regression_radiance
-from service.stages.local_regression import FIREFLY_K
+from service.stages.outliers import FIREFLY_K
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class CrossRegressionOptions:
     window: int = option(17, low=3, high=MAX_WINDOW, odd=True)  # regression window side, pixels (Choi 2024 sec. 3)
     # centre pixels on every 4th row and column (Choi 2024 sec. 3); at most window // 2 + 1
     sparsity: int = option(4, low=1, high=MAX_SPARSITY)
-    # clamp each buffer's outliers (local_regression.clamp_fireflies); None: off
+    # clamp each buffer's outliers (outliers.clamp_fireflies); None: off
     firefly_k: float | None = option(FIREFLY_K, above=0, high=1e6)
 
     def __post_init__(self) -> None:
@@ -44,9 +44,16 @@ class CrossRegressionPipeline(Pipeline):
     requires = ("colorA", "colorB", "albedo", "normal")
     optional = ("emission",)
     Options = CrossRegressionOptions
-    fuses_emission = True  # in the packing and the last pass (`cross_regression_radiance`)
+
+    def denoise_split(self, frame: Frame, state: SequenceState) -> Split:
+        """`denoise` itself: the emission's split is fused into its packing and last pass (the same values as
+        the base class's, without its full-frame passes), and its `color` is finite (FloatingPointError
+        otherwise)."""
+        buffers, state = self.denoise(frame, state)
+        return buffers, {"color"}, state
 
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        """Unlike other pipelines' `denoise`, takes the frame with its emission (`denoise_split`)."""
         opt = self.options
         params = CrossRegressionParams(opt.window, opt.sparsity, opt.firefly_k)
         # the pilots' mean in linear radiance, clipped to the noisy range over the window (no extrapolated energy)

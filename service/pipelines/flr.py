@@ -17,7 +17,7 @@ from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.pipelines.options import option
 from service.stages.flr import FlrParams, gbuffer_guides, local_linear_regression
-from service.stages.local_regression import FIREFLY_K
+from service.stages.outliers import FIREFLY_K
 from service.stages.range_clamp import clamp_to_local_range
 
 

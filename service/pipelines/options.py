@@ -180,7 +180,7 @@ def build(options_cls: type, values: Mapping[str, Any], who: str) -> Any:
 
 
 def check_sparsity(window: int, sparsity: int) -> None:
-    """The relation of a block regression's options (local_regression.BlockParams): every pixel needs a
+    """The relation of a block regression's options (regression.terms.BlockParams): every pixel needs a
     centre within the window's half-size, so sparsity <= window // 2 + 1."""
     if sparsity > window // 2 + 1:
         raise OptionError(f"option 'sparsity' must be at most window // 2 + 1 = {window // 2 + 1} "

@@ -27,9 +27,9 @@ from functools import cached_property
 import numpy as np
 from numba import njit, prange
 
+from service.kernels.window import overlap
 from service.stages.bilateral import neg_exp
 from service.stages.reprojection import surface_hit
-from service.stages.window import overlap
 
 B3_SPLINE = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)  # Dammertz 2010 / Schied 2017 sec. 4.3: 1D B3-spline taps
 GAUSS_3X3 = (1 / 4, 1 / 2, 1 / 4)  # Schied 2017 sec. 4.3: 1D taps of the 3x3 variance prefilter

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from service.stages.window import Slice2, overlap, window_offsets
+from service.kernels.window import Slice2, overlap, window_offsets
 
 DEPTH_FLOOR = 1e-6  # scene units; depths below this are clamped before the log
 

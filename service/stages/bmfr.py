@@ -3,7 +3,7 @@ regression" that Choi et al. 2024 compare cross-regression with (their Figs. 2 a
 
 Radiance (demodulated by albedo, as BMFR does) is fitted per centre pixel as a linear function of
 G-buffer features over a window, with flat weights, by the block-wise solver of
-`service.stages.local_regression` (Choi eqs. 3-5 with w = 1). Features: albedo RGB, normal XYZ, log depth
+`service.regression` (Choi eqs. 3-5 with w = 1). Features: albedo RGB, normal XYZ, log depth
 and the pixel position (x, y). Differences from the paper's BMFR: overlapping windows on a sparse
 centre grid blended by eq. 5 instead of disjoint 32x32 blocks, first-order features only, and no
 temporal accumulation (it is a spatial filter). Geometric edges survive; detail that no G-buffer shows
@@ -16,25 +16,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.stages.albedo import remodulate
-from service.stages.bilateral import log_depth
-from service.stages.local_regression import (
-    FIREFLY_K,
-    RIDGE_ABSOLUTE,
-    RIDGE_RELATIVE,
-    BlockParams,
-    block_regression,
-    box_regression,
+from service.regression.block import block_regression
+from service.regression.box import box_regression
+from service.regression.planes import (
     channel_planes,
     channel_planes_reference,
-    check_firefly_k,
     from_planes,
-    plain_terms,
     standardise,
     standardise_reference,
     to_planes,
 )
-from service.stages.outliers import clamp_outlier_planes
+from service.regression.solve import RIDGE_ABSOLUTE, RIDGE_RELATIVE
+from service.regression.terms import BlockParams, plain_terms
+from service.stages.albedo import remodulate
+from service.stages.bilateral import log_depth
+from service.stages.outliers import FIREFLY_K, check_firefly_k, clamp_outlier_planes
 
 
 @dataclass(frozen=True)
@@ -45,9 +41,9 @@ class BmfrParams:
     sparsity: int = 6  # centre pixels on every 6th row and column (cheaper than 4, as accurate here)
     demodulate: bool = True  # regress radiance / albedo and multiply back (Koskela 2019 sec. 3)
     firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
-    robust_clamp: bool = True  # sigma-clipped clamp of outlier clusters (local_regression.clamp_outlier_clusters)
-    ridge_relative: float = RIDGE_RELATIVE  # Tikhonov, relative to each feature's scale (local_regression)
-    ridge_absolute: float = RIDGE_ABSOLUTE  # Tikhonov floor x sum of weights (local_regression)
+    robust_clamp: bool = True  # sigma-clipped clamp of outlier clusters (outliers.clamp_outlier_clusters)
+    ridge_relative: float = RIDGE_RELATIVE  # Tikhonov, relative to each feature's scale (service.regression.solve)
+    ridge_absolute: float = RIDGE_ABSOLUTE  # Tikhonov floor x sum of weights (service.regression.solve)
     sigma_position: float | None = None  # pixels; Gaussian falloff of the weights with distance, None: flat
 
     def __post_init__(self) -> None:

@@ -1,11 +1,11 @@
 """The cross-regression's block regression (Choi 2024 eqs. 3-7) as one fused SIMD kernel for both buffers.
 
-`regress_packed` gives the same two pilots as `local_regression.block_regression` on
+`regress_packed` gives the same two pilots as `regression.block.block_regression` on
 `cross_regression.buffer_terms` (whose plain-numpy twin, `block_regression(..., reference=True)`, is the
 reference of the parity tests), with the same constants (EPS_SIGMA, EPS_VARIANCE, WEIGHT_FLOOR, the
 ridge of `solve_ridge`). It is that computation reorganised for the CPU:
 
-- Both buffers' inputs are packed once, in one pass, into phase planes (`local_regression`'s layout:
+- Both buffers' inputs are packed once, in one pass, into phase planes (`service.regression`'s layout:
   pixel x = S q + phase at lane q + pad of plane `phase`), so the pixels that one window offset pairs
   with LANES consecutive centres of a centre row are LANES consecutive floats: one `simd.Vec`. The
   service packs straight from the radiance (`cross_regression.pack_buffers`, which takes the logs and
@@ -22,7 +22,7 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
   already in the scratch. The ridge leaves the constant feature alone, so this is the same fit with the
   intercept less that value, added back after the solve.
 - The 61 moments of each regression are solved right there, in float64 on `simd.VecD` vectors
-  (`_cholesky_solve`, the operations of `local_regression.cholesky_ridge_solve`), and a last pass adds
+  (`_cholesky_solve`, the operations of `regression.solve.cholesky_ridge_solve`), and a last pass adds
   each centre's weighted predictions of both regressions (eq. 5), from the window's scratch, into a
   strip of the pixel rows that the lane group's chunk of centre rows covers (each row is in L1 while a
   window row is added), and the strip into the numerator and denominator planes once per chunk. Centre
@@ -34,18 +34,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from service.stages.local_regression import (
-    BlockParams,
-    MomentLayout,
-    centre_count,
-    kernel_constants,
-    normalise_phases,
-    pad_lanes,
-    phase_planes,
-    spatial_weights,
-    to_planes,
-)
-from service.stages.simd import (
+from service.kernels.simd import (
     HALF,
     LANES,
     aligned_empty,
@@ -63,6 +52,9 @@ from service.stages.simd import (
     vmax,
     widen,
 )
+from service.regression.block import MomentLayout, kernel_constants, normalise_phases, pad_lanes, phase_planes
+from service.regression.planes import to_planes
+from service.regression.terms import BlockParams, centre_count, spatial_weights
 
 # Packed planes of both buffers (`cross_regression.pack_buffers`, `pack_cross_reference`): each buffer's
 # log colour (3), its variance and sigma follow each other, so a buffer is named by its first log plane.
@@ -407,7 +399,7 @@ def _pairs_pass(planes, spatial, radius, consts, cy, y, c, pairs, o0):  # pragma
     differences. The later passes stream the scratch in order instead of gathering from 4 phase planes x
     17 rows again."""
     s = planes.shape[0]
-    eps_sigma, eps_variance, floor = consts[0], consts[1], consts[2]  # `local_regression.kernel_constants`
+    eps_sigma, eps_variance, floor = consts[0], consts[1], consts[2]  # `regression.block.kernel_constants`
     mask_c = load(planes, (0, MASK, cy, c))
     ga0, ga1, ga2 = _centres3(planes, BUFFER_A, cy, c)
     gb0, gb1, gb2 = _centres3(planes, BUFFER_B, cy, c)
@@ -505,7 +497,7 @@ def _centres3(planes, first, cy, c):  # pragma: no cover
 
 def _moment_entries() -> np.ndarray:
     """(kind, row, column) of each moment in the order the passes store them, which is
-    `local_regression.MomentLayout.moment_entries` of the cross layout (3 guides, 3 shared features, 3 groups
+    `regression.block.MomentLayout.moment_entries` of the cross layout (3 guides, 3 shared features, 3 groups
     of 2, 3 targets): kind 0 for the shared ones (in every channel's system), ch + 1 for channel ch's;
     column FEATURES for the right-hand side."""
     _, _, dest = MomentLayout(3, 3, 3, 2, 3).moment_entries()
@@ -545,7 +537,7 @@ def _solve(moments, b, ridge, gram, rhs, coefs):  # pragma: no cover
 
 @numba.njit(inline="always", fastmath=True)
 def _cholesky_solve(a, b, g, ridge_relative, ridge_absolute, h):  # pragma: no cover
-    """`local_regression.cholesky_ridge_solve` (constant feature 0, one right-hand side) on VecD lanes
+    """`regression.solve.cholesky_ridge_solve` (constant feature 0, one right-hand side) on VecD lanes
     h ... h + HALF - 1 of system g: a[g] (a (3, FEATURES, FEATURES, LANES) float64) the lower triangle of
     X^T W X, b[g] (b (3, FEATURES, LANES)) X^T W Y -> beta, in place; the same operations in the same order."""
     scale = vmax(load(a, (g, 0, 0, h)), splat_d(1e-30))

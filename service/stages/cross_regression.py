@@ -17,7 +17,7 @@ pilot_a is a linear function of y^A, so its noise correlates with y^A (not y^B),
 online loss (eq. 12) compares the network's output from pilot_a with pilot_b.
 
 As our addition (not in the paper, on by default, `firefly_k=None` turns it off) each buffer's isolated
-outliers are clamped to their 3x3 neighbourhood before the log (see `local_regression.clamp_fireflies`).
+outliers are clamped to their 3x3 neighbourhood before the log (see `outliers.clamp_fireflies`).
 """
 
 from __future__ import annotations
@@ -27,28 +27,17 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from service.kernels.fill import filled
+from service.kernels.parallel import rows_per_thread
+from service.kernels.simd import bits_to_float32, float32_to_bits
+from service.regression.block import block_regression, normalise_row, pad_lanes
+from service.regression.planes import from_planes, interleave_row, neighbour_mean, to_planes
+from service.regression.solve import RIDGE_ABSOLUTE, RIDGE_RELATIVE
+from service.regression.terms import BlockParams, PairTerms
 from service.stages.cross_block import empty_planes, pack_row, regress_packed, regress_sums
 from service.stages.emission import add_row, nonfinite, subtract_emission, subtract_row
-from service.stages.fill import filled
-from service.stages.local_regression import (
-    FIREFLY_K,
-    RIDGE_ABSOLUTE,
-    RIDGE_RELATIVE,
-    BlockParams,
-    PairTerms,
-    block_regression,
-    check_firefly_k,
-    clamp_fireflies_reference,
-    from_planes,
-    interleave_row,
-    neighbour_mean,
-    normalise_row,
-    pad_lanes,
-    to_planes,
-)
-from service.stages.parallel import rows_per_thread
+from service.stages.outliers import FIREFLY_K, check_firefly_k, clamp_fireflies_reference
 from service.stages.range_clamp import emit_range_row, range_scratch, window_range
-from service.stages.simd import bits_to_float32, float32_to_bits
 
 LOG_MAX = 88.0  # |log value| limit of `log_to_linear`: expm1(88) = 1.65e38, two of them still below float32 max
 
@@ -60,8 +49,8 @@ class CrossRegressionParams:
     window: int = 17  # side of the square regression window, pixels (Choi 2024 sec. 3: 17 x 17), odd
     sparsity: int = 4  # centre pixels on every 4th row and column, 1/16 of the pixels (Choi 2024 sec. 3)
     firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
-    ridge_relative: float = RIDGE_RELATIVE  # Tikhonov, relative to each feature's scale (local_regression)
-    ridge_absolute: float = RIDGE_ABSOLUTE  # Tikhonov floor x sum of weights (local_regression)
+    ridge_relative: float = RIDGE_RELATIVE  # Tikhonov, relative to each feature's scale (service.regression.solve)
+    ridge_absolute: float = RIDGE_ABSOLUTE  # Tikhonov floor x sum of weights (service.regression.solve)
 
     def __post_init__(self) -> None:
         if self.window < 1 or self.window % 2 == 0:
@@ -93,7 +82,7 @@ def log_to_linear(log_color: np.ndarray) -> np.ndarray:
 
 def log_planes_reference(color: np.ndarray, firefly_k: float | None = FIREFLY_K) -> np.ndarray:
     """One buffer into the regression's log space, as channel planes, in plain numpy (the numba pass,
-    `_log_row`, runs inside `pack_buffers`): `local_regression.clamp_fireflies_reference` with k = firefly_k
+    `_log_row`, runs inside `pack_buffers`): `outliers.clamp_fireflies_reference` with k = firefly_k
     (None: no clamp), then `linear_to_log`.
 
     color: (H, W, 3) float32 linear HDR radiance (any sign, finite). Returns (3, H, W) float32 log colour."""
@@ -129,7 +118,7 @@ def _log_row(flat, period, y, height, k, clamp, d0, d1, d2):  # pragma: no cover
     """Row y of one buffer of an H-row frame in log space (`log_planes_reference`) into d0, d1, d2 (W,)
     float32, its three colour planes' rows, from flat (P, 3 W) float32, the interleaved radiance, frame row
     yy at flat[yy % period] (the whole frame, period = H, or a ring of rows around y). The clamp of
-    `local_regression._clamp_kernel` (the same float32 operations; min and max are exact, so the order in
+    `outliers._clamp_kernel` (the same float32 operations; min and max are exact, so the order in
     which the neighbours are taken does not matter) runs on the interleaved rows, where the neighbour in x
     of a value lies a constant 3 values away, so every loop is contiguous and vectorises; one pass per
     neighbour row over the pixels that have both x neighbours, then the first and last pixel. Without

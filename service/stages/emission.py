@@ -5,8 +5,8 @@ sends it) and add it back after; the step then checks that the result is finite.
 the subtraction would be one single-threaded full-frame pass per radiance layer, and the sum and the check
 two more; here the subtraction from all layers is one parallel pass that reads the emission once (the
 pass is memory-bound), and the sum and the check another. A pipeline that reads its radiance layers
-in passes of its own can fuse the split into them instead (`Pipeline.fuses_emission`; `crossregression`
-subtracts row by row with `subtract_row` and adds back with `add_row`).
+in passes of its own can fuse the split into them instead (overriding `Pipeline.denoise_split`;
+`crossregression` subtracts row by row with `subtract_row` and adds back with `add_row`).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from service.stages.simd import float32_to_bits
+from service.kernels.simd import float32_to_bits
 
 MAX_LAYERS = 3  # radiance layers one `subtract_emission` pass takes (frame.RADIANCE_LAYERS)
 

@@ -11,7 +11,7 @@ coefficients are bilinearly upsampled before I_k = x_k A_k is evaluated at full 
 
 The systems are solved in centred form, cov(x, x) a = cov(x, y), b = mean(y) - a . mean(x), which is the
 same least-squares solution as with the constant column, better conditioned, with a ridge on the slopes
-only (`local_regression.solve_ridge`). Guides are standardised per frame first, so any guide images work:
+only (`regression.solve.solve_ridge`). Guides are standardised per frame first, so any guide images work:
 the G-buffers here, or the guides a network learns (FLNR) later, through `local_linear_regression`.
 The Gaussian is truncated at the frame border and the sums are weights, not averages, so border pixels
 get an exact weighted fit over the pixels that exist (no padding).
@@ -24,25 +24,21 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from service.stages.albedo import remodulate
-from service.stages.bilateral import log_depth
-from service.stages.fill import filled
-from service.stages.local_regression import (
-    FIREFLY_K,
-    RIDGE_RELATIVE,
+from service.kernels.fill import filled
+from service.kernels.parallel import rows_per_thread
+from service.kernels.window import overlap
+from service.regression.planes import (
     channel_planes,
     channel_planes_reference,
-    check_firefly_k,
-    cholesky_ridge_solve,
     from_planes,
     interleave_row,
-    solve_ridge_reference,
     standardise,
     to_planes,
 )
-from service.stages.outliers import clamp_outlier_planes
-from service.stages.parallel import rows_per_thread
-from service.stages.window import overlap
+from service.regression.solve import RIDGE_RELATIVE, cholesky_ridge_solve, solve_ridge_reference
+from service.stages.albedo import remodulate
+from service.stages.bilateral import log_depth
+from service.stages.outliers import FIREFLY_K, check_firefly_k, clamp_outlier_planes
 
 RIDGE_ABSOLUTE_FLR = 1e-4  # slope ridge floor, in units of a standardised guide's frame variance
 
@@ -55,7 +51,7 @@ class FlrParams:
     sigma: float = 0.5  # std of the Gaussian blur on the low-resolution grid, in cells (x scale = pixels)
     truncate: float = 3.0  # Gaussian support radius in sigmas
     firefly_k: float | None = FIREFLY_K  # clamp outliers to k neighbour ranges beyond their neighbours; None: off
-    robust_clamp: bool = True  # sigma-clipped clamp of outlier clusters (local_regression.clamp_outlier_clusters)
+    robust_clamp: bool = True  # sigma-clipped clamp of outlier clusters (outliers.clamp_outlier_clusters)
     ridge_relative: float = RIDGE_RELATIVE  # Tikhonov on the slopes, relative to each guide's local variance
     ridge_absolute: float = RIDGE_ABSOLUTE_FLR  # Tikhonov floor on the slopes (standardised guide units)
 

@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numba
 import numpy as np
 
-from service.stages.parallel import rows_per_thread
+from service.kernels.parallel import rows_per_thread
 
 Reduce = Callable[[np.ndarray, np.ndarray], np.ndarray]
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from service.stages.window import overlap
+from service.kernels.window import overlap
 
 DEPTH_FLOOR = 1e-6  # scene units; denominators of relative depth differences are at least this
 NORMAL_HIT = 0.25  # squared length above which a normal is a surface hit (zero normal: nothing hit)

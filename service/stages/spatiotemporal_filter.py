@@ -13,7 +13,7 @@ weight of the current frame is 1. The A and B results are combined by their weig
 
 Layout: channel planes (C, H, W), the layout of the network's input and output tensors (service.layout),
 so the filter reads the U-Net's input planes and its output as they are. Neighbours outside the frame are
-left out (no padding), as in service.stages.window; the centre always has weight 1, so every
+left out (no padding), as in service.kernels.window; the centre always has weight 1, so every
 normalisation is safe.
 
 Speed: the numba kernel takes bands of rows in parallel and each row in tiles of columns. A per-thread
@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from service.kernels.window import overlap, window_offsets
 from service.stages.range_clamp import check_radius, local_range_reference, row_range
-from service.stages.window import overlap, window_offsets
 
 FILTER_RADIUS = 5  # Choi 2024 eq. 8: 11x11 denoising window; authors' code FILTER_WIDTH = 11
 N_PRECISIONS = 5  # colour A, colour B, albedo, normal, position (layout.CROSSREG_OUTPUTS[:5])

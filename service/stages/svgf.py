@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
+from service.kernels.fill import filled
 from service.stages.atrous import LUMINANCE_WEIGHTS, EdgeGuides, edge_aware_filter, luminance
-from service.stages.fill import filled
 
 ALPHA_COLOR = 0.2  # Schied 2017 sec. 4.1: blend weight of the new frame in the colour history
 ALPHA_MOMENTS = 0.2  # Schied 2017 sec. 4.2: blend weight of the new frame in the moment history

@@ -2,47 +2,73 @@ import os
 import platform
 import subprocess
 import sys
+from pathlib import Path
 
-from service.process import keep_freed_buffers, numba_cache_dir
+import service
+from service.process import KERNEL_SOURCES, keep_freed_buffers, numba_cache_dir
 
 
 def test_numba_cache_dir_follows_every_kernel_source(tmp_path):
-    sources = tmp_path / "stages"
-    sources.mkdir()
-    (sources / "a.py").write_text("x = 1\n")
-    (sources / "b.py").write_text("y = 2\n")
-    first = numba_cache_dir(sources, tmp_path / "cache")
+    folders = (tmp_path / "kernels", tmp_path / "stages")
+    for folder in folders:
+        folder.mkdir()
+        (folder / "a.py").write_text("x = 1\n")
+    (folders[1] / "b.py").write_text("y = 2\n")
+    first = numba_cache_dir(folders, tmp_path / "cache")
     assert first.parent == tmp_path / "cache" and first.name.startswith("numba-")
-    assert numba_cache_dir(sources, tmp_path / "cache") == first  # stable
-    (sources / "b.py").write_text("y = 3\n")  # an inlined helper's module changes
-    assert numba_cache_dir(sources, tmp_path / "cache") != first
+    assert numba_cache_dir(folders, tmp_path / "cache") == first  # stable
+    (folders[1] / "b.py").write_text("y = 3\n")  # an inlined helper's module changes
+    second = numba_cache_dir(folders, tmp_path / "cache")
+    assert second != first
+    (folders[0] / "a.py").rename(folders[0] / "c.py")  # the same text under another name
+    assert numba_cache_dir(folders, tmp_path / "cache") != second
 
 
-def test_import_sets_defaults_but_an_explicit_environment_wins(tmp_path):
-    code = "import os, service; print(os.environ['NUMBA_CACHE_DIR']); print(os.environ['OMP_WAIT_POLICY'])"
+def test_every_module_with_kernels_is_in_the_digest():
+    package = Path(service.__file__).parent
+    with_kernels = {p.parent for p in package.rglob("*.py") if any(d in p.read_text() for d in ("numba.njit", "@njit"))}
+    assert with_kernels <= set(KERNEL_SOURCES)
+
+
+def _run(code: str, env: dict[str, str]) -> list[str]:
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    return out.stdout.split()
+
+
+def test_import_changes_nothing_and_configure_sets_defaults_that_an_explicit_environment_overrides(tmp_path):
+    show = "import os; print(os.environ.get('NUMBA_CACHE_DIR', '-'), os.environ.get('OMP_WAIT_POLICY', '-'))"
     env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "OMP_WAIT_POLICY")}
     env["XDG_CACHE_HOME"] = str(tmp_path)
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    cache, wait = out.stdout.split()
+    assert _run("import service, service.layout, service.pipelines; " + show, env) == ["-", "-"]
+    cache, wait = _run("from service.process import configure; configure(); " + show, env)
     assert cache.startswith(str(tmp_path / "mcdenoise" / "numba-")) and wait == "PASSIVE"
     env.update(NUMBA_CACHE_DIR=str(tmp_path / "mine"), OMP_WAIT_POLICY="ACTIVE")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == [str(tmp_path / "mine"), "ACTIVE"]
+    explicit = _run("from service.process import configure; configure(); " + show, env)
+    assert explicit == [str(tmp_path / "mine"), "ACTIVE"]
 
 
-def test_keep_freed_buffers_applies_on_glibc():
-    assert keep_freed_buffers() is (sys.platform == "linux" and platform.libc_ver()[0] == "glibc")
-
-
-def test_the_kernels_cache_in_the_versioned_folder_even_when_numba_came_first(tmp_path):
-    # numba reads NUMBA_CACHE_DIR when it is imported; imported before `service`, its default caches
-    # (beside the sources, keyed on each kernel's own file only) would serve kernels built from old helpers
+def test_kernels_imported_before_configure_cache_in_the_versioned_folder(tmp_path):
+    # numba fixes a kernel's cache location at import; its default (beside the sources, keyed on each
+    # kernel's own file only) would serve kernels built from old helpers
     code = (
-        "import numba, service\n"
         "from service.stages.emission import _add_kernel\n"
+        "from service.process import configure\n"
+        "configure()\n"
         "print(_add_kernel._cache._cache_path)"
     )
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env["XDG_CACHE_HOME"] = str(tmp_path)
+    assert _run(code, env)[0].startswith(str(tmp_path / "mcdenoise" / "numba-"))
+
+
+def test_the_command_line_configures_the_process(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "OMP_WAIT_POLICY")}
+    env["XDG_CACHE_HOME"] = str(tmp_path)
+    code = ("import os, sys; from service.cli import main; main(['pipelines']); "
+            "print(os.environ['NUMBA_CACHE_DIR'], file=sys.stderr)")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip().startswith(str(tmp_path / "mcdenoise" / "numba-"))
+    assert out.stderr.strip().startswith(str(tmp_path / "mcdenoise" / "numba-"))
+
+
+def test_keep_freed_buffers_applies_on_glibc():
+    assert keep_freed_buffers() is (sys.platform == "linux" and platform.libc_ver()[0] == "glibc")

@@ -81,3 +81,10 @@ def test_warm_command_warms_the_named_pipelines(capsys):
     assert main(["warm", "bilateral", "nope"]) == 2  # unknown names fail before any warming
     captured = capsys.readouterr()
     assert captured.out == "" and "unknown pipeline 'nope'" in captured.err
+
+
+def test_warm_command_with_jobs_warms_each_pipeline_in_a_process_of_its_own(capsys):
+    assert main(["warm", "--jobs", "2", "bilateral", "statistical"]) == 0
+    out = capsys.readouterr().out
+    assert "bilateral: ready in" in out and "statistical: ready in" in out and "warmed 2 pipelines" in out
+    assert main(["warm", "--jobs", "-1", "bilateral"]) == 2

@@ -2,6 +2,11 @@ import numba
 import numpy as np
 import pytest
 
+from service.kernels.simd import HALF, LANES
+from service.regression.block import block_regression
+from service.regression.planes import from_planes
+from service.regression.solve import RIDGE_ABSOLUTE, RIDGE_RELATIVE, cholesky_ridge_solve
+from service.regression.terms import BlockParams
 from service.stages.cross_block import (
     BUFFER_A,
     FEATURES,
@@ -14,15 +19,6 @@ from service.stages.cross_block import (
     regress_sums,
 )
 from service.stages.cross_regression import buffer_terms, linear_to_log, pixel_variance_reference
-from service.stages.local_regression import (
-    RIDGE_ABSOLUTE,
-    RIDGE_RELATIVE,
-    BlockParams,
-    block_regression,
-    cholesky_ridge_solve,
-    from_planes,
-)
-from service.stages.simd import HALF, LANES
 
 PARITY_RTOL = 2e-4  # SIMD kernel (other summation order, float32 moments) vs the numpy reference, float32
 

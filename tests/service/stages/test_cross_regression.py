@@ -1,6 +1,10 @@
 import numpy as np
 import pytest
 
+from service.kernels.simd import LANES
+from service.regression.block import pad_lanes
+from service.regression.planes import from_planes
+from service.regression.terms import BlockParams
 from service.stages.cross_block import BUFFER_A, BUFFER_B, pack_cross_reference
 from service.stages.cross_regression import (
     LOG_MAX,
@@ -15,9 +19,8 @@ from service.stages.cross_regression import (
     pilots_to_radiance_reference,
     pixel_variance_reference,
 )
-from service.stages.local_regression import FIREFLY_K, BlockParams, from_planes, pad_lanes
+from service.stages.outliers import FIREFLY_K
 from service.stages.range_clamp import clamp_to_local_range
-from service.stages.simd import LANES
 
 PARITY_ATOL = 1e-3  # log units: numba (fast exp, other summation order) vs numpy, float32
 LOG1P_ULP = 1.0  # pack_buffers' log1p (musl's log1pf) against float64 log1p, float32 ulp

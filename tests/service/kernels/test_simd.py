@@ -4,8 +4,7 @@ import numba
 import numpy as np
 import pytest
 
-from service.stages.local_regression import _exp_neg
-from service.stages.simd import (
+from service.kernels.simd import (
     EXP_NEG_LIMIT,
     HALF,
     LANES,
@@ -26,6 +25,7 @@ from service.stages.simd import (
     vmin,
     widen,
 )
+from service.regression.block import _exp_neg
 
 EXP_RTOL = 5e-7  # exp_neg on [0, 86]: the rounding of ln 2 times m grows the error with x (4.2e-7 at 85)
 

@@ -23,7 +23,7 @@ In numba code (lane-wise, fast-math: fused multiply-adds and reassociation allow
     vmax(v, w), vmin(v, w), floor(v), sqrt(v), exp_neg(v)
     d = widen(v, half)            # VecD of lanes half * LANES/2 ... of the Vec v
     v = narrow(lo, hi)            # Vec of two VecD halves, rounded to float32
-`exp_neg` is the vector twin of `local_regression._exp_neg` (the same operations, the same values; both
+`exp_neg` is the vector twin of `regression.block._exp_neg` (the same operations, the same values; both
 evaluate `exp_poly`, which takes a float32 or a Vec).
 
 Also here, for numpy code: `aligned_empty`, arrays that start on a vector (and cache line) boundary, and
@@ -47,7 +47,7 @@ from numba.extending import intrinsic, models, overload, register_model
 LANES = 16  # float32 lanes of one Vec: one AVX-512 register; a VecD holds LANES // 2 float64
 HALF = LANES // 2
 
-# exp(-x) (`exp_neg` and its scalar twin `local_regression._exp_neg`): x = m ln2 - g, |g| <= ln2 / 2, and
+# exp(-x) (`exp_neg` and its scalar twin `regression.block._exp_neg`): x = m ln2 - g, |g| <= ln2 / 2, and
 # e^g by a degree-5 polynomial (coefficients of g^0 ... g^5) with e^0 = 1 exactly and the least maximum
 # relative error on [-ln2/2, ln2/2] for that (Lawson's iteration: 9.2e-8). x is clipped to EXP_NEG_LIMIT,
 # so that 2^-m e^g stays a normal float32 (m <= 124) and takes its exponent by integer subtraction.
@@ -402,7 +402,7 @@ def _times_pow2_neg(typingctx, p, m):
 
 @numba.njit(inline="always", fastmath=True)
 def exp_neg(x):
-    """Lane-wise exp(-x) for x >= 0 (a Vec): the operations of `local_regression._exp_neg`, bit for bit.
+    """Lane-wise exp(-x) for x >= 0 (a Vec): the operations of `regression.block._exp_neg`, bit for bit.
     Relative error < 5e-7 (float32 rounding; the polynomial's own is 9.2e-8); exp(-0) = 1; x beyond
     EXP_NEG_LIMIT gives exp(-EXP_NEG_LIMIT)."""
     xc = vmin(x, splat(np.float32(EXP_NEG_LIMIT)))

@@ -1,27 +1,25 @@
 import numpy as np
 import pytest
 
-from service.stages.local_regression import (
-    BlockParams,
-    PairTerms,
-    _log_fast,
+from service.kernels.simd import LANES
+from service.regression.block import (
     block_moments_reference,
     block_reconstruct,
     block_reconstruct_reference,
     block_regression,
     block_solve,
+    normalise_phases,
+)
+from service.regression.planes import neighbour_mean, standardise
+from service.regression.solve import solve_ridge, solve_ridge_reference
+from service.regression.terms import BlockParams, PairTerms, plain_terms
+from service.stages.outliers import (
+    _log_fast,
     clamp_fireflies,
     clamp_fireflies_reference,
     clamp_outlier_clusters,
     clamp_outlier_clusters_reference,
-    neighbour_mean,
-    normalise_phases,
-    plain_terms,
-    solve_ridge,
-    solve_ridge_reference,
-    standardise,
 )
-from service.stages.simd import LANES
 
 PARITY_RTOL = 2e-4  # numba (fast exp, other summation order) vs numpy, float32
 
@@ -107,7 +105,7 @@ def test_standardise_puts_planes_on_unit_scale_and_zeroes_constant_ones():
 
 
 def test_standardise_matches_the_numpy_reference():
-    from service.stages.local_regression import standardise_reference
+    from service.regression.planes import standardise_reference
 
     rng = np.random.default_rng(6)
     planes = (rng.standard_normal((4, 13, 17)) * [[[1.0]], [[1e3]], [[0.0]], [[1e-3]]] + 5.0).astype(np.float32)
@@ -145,7 +143,7 @@ def test_block_solve_matches_the_reference_on_bmfr_terms(size):
 
 @pytest.mark.parametrize("size", [(1, 1), (3, 5), (29, 22)])
 def test_pack_planes_matches_the_numpy_phase_split(size):
-    from service.stages.local_regression import MomentLayout, pack_planes, phase_planes
+    from service.regression.block import MomentLayout, pack_planes, phase_planes
 
     terms, target = _random_terms(np.random.default_rng(5), *size)
     params = BlockParams(radius=5, sparsity=3)
@@ -156,7 +154,7 @@ def test_pack_planes_matches_the_numpy_phase_split(size):
 @pytest.mark.parametrize("size", [(1, 1), (3, 5), (29, 22), (7, 300), (13, 1400)])  # 1400: 2-4 column tiles
 @pytest.mark.parametrize("radius, sparsity", [(5, 3), (6, 6), (4, 3), (5, 2)])  # (2r+1) mod s head rows: 2, 1, 0, 1
 def test_box_regression_matches_the_pair_by_pair_reference(size, radius, sparsity):
-    from service.stages.local_regression import box_regression
+    from service.regression.box import box_regression
 
     rng = np.random.default_rng(7)
     y, x = np.mgrid[0 : size[0], 0 : size[1]].astype(np.float32)
@@ -242,7 +240,7 @@ def test_clamp_outlier_clusters_rejects_a_cluster_the_3x3_clamp_keeps():
 
 @pytest.mark.parametrize("constant", [True, False])
 def test_cholesky_ridge_solve_matches_the_numpy_reference(constant):
-    from service.stages.local_regression import cholesky_ridge_solve
+    from service.regression.solve import cholesky_ridge_solve
 
     rng = np.random.default_rng(9)
     lanes, k, m = 21, 5, 3
@@ -263,7 +261,7 @@ def test_cholesky_ridge_solve_matches_the_numpy_reference(constant):
 
 @pytest.mark.parametrize("channels", [1, 3, 4])
 def test_channel_planes_match_the_numpy_reference(channels):
-    from service.stages.local_regression import channel_planes, channel_planes_reference
+    from service.regression.planes import channel_planes, channel_planes_reference
 
     rng = np.random.default_rng(10)
     image = rng.standard_normal((9, 14, channels), dtype=np.float32)
@@ -277,7 +275,7 @@ def test_channel_planes_match_the_numpy_reference(channels):
 
 
 def test_standardise_in_place_matches_the_numpy_reference_over_many_blocks():
-    from service.stages.local_regression import STANDARDISE_BLOCK, standardise_reference
+    from service.regression.planes import STANDARDISE_BLOCK, standardise_reference
 
     planes = np.random.default_rng(11).standard_normal((3, 20, 70000 // 20)).astype(np.float32) * 3 + 7
     assert planes[0].size > STANDARDISE_BLOCK  # sums over two blocks, relative to the first value
@@ -289,7 +287,7 @@ def test_standardise_in_place_matches_the_numpy_reference_over_many_blocks():
 # subsamples of 1, 12, 12, 24 and 9 values: both median branches
 @pytest.mark.parametrize("shape", [(1, 1, 1), (3, 5, 7), (3, 8, 8), (2, 9, 13), (1, 9, 9)])
 def test_radiance_scale_is_the_median_of_the_subsample(shape):
-    from service.stages.local_regression import radiance_scale
+    from service.stages.outliers import radiance_scale
 
     planes = np.random.default_rng(12).standard_normal(shape).astype(np.float32)
     expected = max(float(np.median(np.abs(planes[:, ::4, ::4]).astype(np.float64))), 1e-6)
