@@ -27,6 +27,9 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
   strip of the pixel rows that the lane group's chunk of centre rows covers (each row is in L1 while a
   window row is added), and the strip into the numerator and denominator planes once per chunk. Centre
   rows whose windows overlap are never run at the same time.
+
+One module of about 600 lines, not split: the packed layout's constants (PLANES, MOMENTS, the scratch
+rows) and the passes that read them change together.
 """
 
 from __future__ import annotations
