@@ -1,11 +1,10 @@
 """OpenEXR frames and sequence folders in and out (shared FRAME_FORMAT.md).
 
-A frame is one single-part scanline EXR whose channels are named `LAYER.CHANNEL`
-(`color.R`, `normal.X`, `depth.Z`, ...), half or float, in any order. Two leniencies that real
-renderers need: bare `R`, `G`, `B` channels are read as the `color` layer when no `color.*`
-channel exists, and a layer may use the RGB names for XYZ channels (`normal.R` = `normal.X`, ...),
-or any single name for a one-channel layer. A sequence is a folder of `.exr` files whose names sort
-in frame order, with an optional `sequence.json` beside them.
+A frame is one single-part scanline EXR, half or float channels in any order. Which channels make which
+layer is the file's dialect (`service.dialects`): the frame format's own `LAYER.CHANNEL` names
+(`color.R`, `normal.X`, `depth.Z`, ...), Blender's multilayer EXR, Mitsuba's AOVs, or a user's channel
+map. Frames are written in the frame format. A sequence is a folder of `.exr` files whose names sort in
+frame order, with an optional `sequence.json` beside them.
 """
 
 from __future__ import annotations
@@ -13,7 +12,7 @@ from __future__ import annotations
 import io
 import json
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -21,14 +20,10 @@ import Imath
 import numpy as np
 import OpenEXR
 
+from service.dialects import ChannelMap, detect
 from service.frame import LAYERS, Frame, FrameError
 
 _FLOAT = Imath.PixelType(Imath.PixelType.FLOAT)  # what `read_layers` asks the decoder for, whatever the file holds
-# Alternative channel names accepted per channel count, after the spec's own names.
-_ALIASES: dict[int, tuple[tuple[str, ...], ...]] = {
-    3: (("R", "G", "B"), ("X", "Y", "Z")),
-    2: (("X", "Y"), ("R", "G"), ("U", "V")),
-}
 
 
 def read_channels(source: str | Path | bytes) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -48,36 +43,6 @@ def read_channels(source: str | Path | bytes) -> tuple[dict[str, np.ndarray], di
     return channels, header
 
 
-def group_layers(channels: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Group `LAYER.CHANNEL` channels into (H, W, C) arrays of the known layers, in spec order.
-
-    Unknown layers are dropped. Raises FrameError naming a known layer whose channels do not match
-    its spec (missing or extra channels, i.e. a wrong channel count).
-    """
-    by_layer: dict[str, dict[str, np.ndarray]] = {}
-    for full, pixels in channels.items():
-        layer, chan = _split_channel(full, channels)
-        by_layer.setdefault(layer, {})[chan] = pixels
-    layers: dict[str, np.ndarray] = {}
-    for layer, chans in by_layer.items():
-        spec = LAYERS.get(layer)
-        if spec is None:
-            continue
-        chans = {c: p for c, p in chans.items() if c != "A"}  # an alpha channel is never data here
-        names = _match_channel_names(layer, spec.channels, tuple(chans))
-        layers[layer] = np.stack([chans[c] for c in names], axis=-1)
-    return layers
-
-
-def _split_channel(full: str, all_names: Iterable[str]) -> tuple[str, str]:
-    """(layer, channel) of a channel name: `LAYER.CHANNEL`, or a bare R/G/B read as `color` when the
-    file has no `color.*` channel."""
-    layer, _, chan = full.rpartition(".")
-    if not layer and full in ("R", "G", "B") and not any(c.startswith("color.") for c in all_names):
-        return "color", full
-    return layer, chan
-
-
 @dataclass(frozen=True)
 class ExrHeader:
     """What an EXR header tells without decoding pixels."""
@@ -86,20 +51,25 @@ class ExrHeader:
     height: int  # pixels, of the data window
     layers: frozenset[str]  # known layers present; `color` also when `colorA` and `colorB` are
     channels: tuple[str, ...] = ()  # every channel name in the file
+    mapping: ChannelMap = field(default_factory=lambda: ChannelMap("mcdenoise"))  # how channels make layers
 
     def channels_of(self, layers: Iterable[str]) -> tuple[str, ...]:
         """The channels to decode for `layers` (known layers; those absent are skipped): `colorA` and
         `colorB` too for `color` when the file has no color channels (the frame contract averages them)."""
         wanted = set(layers)
-        if "color" in wanted and not any(_split_channel(c, self.channels)[0] == "color" for c in self.channels):
+        if "color" in wanted and "color" not in self.mapping.layers:
             wanted |= {"colorA", "colorB"}
-        return tuple(c for c in self.channels if _split_channel(c, self.channels)[0] in wanted & set(LAYERS))
+        needed = {c for name, src in self.mapping.layers.items() if name in wanted for c in src.file_channels()}
+        return tuple(c for c in self.channels if c in needed)
 
 
-def read_header(source: str | Path | bytes) -> ExrHeader:
-    """Size and layers of an EXR file or in-memory EXR bytes, from its header alone.
+def read_header(source: str | Path | bytes, channel_map: ChannelMap | None = None,
+                view_layer: str | None = None) -> ExrHeader:
+    """Size, layers and dialect of an EXR file or in-memory EXR bytes, from its header alone
+    (`service.dialects.detect`, with the user's `channel_map` and Blender `view_layer` when given).
 
-    Raises FrameError when the data is not a readable OpenEXR image."""
+    Raises FrameError when the data is not a readable OpenEXR image, when a channel map names channels
+    the file lacks, or for a Blender file with several view layers and none named."""
     handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
     what = "data" if isinstance(source, bytes | bytearray) else f"file '{source}'"
     try:
@@ -107,19 +77,26 @@ def read_header(source: str | Path | bytes) -> ExrHeader:
             header = exr.header()
             names = [ch.name for ch in header["channels"]]
             low, high = header["dataWindow"]
+            attributes = {k: v for k, v in header.items() if k == "BlenderMultiChannel"}
     except Exception as err:  # the binding raises RuntimeError/TypeError/OSError/KeyError on bad data
         raise FrameError(f"{what} is not a readable OpenEXR image ({err})") from err
-    layers = {_split_channel(name, names)[0] for name in names} & set(LAYERS)
+    mapping = detect(names, attributes, channel_map=channel_map, view_layer=view_layer)
+    missing = mapping.missing_channels(names)
+    if missing:
+        layer, channels = next(iter(missing.items()))
+        raise FrameError(f"{what}: the channel map's layer '{layer}' names channels the file lacks: "
+                         f"{', '.join(channels)}", layer)
+    layers = set(mapping.layers)
     if {"colorA", "colorB"} <= layers:
         layers.add("color")
-    return ExrHeader(int(high[0] - low[0] + 1), int(high[1] - low[1] + 1), frozenset(layers), tuple(names))
+    return ExrHeader(int(high[0] - low[0] + 1), int(high[1] - low[1] + 1), frozenset(layers), tuple(names), mapping)
 
 
 def read_layers(source: str | Path | bytes, header: ExrHeader, layers: Iterable[str] = LAYERS) -> dict[str, np.ndarray]:
     """The known `layers` of an EXR file or bytes whose header is `header` (`read_header`), decoding only
     their channels (`ExrHeader.channels_of`): no other channel is ever converted or held in memory.
 
-    Returns layer -> (H, W, C) float32 array in spec channel order (`group_layers`). Raises FrameError when
+    Returns layer -> (H, W, C) float32 array in spec channel order (the header's `mapping`). Raises FrameError when
     the pixel data is unreadable (truncated, corrupt), a channel is subsampled, or a layer's channels do not
     match its spec (naming the layer).
     """
@@ -137,28 +114,20 @@ def read_layers(source: str | Path | bytes, header: ExrHeader, layers: Iterable[
     pixels: dict[str, np.ndarray] = {}
     for name, raw in zip(names, data, strict=True):
         if len(raw) != 4 * header.width * header.height:
-            layer = _split_channel(name, header.channels)[0]
+            layer = next((k for k, src in header.mapping.layers.items() if name in src.file_channels()), None)
             raise FrameError(f"channel '{name}' is subsampled; every channel must have one value per pixel", layer)
         pixels[name] = np.frombuffer(raw, np.float32).reshape(header.height, header.width)
-    return group_layers(pixels)
+    wanted = set(layers) | ({"colorA", "colorB"} if "color" in layers else set())
+    return {layer: src.assemble(pixels, layer) for layer, src in header.mapping.layers.items()
+            if layer in wanted and layer in LAYERS}
 
 
-def _match_channel_names(layer: str, expected: tuple[str, ...], present: tuple[str, ...]) -> tuple[str, ...]:
-    if len(expected) == 1 and len(present) == 1:
-        return present
-    for names in (expected, *_ALIASES.get(len(expected), ())):
-        if set(names) == set(present):
-            return names
-    raise FrameError(
-        f"layer '{layer}' has {len(present)} channel(s) ({', '.join(sorted(present))}); "
-        f"expected {len(expected)} ({' '.join(expected)})",
-        layer,
-    )
-
-
-def read_frame(source: str | Path | bytes, *, repair: bool = True) -> Frame:
-    """Read one frame (a path or in-memory EXR bytes) into a validated float32 Frame (known layers only)."""
-    return Frame.from_buffers(read_layers(source, read_header(source)), repair=repair)
+def read_frame(source: str | Path | bytes, *, repair: bool = True, channel_map: ChannelMap | None = None,
+               view_layer: str | None = None) -> Frame:
+    """Read one frame (a path or in-memory EXR bytes) into a validated float32 Frame (known layers only),
+    in its dialect (`read_header`)."""
+    header = read_header(source, channel_map, view_layer)
+    return Frame.from_buffers(read_layers(source, header), repair=repair)
 
 
 def encode_frame(buffers: Mapping[str, np.ndarray] | Frame, *, half: bool = False) -> bytes:
@@ -213,10 +182,11 @@ def list_sequence(folder: str | Path) -> list[Path]:
     return files
 
 
-def read_sequence(folder: str | Path) -> Iterator[tuple[Path, Frame]]:
+def read_sequence(folder: str | Path, channel_map: ChannelMap | None = None,
+                  view_layer: str | None = None) -> Iterator[tuple[Path, Frame]]:
     """Yield (path, frame) for every frame of a sequence folder, in order, reading lazily."""
     for path in list_sequence(folder):
-        yield path, read_frame(path)
+        yield path, read_frame(path, channel_map=channel_map, view_layer=view_layer)
 
 
 def read_metadata(folder: str | Path) -> dict[str, Any] | None:

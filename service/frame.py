@@ -202,3 +202,18 @@ def _repair(name: str, arr: np.ndarray) -> tuple[np.ndarray, int]:
     arr = arr.copy()
     arr[bad] = fill
     return arr, count
+
+
+def from_two_renders(first: Frame, second: Frame) -> Frame:
+    """`first` with the halves of a split made from two renders of the same frame with different seeds:
+    `colorA` its `color`, `colorB` the `color` of `second`, `color` their mean. The renders must be
+    independent (for Cycles: both skip sample 0, which sits at the pixel centre whatever the seed).
+    FrameError when the sizes differ or either lacks `color`."""
+    if (first.height, first.width) != (second.height, second.width):
+        raise FrameError(f"the second render is {second.width}x{second.height} but the first is "
+                         f"{first.width}x{first.height}", "colorB")
+    a, b = first["color"], second["color"]
+    counts = {**first.nonfinite, **({"colorB": second.nonfinite["color"]} if "color" in second.nonfinite else {})}
+    if "color" in first.nonfinite:
+        counts["colorA"] = first.nonfinite["color"]
+    return Frame({**first.buffers, "colorA": a, "colorB": b, "color": np.float32(0.5) * (a + b)}, counts)

@@ -8,8 +8,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from service.dialects import ChannelMap
 from service.exr import list_sequence, read_frame, write_frame
-from service.frame import FrameError
+from service.frame import FrameError, from_two_renders
 from service.metrics import TRIM_FRACTION, rel_l2
 from service.pipelines import Pipeline
 from service.preview import write_preview
@@ -28,20 +29,34 @@ class FrameResult:
 
 
 def denoise_folder(
-    pipeline: Pipeline, in_dir: str | Path, out_dir: str | Path, *, png: bool = False
+    pipeline: Pipeline, in_dir: str | Path, out_dir: str | Path, *, png: bool = False,
+    channel_map: ChannelMap | None = None, view_layer: str | None = None, second_half: str | Path | None = None,
 ) -> Iterator[FrameResult]:
     """Denoise every frame of `in_dir` in order; write `out_dir/<name>` (layer `color`, float32) and,
-    with `png`, `out_dir/<stem>.png` previews. Yields one FrameResult per frame as it completes.
+    with `png`, `out_dir/<stem>.png` previews. Yields one FrameResult per frame as it completes. Frames
+    are read in their dialect (`service.exr.read_header`: `channel_map`, Blender `view_layer`). With
+    `second_half`, a folder of a second render of the same frames (another seed), frame i of each makes
+    the halves of frame i (`service.frame.from_two_renders`).
 
     Raises FrameError (naming the file and layer) on the first bad frame. The sequence state is closed at
     the end (stopping an online-training worker, if any).
     """
     out_dir = Path(out_dir)
+    paths = list_sequence(in_dir)
+    seconds: list[Path | None] = [None] * len(paths)
+    if second_half is not None:
+        seconds = list(list_sequence(second_half))
+        if len(seconds) != len(paths):
+            raise FrameError(f"the second render '{second_half}' has {len(seconds)} frames; "
+                             f"'{in_dir}' has {len(paths)}")
     state = None
     try:
-        for path in list_sequence(in_dir):
+        for path, second in zip(paths, seconds, strict=True):
             try:
-                frame = read_frame(path)
+                frame = read_frame(path, channel_map=channel_map, view_layer=view_layer)
+                if second is not None:
+                    other = read_frame(second, channel_map=channel_map, view_layer=view_layer)
+                    frame = from_two_renders(frame, other)
                 if state is None:
                     state = pipeline.start(frame.height, frame.width)
                 start = time.perf_counter()

@@ -5,11 +5,18 @@ from __future__ import annotations
 
 import argparse
 
-from service.cli.sequence_args import add_sequence_args, parse_options, resolve_pipeline
+from service.cli.sequence_args import (
+    add_second_half_arg,
+    add_sequence_args,
+    channel_map,
+    parse_options,
+    resolve_pipeline,
+)
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
     add_sequence_args(p)
+    add_second_half_arg(p)
     p.add_argument("--png", action="store_true", help="also write tone-mapped PNG previews")
 
 
@@ -23,11 +30,14 @@ def run(args: argparse.Namespace) -> int:
     options = parse_options(args.option)
     if args.online:
         options["online"] = True  # a pipeline without this option refuses it: "has no option 'online'"
-    pipeline = pipelines.get(resolve_pipeline(args.pipeline, args.in_dir), **options)
+    mapping = channel_map(args)
+    name = resolve_pipeline(args.pipeline, args.in_dir, mapping, args.view_layer, args.second_half is not None)
+    pipeline = pipelines.get(name, **options)
     print(f"{'frame':<24} {'ms':>9} {'relL2 in':>10} {'relL2 out':>10} {'NaN/Inf':>8}", flush=True)
     results = []
     with CompileNotice(pipeline.name) as notice:  # a frame's ms include any kernels compiled for it
-        for r in denoise_folder(pipeline, args.in_dir, args.out_dir, png=args.png):
+        for r in denoise_folder(pipeline, args.in_dir, args.out_dir, png=args.png, channel_map=mapping,
+                                view_layer=args.view_layer, second_half=args.second_half):
             notice.report()
             results.append(r)
             noisy = "" if r.rel_l2_noisy is None else f"{r.rel_l2_noisy:.4f}"

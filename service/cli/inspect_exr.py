@@ -1,19 +1,23 @@
-"""`python -m service inspect`: an EXR file's channels, pixel types, size, min/max/mean and NaN/Inf counts."""
+"""`python -m service inspect`: an EXR file's channels, pixel types, size, min/max/mean and NaN/Inf counts,
+then the dialect its channels were recognised as and how each frame-format layer is made from them."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from service.cli.sequence_args import add_dialect_args, channel_map
+
 
 def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", type=Path, help="an OpenEXR file")
+    add_dialect_args(p)
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from service.exr import read_channels
+    from service.exr import read_channels, read_header
 
     channels, header = read_channels(args.file)
     first = next(iter(channels.values()))
@@ -28,4 +32,8 @@ def run(args: argparse.Namespace) -> int:
         lo, hi, mean = (finite.min(), finite.max(), finite.mean()) if finite.size else (np.nan,) * 3
         print(f"{name:<16} {kind:<8} {lo:>12.5g} {hi:>12.5g} {mean:>12.5g} "
               f"{int(np.isnan(values).sum()):>7} {int(np.isinf(values).sum()):>7}")
+    mapping = read_header(args.file, channel_map(args), args.view_layer).mapping
+    print(f"dialect: {mapping.dialect}" + "".join(f"; {note}" for note in mapping.notes))
+    for layer, source in mapping.layers.items():
+        print(f"  {layer:<12} <- {source.describe()}")
     return 0

@@ -7,7 +7,10 @@ import argparse
 import json
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from service.dialects import ChannelMap
 
 AUTO = "auto"  # service.pipelines.AUTO, without importing the pipelines to build the parser
 
@@ -21,6 +24,27 @@ def add_sequence_args(p: argparse.ArgumentParser) -> None:
                    help="pipeline option, repeatable (see `pipelines --json`)")
     p.add_argument("--online", action="store_true",
                    help="fine-tune the pipeline's network while the sequence runs (sets option online=true)")
+    add_dialect_args(p)
+
+
+def add_dialect_args(p: argparse.ArgumentParser) -> None:
+    """How the files' channels map to layers, where the reader's detection (`service.dialects`) needs help."""
+    p.add_argument("--channel-map", type=Path, metavar="FILE.json",
+                   help="JSON map from the files' channel names to frame-format layers (README, frame format)")
+    p.add_argument("--view-layer", metavar="NAME", help="the Blender view layer to read, when a file holds several")
+
+
+def add_second_half_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--second-half", type=Path, metavar="DIR",
+                   help="a second render of the same frames with another seed: frame i of each makes the halves "
+                        "colorA, colorB (the split-buffer pipelines need them)")
+
+
+def channel_map(args: argparse.Namespace) -> ChannelMap | None:
+    """The `--channel-map` file, parsed (ValueError naming what is wrong), or None."""
+    from service.dialects import ChannelMap
+
+    return None if args.channel_map is None else ChannelMap.from_json(args.channel_map)
 
 
 def parse_options(items: Sequence[str]) -> dict[str, Any]:
@@ -37,15 +61,17 @@ def parse_options(items: Sequence[str]) -> dict[str, Any]:
     return options
 
 
-def resolve_pipeline(name: str, in_dir: Path) -> str:
+def resolve_pipeline(name: str, in_dir: Path, mapping: ChannelMap | None = None, view_layer: str | None = None,
+                     split: bool = False) -> str:
     """`name`, or for 'auto' the preferred pipeline whose required layers the sequence's first frame has
-    (read from its header); says which on stdout."""
+    (read from its header, in its dialect; with `split`, the halves of two renders too); says which on stdout."""
     from service import pipelines
     from service.exr import list_sequence, read_header
 
     if name != AUTO:
         return name
     first = list_sequence(in_dir)[0]
-    name = pipelines.auto(read_header(first).layers)
+    layers = read_header(first, mapping, view_layer).layers | ({"colorA", "colorB"} if split else set())
+    name = pipelines.auto(layers)
     print(f"pipeline: {name} (auto: the preferred pipeline whose layers {first.name} has)")
     return name

@@ -8,7 +8,7 @@ import os
 import sys
 import time
 
-from service.cli.sequence_args import add_sequence_args, parse_options, resolve_pipeline
+from service.cli.sequence_args import add_sequence_args, channel_map, parse_options, resolve_pipeline
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
@@ -24,14 +24,16 @@ def run(args: argparse.Namespace) -> int:
     from service.exr import list_sequence, read_header
 
     options = parse_options(args.option)
-    name = resolve_pipeline(args.pipeline, args.in_dir)
-    first = read_header(list_sequence(args.in_dir)[0])
+    mapping = channel_map(args)
+    name = resolve_pipeline(args.pipeline, args.in_dir, mapping, args.view_layer)
+    first = read_header(list_sequence(args.in_dir)[0], mapping, args.view_layer)
     try:
         with Client(args.url, args.api_key) as client, client.session(
             name, first.width, first.height, options=options, online=args.online
         ) as session:
             start = time.perf_counter()
-            results = session.stream_folder(args.in_dir, args.out_dir, window=args.window)
+            results = session.stream_folder(args.in_dir, args.out_dir, window=args.window, channel_map=mapping,
+                                             view_layer=args.view_layer)
             seconds = time.perf_counter() - start
             status = session.status()
     except ServiceError as err:

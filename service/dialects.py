@@ -1,0 +1,303 @@
+"""Renderer dialects: which channels of an EXR file make which layer of the frame format, and how.
+
+Renderers name their buffers their own way and with their own conventions (shared FRAME_FORMAT.md). A
+`ChannelMap` says, per frame-format layer, which file channels form it, in the layer's channel order, and
+the conversions on the way in: a factor per channel (a flipped axis), a clip range, and channels added to
+it. `detect` picks one for a file from its channel names:
+
+- **mcdenoise**: the frame format's own `LAYER.CHANNEL` names, with the leniencies real files need: bare
+  `R G B` as `color` when no `color.*` channel exists, the RGB names for XYZ channels (`normal.R` =
+  `normal.X`), any single name for a one-channel layer. An alpha channel `A` is never data.
+- **blender**: Blender's multilayer EXR (Cycles, EEVEE), channels `VIEWLAYER.PASS.CHANNEL` under any view
+  layer name. Its conventions, found on files Blender wrote (models/data/samples/blender, the tests in
+  tests/service/test_dialects.py hold them):
+  - `color`: `Noisy Image` when present (Blender's denoiser was on and `Combined` is its result), else
+    `Combined`.
+  - `albedo`: `Denoising Albedo`, clipped to [0, 1]: Cycles adds an emitter's emission to it.
+  - `normal`: `Normal`, world space, when present; else `Denoising Normal`, which is in camera space
+    (x right, y up, z into the screen). The EXR holds no camera, so it is taken as it is: a filter sees
+    the same edges; a temporal pipeline's normal test across frames sees the camera's turn.
+  - `depth`: `Depth` (channel `Z`): planar depth, not the distance along the ray, 1e10 where nothing was
+    hit (a large finite value, as the format asks).
+  - `motion`: `Vector` X and -Y. X, Y is the offset to the previous frame in pixels with y up (Z, W: the
+    negated offset to the next frame, unused). Warping the previous frame's reference by it lowers the
+    error against the current one; any other sign or axis raises it.
+  - `emission`: `Emit` (or `Emission`) plus `Env` (or `Environment`) when the file has it: the emitters and the sky
+    seen directly, noise-free.
+  One view layer is read: the only one, or the one named (`view_layer`); a file with several and no
+  name is an error that lists them.
+- **mitsuba**: Mitsuba 3's `aov` integrator with an `hdrfilm` (multichannel EXR): the image as bare
+  `R G B`; AOVs, named after their type (`aovs="albedo:albedo,sh_normal:sh_normal,depth:depth"`; Mitsuba
+  names the channels after the name left of the colon): `albedo.R G B`, `sh_normal.X Y Z` (world space),
+  `depth.T` (distance along the ray; 0 where nothing was hit, read as 1e10, a large finite value as the
+  format asks). Other AOVs are ignored; a file with `sh_normal.X` or `depth.T` is Mitsuba's.
+- **map**: a channel map given by the user (`ChannelMap.from_json`), for any other renderer.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.frame import LAYERS, FrameError
+
+MISS_DEPTH = 1e10  # depth where nothing was hit, when a renderer writes 0 there (Blender's own value)
+_ALIASES: dict[int, tuple[tuple[str, ...], ...]] = {  # other channel names accepted per channel count
+    3: (("R", "G", "B"), ("X", "Y", "Z")),
+    2: (("X", "Y"), ("R", "G"), ("U", "V")),
+}
+
+
+@dataclass(frozen=True)
+class LayerSource:
+    """How one layer is made from file channels: channels[i] (times scale[i]) is the layer's channel i,
+    plus add[i] when given, then clipped to `clip`. `error`: why the file's channels cannot form the layer
+    (raised as a FrameError naming it when the layer is read)."""
+
+    channels: tuple[str, ...]
+    scale: tuple[float, ...] = ()
+    add: tuple[str, ...] = ()
+    clip: tuple[float, float] | None = None
+    replace_zero: float | None = None  # a value written where every channel is exactly 0 (depth of a miss)
+    error: str | None = None
+
+    def file_channels(self) -> tuple[str, ...]:
+        return () if self.error else (*self.channels, *self.add)
+
+    def assemble(self, pixels: Mapping[str, np.ndarray], layer: str) -> np.ndarray:
+        """The (H, W, C) float32 layer from decoded channels ((H, W) float32 each)."""
+        if self.error:
+            raise FrameError(self.error, layer)
+        out = np.stack([pixels[c] for c in self.channels], axis=-1).astype(np.float32, copy=True)
+        if self.scale:
+            out *= np.asarray(self.scale, np.float32)
+        if self.add:
+            out += np.stack([pixels[c] for c in self.add], axis=-1)
+        if self.replace_zero is not None:
+            out[(out == 0).all(axis=-1)] = self.replace_zero
+        if self.clip is not None:
+            np.clip(out, *self.clip, out=out)
+        return out
+
+    def describe(self) -> str:
+        text = " ".join(f"{'-' if s < 0 else ''}{c}" for c, s in zip(self.channels, self.scale or
+                                                                         (1.0,) * len(self.channels), strict=True))
+        if self.add:
+            text += " + " + " ".join(self.add)
+        if self.replace_zero is not None:
+            text += f", 0 -> {self.replace_zero:g}"
+        if self.clip is not None:
+            text += f", clipped to [{self.clip[0]:g}, {self.clip[1]:g}]"
+        return self.error or text
+
+
+@dataclass(frozen=True)
+class ChannelMap:
+    """The layers a file provides and how (`LayerSource`), under the name of its dialect."""
+
+    dialect: str
+    layers: Mapping[str, LayerSource] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()  # what the reader assumed (a camera-space normal, ...)
+
+    @classmethod
+    def from_json(cls, source: str | Path | Mapping[str, Any]) -> ChannelMap:
+        """A user's channel map: a JSON file (or its parsed object) {"layers": {LAYER: {"channels": [...],
+        "scale": [...], "add": [...], "clip": [lo, hi], "replace_zero": v}}}, only "channels" required.
+        ValueError naming the layer or key that is wrong."""
+        if isinstance(source, Mapping):
+            data, where = source, "channel map"
+        else:
+            where = f"channel map '{source}'"
+            try:
+                data = json.loads(Path(source).read_text())
+            except (OSError, json.JSONDecodeError) as err:
+                raise ValueError(f"{where}: {err}") from err
+        if not isinstance(data, Mapping) or set(data) - {"layers"} or not isinstance(data.get("layers"), Mapping):
+            raise ValueError(f'{where}: expected an object {{"layers": {{LAYER: {{"channels": [...]}}}}}}')
+        layers = {name: _parse_source(name, spec, where) for name, spec in data["layers"].items()}
+        if not layers:
+            raise ValueError(f"{where}: maps no layer")
+        return cls("map", layers)
+
+    def missing_channels(self, names: Iterable[str]) -> dict[str, list[str]]:
+        """Per layer, the channels it names that are not among `names`."""
+        present = set(names)
+        out = {layer: [c for c in src.file_channels() if c not in present] for layer, src in self.layers.items()}
+        return {layer: cs for layer, cs in out.items() if cs}
+
+
+def _parse_source(layer: str, spec: Any, where: str) -> LayerSource:
+    if layer not in LAYERS:
+        raise ValueError(f"{where}: unknown layer '{layer}'; layers: {', '.join(LAYERS)}")
+    count = len(LAYERS[layer].channels)
+    if not isinstance(spec, Mapping) or set(spec) - {"channels", "scale", "add", "clip", "replace_zero"}:
+        raise ValueError(f"{where}: layer '{layer}' takes channels, scale, add, clip and replace_zero")
+
+    def names(key: str) -> tuple[str, ...]:
+        value = spec.get(key, [])
+        if not (isinstance(value, list) and all(isinstance(v, str) and v for v in value)):
+            raise ValueError(f"{where}: layer '{layer}' {key} must be a list of channel names")
+        if value and len(value) != count:
+            raise ValueError(f"{where}: layer '{layer}' has {count} channel(s); {key} lists {len(value)}")
+        return tuple(value)
+
+    channels, add = names("channels"), names("add")
+    if not channels:
+        raise ValueError(f"{where}: layer '{layer}' needs channels")
+    scale = spec.get("scale", [])
+    if not (isinstance(scale, list) and len(scale) in (0, count)
+            and all(isinstance(s, int | float) and np.isfinite(s) for s in scale)):
+        raise ValueError(f"{where}: layer '{layer}' scale must be {count} finite numbers")
+    clip = spec.get("clip")
+    if clip is not None and not (isinstance(clip, list) and len(clip) == 2
+                                 and all(isinstance(v, int | float) for v in clip) and clip[0] < clip[1]):
+        raise ValueError(f"{where}: layer '{layer}' clip must be [low, high] with low < high")
+    zero = spec.get("replace_zero")
+    if zero is not None and not (isinstance(zero, int | float) and np.isfinite(zero)):
+        raise ValueError(f"{where}: layer '{layer}' replace_zero must be a finite number")
+    return LayerSource(channels, tuple(float(s) for s in scale), add,
+                       None if clip is None else (float(clip[0]), float(clip[1])),
+                       None if zero is None else float(zero))
+
+
+# ------------------------------------------------------------------------------------------ mcdenoise
+
+
+def native(names: Iterable[str]) -> ChannelMap:
+    """The frame format's own names (module docstring)."""
+    names = list(names)
+    by_layer: dict[str, list[str]] = {}
+    bare = not any(n.startswith("color.") for n in names)
+    for full in names:
+        layer, _, chan = full.rpartition(".")
+        if not layer and bare and full in ("R", "G", "B"):
+            layer = "color"
+        if layer in LAYERS and chan != "A":
+            by_layer.setdefault(layer, []).append(full)
+    layers = {}
+    for layer, fulls in by_layer.items():
+        expected = LAYERS[layer].channels
+        short = {f.rpartition(".")[2]: f for f in fulls}
+        order = _match(expected, tuple(short))
+        if order is None:
+            error = (f"layer '{layer}' has {len(short)} channel(s) ({', '.join(sorted(short))}); "
+                     f"expected {len(expected)} ({' '.join(expected)})")
+            layers[layer] = LayerSource(tuple(fulls), error=error)
+        else:
+            layers[layer] = LayerSource(tuple(short[c] for c in order))
+    return ChannelMap("mcdenoise", layers)
+
+
+def _match(expected: tuple[str, ...], present: tuple[str, ...]) -> tuple[str, ...] | None:
+    if len(expected) == 1 and len(present) == 1:
+        return present
+    for names in (expected, *_ALIASES.get(len(expected), ())):
+        if set(names) == set(present):
+            return names
+    return None
+
+
+# -------------------------------------------------------------------------------------------- blender
+
+_BLENDER_PASSES = frozenset({"Combined", "Noisy Image", "Denoising Albedo", "Denoising Normal", "Denoising Depth",
+                             "Depth", "Vector", "Normal", "Emit", "Emission", "Env", "Environment"})
+
+
+def _blender_passes(names: Iterable[str]) -> dict[str, dict[str, dict[str, str]]]:
+    """view layer -> pass -> channel letter -> full name, for channels `VIEWLAYER.PASS.CHANNEL` (a view
+    layer name may hold dots; a pass name holds none)."""
+    out: dict[str, dict[str, dict[str, str]]] = {}
+    for full in names:
+        parts = full.rsplit(".", 2)
+        if len(parts) == 3 and parts[1] in _BLENDER_PASSES:
+            out.setdefault(parts[0], {}).setdefault(parts[1], {})[parts[2]] = full
+    return out
+
+
+def blender(names: Iterable[str], view_layer: str | None = None) -> ChannelMap:
+    """Blender's multilayer EXR (module docstring). FrameError when the file has several view layers and
+    `view_layer` names none of them."""
+    passes_by_layer = _blender_passes(names)
+    if view_layer is not None:
+        if view_layer not in passes_by_layer:
+            raise FrameError(f"no view layer '{view_layer}' in the file; it has {', '.join(sorted(passes_by_layer))}")
+        passes = passes_by_layer[view_layer]
+    elif len(passes_by_layer) == 1:
+        view_layer, passes = next(iter(passes_by_layer.items()))
+    else:
+        raise FrameError(f"the file has view layers {', '.join(sorted(passes_by_layer))}; name one (view_layer)")
+
+    def take(name: str, letters: str) -> tuple[str, ...] | None:
+        chans = passes.get(name, {})
+        return tuple(chans[c] for c in letters) if all(c in chans for c in letters) else None
+
+    layers: dict[str, LayerSource] = {}
+    notes = [f"view layer '{view_layer}'"]
+    color = take("Noisy Image", "RGB") or take("Combined", "RGB")
+    if color:
+        layers["color"] = LayerSource(color)
+    if albedo := take("Denoising Albedo", "RGB"):
+        layers["albedo"] = LayerSource(albedo, clip=(0.0, 1.0))
+    if normal := take("Normal", "XYZ"):
+        layers["normal"] = LayerSource(normal)
+    elif normal := take("Denoising Normal", "XYZ"):
+        layers["normal"] = LayerSource(normal)
+        notes.append("normal: Denoising Normal, camera space (no Normal pass)")
+    if depth := take("Depth", "Z"):
+        layers["depth"] = LayerSource(depth)
+    if vector := take("Vector", "XY"):
+        layers["motion"] = LayerSource(vector, scale=(1.0, -1.0))
+    emit = take("Emit", "RGB") or take("Emission", "RGB")
+    environment = take("Env", "RGB") or take("Environment", "RGB")
+    if emit or environment:
+        first, second = (emit, environment) if emit else (environment, None)
+        layers["emission"] = LayerSource(first, add=second or ())
+    return ChannelMap("blender", layers, tuple(notes))
+
+
+# -------------------------------------------------------------------------------------------- mitsuba
+
+_MITSUBA = {"albedo": ("albedo", "RGB"), "normal": ("sh_normal", "XYZ"), "depth": ("depth", "T")}
+
+
+def is_mitsuba(names: Iterable[str]) -> bool:
+    names = set(names)
+    return {"R", "G", "B"} <= names and bool({"sh_normal.X", "depth.T"} & names)
+
+
+def mitsuba(names: Iterable[str]) -> ChannelMap:
+    """Mitsuba 3's `aov` integrator output (module docstring)."""
+    names = set(names)
+    layers = {"color": LayerSource(("R", "G", "B"))}
+    for layer, (aov, letters) in _MITSUBA.items():
+        chans = tuple(f"{aov}.{c}" for c in letters)
+        if all(c in names for c in chans):
+            layers[layer] = LayerSource(chans, replace_zero=MISS_DEPTH if layer == "depth" else None)
+    return ChannelMap("mitsuba", layers)
+
+
+# ------------------------------------------------------------------------------------------- detection
+
+_FORMAT_NAME = re.compile(r"^(" + "|".join(LAYERS) + r")\.[A-Za-z]+$")
+
+
+def detect(names: Iterable[str], header: Mapping[str, Any] | None = None, *, channel_map: ChannelMap | None = None,
+           view_layer: str | None = None) -> ChannelMap:
+    """The ChannelMap for a file with channels `names` (and header attributes `header`): the user's map
+    when given, else Blender's when the file is Blender's (its `BlenderMultiChannel` attribute, or its
+    pass names) and has no frame-format channel, else Mitsuba's AOV layout, else the frame format's."""
+    names = list(names)
+    if channel_map is not None:
+        return channel_map
+    ours = any(_FORMAT_NAME.match(n) for n in names)
+    if not ours and ((header or {}).get("BlenderMultiChannel") or _blender_passes(names)):
+        return blender(names, view_layer)
+    if is_mitsuba(names) and not any(n.startswith("color.") for n in names):
+        return mitsuba(names)
+    return native(names)
