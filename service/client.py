@@ -21,8 +21,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote, urlencode, urlsplit
 
-from service.dialects import ChannelMap
-from service.exr import encode_frame, list_sequence, read_frame
+from service.exr import list_sequence
 
 EXR = "image/x-exr"
 PNG = "image/png"
@@ -141,10 +140,13 @@ class Client:
         return self.request("POST", path, _read(frame), headers)[2]
 
     def session(self, pipeline: str, width: int, height: int, *, options: dict[str, Any] | None = None,
-                online: bool = False) -> Session:
-        """Open a session for one sequence of `width` x `height` frames."""
+                online: bool = False, channel_map: dict[str, Any] | None = None,
+                view_layer: str | None = None) -> Session:
+        """Open a session for one sequence of `width` x `height` frames; `channel_map` (its JSON object) and
+        `view_layer` say how the server reads the frames' channels (service/dialects.py)."""
         info = self.json("POST", "/v1/sessions", {"pipeline": pipeline, "width": width, "height": height,
-                                                 "options": options or {}, "online": online})
+                                                 "options": options or {}, "online": online,
+                                                 "channel_map": channel_map, "view_layer": view_layer})
         return Session(self, info)
 
 
@@ -212,19 +214,13 @@ class Session:
                 pending -= 1
                 yield message if isinstance(message, bytes) else ServiceError.from_body(0, message)
 
-    def stream_folder(self, in_dir: str | Path, out_dir: str | Path, *, window: int = 4,
-                      channel_map: ChannelMap | None = None, view_layer: str | None = None) -> list[StreamResult]:
-        """Stream every frame of a sequence folder; write each denoised frame as `out_dir/<same name>`. With
-        a `channel_map` or a Blender `view_layer`, each file is read here in that dialect and sent in the
-        frame format (its NaN/Inf repaired here); otherwise the files are sent as they are."""
+    def stream_folder(self, in_dir: str | Path, out_dir: str | Path, *, window: int = 4) -> list[StreamResult]:
+        """Stream every frame of a sequence folder; write each denoised frame as `out_dir/<same name>`."""
         paths = list_sequence(in_dir)
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        sources: Iterable[FrameSource] = paths
-        if channel_map is not None or view_layer is not None:
-            sources = (encode_frame(read_frame(path, channel_map=channel_map, view_layer=view_layer)) for path in paths)
         results = []
-        for path, answer in zip(paths, self.stream(sources, window=window), strict=True):
+        for path, answer in zip(paths, self.stream(paths, window=window), strict=True):
             if isinstance(answer, ServiceError):
                 results.append(StreamResult(path.name, answer))
             else:

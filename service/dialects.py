@@ -47,6 +47,12 @@ import numpy as np
 
 from service.frame import LAYERS, FrameError
 
+
+class DialectError(FrameError):
+    """The file's channels cannot be read as asked: a Blender view layer to choose, or a channel map that
+    names channels the file lacks (an error of the frame, not of its encoding)."""
+
+
 MISS_DEPTH = 1e10  # depth where nothing was hit, when a renderer writes 0 there (Blender's own value)
 _ALIASES: dict[int, tuple[tuple[str, ...], ...]] = {  # other channel names accepted per channel count
     3: (("R", "G", "B"), ("X", "Y", "Z")),
@@ -104,6 +110,9 @@ class ChannelMap:
     dialect: str
     layers: Mapping[str, LayerSource] = field(default_factory=dict)
     notes: tuple[str, ...] = ()  # what the reader assumed (a camera-space normal, ...)
+    # the channels a denoised result gets beside the input's (`--keep-layers`): a pass of the view layer
+    # for Blender, so that its compositor loads it as it loads its own passes
+    result: tuple[str, str, str] = ("denoised.R", "denoised.G", "denoised.B")
 
     @classmethod
     def from_json(cls, source: str | Path | Mapping[str, Any]) -> ChannelMap:
@@ -221,17 +230,17 @@ def _blender_passes(names: Iterable[str]) -> dict[str, dict[str, dict[str, str]]
 
 
 def blender(names: Iterable[str], view_layer: str | None = None) -> ChannelMap:
-    """Blender's multilayer EXR (module docstring). FrameError when the file has several view layers and
+    """Blender's multilayer EXR (module docstring). DialectError when the file has several view layers and
     `view_layer` names none of them."""
     passes_by_layer = _blender_passes(names)
     if view_layer is not None:
         if view_layer not in passes_by_layer:
-            raise FrameError(f"no view layer '{view_layer}' in the file; it has {', '.join(sorted(passes_by_layer))}")
+            raise DialectError(f"no view layer '{view_layer}' in the file; it has {', '.join(sorted(passes_by_layer))}")
         passes = passes_by_layer[view_layer]
     elif len(passes_by_layer) == 1:
         view_layer, passes = next(iter(passes_by_layer.items()))
     else:
-        raise FrameError(f"the file has view layers {', '.join(sorted(passes_by_layer))}; name one (view_layer)")
+        raise DialectError(f"the file has view layers {', '.join(sorted(passes_by_layer))}; name one (view_layer)")
 
     def take(name: str, letters: str) -> tuple[str, ...] | None:
         chans = passes.get(name, {})
@@ -258,7 +267,7 @@ def blender(names: Iterable[str], view_layer: str | None = None) -> ChannelMap:
     if emit or environment:
         first, second = (emit, environment) if emit else (environment, None)
         layers["emission"] = LayerSource(first, add=second or ())
-    return ChannelMap("blender", layers, tuple(notes))
+    return ChannelMap("blender", layers, tuple(notes), tuple(f"{view_layer}.Denoised.{c}" for c in "RGB"))
 
 
 # -------------------------------------------------------------------------------------------- mitsuba

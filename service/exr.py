@@ -20,7 +20,7 @@ import Imath
 import numpy as np
 import OpenEXR
 
-from service.dialects import ChannelMap, detect
+from service.dialects import ChannelMap, DialectError, detect
 from service.frame import LAYERS, Frame, FrameError
 
 _FLOAT = Imath.PixelType(Imath.PixelType.FLOAT)  # what `read_layers` asks the decoder for, whatever the file holds
@@ -84,8 +84,8 @@ def read_header(source: str | Path | bytes, channel_map: ChannelMap | None = Non
     missing = mapping.missing_channels(names)
     if missing:
         layer, channels = next(iter(missing.items()))
-        raise FrameError(f"{what}: the channel map's layer '{layer}' names channels the file lacks: "
-                         f"{', '.join(channels)}", layer)
+        raise DialectError(f"{what}: the channel map's layer '{layer}' names channels the file lacks: "
+                           f"{', '.join(channels)}", layer)
     layers = set(mapping.layers)
     if {"colorA", "colorB"} <= layers:
         layers.add("color")
@@ -166,6 +166,19 @@ def _write(target: str | io.BytesIO, buffers: Mapping[str, np.ndarray] | Frame, 
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with OpenEXR.File(header, channels) as exr:
         exr.write(target)
+
+
+def write_with_input(path: str | Path, source: str | Path, color: np.ndarray, mapping: ChannelMap) -> None:
+    """Write the EXR file `source`'s channels (their pixel types and its string attributes, such as
+    Blender's `BlenderMultiChannel`, kept) plus `color` ((H, W, 3) float32) as the channels
+    `mapping.result` names (Blender: a `Denoised` pass of the view layer read), to `path`."""
+    channels, header = read_channels(source)
+    channels.update({name: np.ascontiguousarray(color[..., c], np.float32) for c, name in enumerate(mapping.result)})
+    attributes = {k: v for k, v in header.items() if isinstance(v, str)}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with OpenEXR.File({**attributes, "compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      channels) as exr:
+        exr.write(str(path))
 
 
 def list_sequence(folder: str | Path) -> list[Path]:

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from service.dialects import ChannelMap
-from service.exr import list_sequence, read_frame, write_frame
+from service.exr import list_sequence, read_frame, read_header, write_frame, write_with_input
 from service.frame import FrameError, from_two_renders
 from service.metrics import TRIM_FRACTION, rel_l2
 from service.pipelines import Pipeline
@@ -31,12 +31,14 @@ class FrameResult:
 def denoise_folder(
     pipeline: Pipeline, in_dir: str | Path, out_dir: str | Path, *, png: bool = False,
     channel_map: ChannelMap | None = None, view_layer: str | None = None, second_half: str | Path | None = None,
+    keep_layers: bool = False,
 ) -> Iterator[FrameResult]:
     """Denoise every frame of `in_dir` in order; write `out_dir/<name>` (layer `color`, float32) and,
     with `png`, `out_dir/<stem>.png` previews. Yields one FrameResult per frame as it completes. Frames
     are read in their dialect (`service.exr.read_header`: `channel_map`, Blender `view_layer`). With
     `second_half`, a folder of a second render of the same frames (another seed), frame i of each makes
-    the halves of frame i (`service.frame.from_two_renders`).
+    the halves of frame i (`service.frame.from_two_renders`). With `keep_layers`, each output file is its
+    input file plus the result, named for the input's dialect (`service.exr.write_with_input`).
 
     Raises FrameError (naming the file and layer) on the first bad frame. The sequence state is closed at
     the end (stopping an online-training worker, if any).
@@ -64,7 +66,11 @@ def denoise_folder(
                 ms = 1e3 * (time.perf_counter() - start)
             except FrameError as err:
                 raise FrameError(f"{path.name}: {err}", err.layer) from err
-            write_frame(out_dir / path.name, {"color": out["color"]})
+            if keep_layers:
+                mapping = read_header(path, channel_map, view_layer).mapping
+                write_with_input(out_dir / path.name, path, out["color"], mapping)
+            else:
+                write_frame(out_dir / path.name, {"color": out["color"]})
             if png:
                 write_preview(out_dir / f"{path.stem}.png", out["color"])
             reference = frame.get("reference")

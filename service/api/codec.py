@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from service.api.core.config import Settings
 from service.api.core.errors import ApiError, InvalidExrError
+from service.dialects import ChannelMap, DialectError
 from service.exr import ExrHeader, encode_frame, read_header, read_layers
 from service.frame import Frame, FrameError
 from service.preview import encode_png, tonemap
@@ -58,10 +59,13 @@ def choose_output(accept: str | None, exposure: float = 1.0) -> Output:
     return Output(EXR, exposure)
 
 
-def exr_header(body: bytes) -> ExrHeader:
-    """The EXR header of `body`. Raises InvalidExrError when there is no EXR header."""
+def exr_header(body: bytes, channel_map: ChannelMap | None = None, view_layer: str | None = None) -> ExrHeader:
+    """The EXR header of `body`, in its dialect (`service.exr.read_header`). Raises InvalidExrError when
+    there is no EXR header, DialectError (a FrameError) when its channels cannot be read as asked."""
     try:
-        return read_header(body)
+        return read_header(body, channel_map, view_layer)
+    except DialectError:
+        raise
     except FrameError as err:
         raise InvalidExrError(f"body is not an OpenEXR image ({err.__cause__ or err})") from err
 
@@ -83,14 +87,16 @@ def check_memory(header: ExrHeader, channels: int, max_frame_mb: int) -> None:
                                          f"{max_frame_mb} MiB per frame (MCDENOISE_MAX_FRAME_MB)")
 
 
-def decode(body: bytes, settings: Settings, layers: Iterable[str]) -> Frame:
-    """The validated Frame in EXR `body`, with the known `layers` it has (every other channel is skipped).
+def decode(body: bytes, settings: Settings, layers: Iterable[str], channel_map: ChannelMap | None = None,
+           view_layer: str | None = None) -> Frame:
+    """The validated Frame in EXR `body`, with the known `layers` it has (every other channel is skipped),
+    read in its dialect: `channel_map` and `view_layer` (a session's), else the service's settings.
 
     Raises InvalidExrError (not EXR, truncated), ApiError 413 (larger than the size limits, or over the
     per-frame memory budget, both from the header before any pixel is decoded) or FrameError naming the
     layer (missing or malformed layers, mismatched layer sizes, values beyond the layer's limit).
     """
-    header = exr_header(body)
+    header = exr_header(body, channel_map or settings.default_channel_map, view_layer or settings.view_layer or None)
     check_size(header.width, header.height, settings.max_width, settings.max_height)
     check_memory(header, len(header.channels_of(layers)), settings.max_frame_mb)
     try:

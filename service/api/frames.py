@@ -40,10 +40,13 @@ class Denoised:
 
 
 def _step(
-    pipeline: Pipeline, state: SequenceState | None, body: bytes, output: codec.Output, services: Services
+    pipeline: Pipeline, state: SequenceState | None, body: bytes, output: codec.Output, services: Services,
+    session: Session | None = None,
 ) -> tuple[Denoised, SequenceState]:
-    """Decode, check, step and encode one frame (in a pool thread). `state` None: a first frame."""
-    frame = codec.decode(body, services.settings, pipeline.reads())
+    """Decode (in the session's dialect), check, step and encode one frame (in a pool thread). `state` None:
+    a first frame."""
+    mapping, view_layer = (session.channel_map, session.spec.view_layer) if session else (None, None)
+    frame = codec.decode(body, services.settings, pipeline.reads(), mapping, view_layer)
     if state is None:
         state = pipeline.start(frame.height, frame.width)
     index = state.frame_index
@@ -131,7 +134,7 @@ async def session_frame(
     def job() -> Denoised:
         if session.ended:  # ended while this frame waited for its turn
             raise UnknownSessionError(session.id)
-        result, session.state = _step(session.pipeline, session.state, body, output, services)
+        result, session.state = _step(session.pipeline, session.state, body, output, services, session)
         session.record(result.step_ms)
         return result
 

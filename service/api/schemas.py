@@ -43,6 +43,12 @@ class SessionCreate(BaseModel):
     height: int = Field(gt=0, description="frame height of the sequence, pixels")
     options: dict[str, Any] = Field(default_factory=dict, description="pipeline options (see GET /v1/pipelines)")
     online: bool = Field(False, description="fine-tune online while streaming (pipelines with an `online` option)")
+    channel_map: dict[str, Any] | None = Field(
+        None, description='how the frames\' channels make layers: {"layers": {LAYER: {"channels": [...], "scale": '
+                          '[...], "add": [...], "clip": [lo, hi], "replace_zero": v}}} (README, frame format); '
+                          "default: the service's MCDENOISE_CHANNEL_MAP, else the file's recognised dialect")
+    view_layer: str | None = Field(None, max_length=256, description="the Blender view layer to read from files with "
+                                                                     "several")
 
 
 class SessionInfo(BaseModel):

@@ -27,6 +27,7 @@ import numpy as np
 
 from service import pipelines
 from service.api.core.errors import ApiError, InvalidOptionsError, UnknownSessionError
+from service.dialects import ChannelMap
 from service.pipelines import Pipeline, SequenceState
 
 log = logging.getLogger("mcdenoise.api")
@@ -42,6 +43,8 @@ class SessionSpec:
     height: int  # pixels
     options: dict[str, Any] = field(default_factory=dict)
     online: bool = False
+    channel_map: dict[str, Any] | None = None  # as sent; parsed by `build_session`
+    view_layer: str | None = None
 
 
 @dataclass
@@ -51,6 +54,7 @@ class Session:
     pipeline: Pipeline
     state: SequenceState
     owner: str | None  # fingerprint of the creating API key, None when auth is off
+    channel_map: ChannelMap | None = None  # how its frames' channels make layers (None: the service's default)
     created_at: float = field(default_factory=time.time)  # unix seconds
     last_used: float = field(default_factory=time.monotonic)  # monotonic seconds
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)  # orders the frames of the sequence
@@ -97,9 +101,14 @@ class Session:
 def build_session(spec: SessionSpec, owner: str | None) -> Session:
     """A new session: the pipeline with its options and a fresh state (CPU work: run it in the pool).
 
-    Raises UnknownPipelineError, or InvalidOptionsError for options the pipeline refuses.
+    Raises UnknownPipelineError, or InvalidOptionsError for options the pipeline refuses or a channel map
+    that is not one (option `channel_map`).
     """
     cls = pipelines.pipeline_class(spec.pipeline)
+    try:
+        mapping = None if spec.channel_map is None else ChannelMap.from_json(spec.channel_map)
+    except ValueError as err:
+        raise InvalidOptionsError(str(err), "channel_map") from err
     options = dict(spec.options)
     if "online" in options:
         raise InvalidOptionsError("ask for online training with the session's 'online' field, not an option")
@@ -113,7 +122,7 @@ def build_session(spec: SessionSpec, owner: str | None) -> Session:
         state = pipeline.start(spec.height, spec.width)
     except ValueError as err:  # OptionError: a value outside its declared range, or weights that do not load
         raise InvalidOptionsError(str(err).splitlines()[0], getattr(err, "option", None)) from err
-    return Session(secrets.token_urlsafe(32), spec, pipeline, state, owner)
+    return Session(secrets.token_urlsafe(32), spec, pipeline, state, owner, mapping)
 
 
 def close_state(session: Session) -> None:

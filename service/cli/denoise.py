@@ -18,6 +18,9 @@ def add_args(p: argparse.ArgumentParser) -> None:
     add_sequence_args(p)
     add_second_half_arg(p)
     p.add_argument("--png", action="store_true", help="also write tone-mapped PNG previews")
+    p.add_argument("--keep-layers", action="store_true",
+                   help="write each input file's channels plus the result (Blender: a Denoised pass of the view layer; "
+                        "else denoised.R G B) instead of the result alone")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
     results = []
     with CompileNotice(pipeline.name) as notice:  # a frame's ms include any kernels compiled for it
         for r in denoise_folder(pipeline, args.in_dir, args.out_dir, png=args.png, channel_map=mapping,
-                                view_layer=args.view_layer, second_half=args.second_half):
+                                view_layer=args.view_layer, second_half=args.second_half,
+                                keep_layers=args.keep_layers):
             notice.report()
             results.append(r)
             noisy = "" if r.rel_l2_noisy is None else f"{r.rel_l2_noisy:.4f}"

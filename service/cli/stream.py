@@ -4,6 +4,7 @@ results written like `denoise`'s."""
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -24,16 +25,17 @@ def run(args: argparse.Namespace) -> int:
     from service.exr import list_sequence, read_header
 
     options = parse_options(args.option)
-    mapping = channel_map(args)
+    mapping = channel_map(args)  # checked here; the session's server reads the frames with it
     name = resolve_pipeline(args.pipeline, args.in_dir, mapping, args.view_layer)
     first = read_header(list_sequence(args.in_dir)[0], mapping, args.view_layer)
+    map_json = json.loads(args.channel_map.read_text()) if args.channel_map else None
     try:
         with Client(args.url, args.api_key) as client, client.session(
-            name, first.width, first.height, options=options, online=args.online
+            name, first.width, first.height, options=options, online=args.online, channel_map=map_json,
+            view_layer=args.view_layer,
         ) as session:
             start = time.perf_counter()
-            results = session.stream_folder(args.in_dir, args.out_dir, window=args.window, channel_map=mapping,
-                                             view_layer=args.view_layer)
+            results = session.stream_folder(args.in_dir, args.out_dir, window=args.window)
             seconds = time.perf_counter() - start
             status = session.status()
     except ServiceError as err:

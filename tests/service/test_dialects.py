@@ -247,3 +247,19 @@ def test_write_frame_round_trips_in_the_frame_format(tmp_path):
     write_frame(tmp_path / "f.exr", frame)
     assert read_header(tmp_path / "f.exr").mapping.dialect == "mcdenoise"
     np.testing.assert_array_equal(read_frame(tmp_path / "f.exr")["motion"], frame["motion"])
+
+
+def test_keep_layers_writes_the_input_with_a_denoised_pass_blender_can_load(tmp_path):
+    assert main(["denoise", "--pipeline", "flr", str(BLENDER / "noisy"), str(tmp_path / "plain")]) == 0
+    assert main(["denoise", "--pipeline", "flr", "--keep-layers", str(BLENDER / "noisy"), str(tmp_path / "kept")]) == 0
+    source = BLENDER / "noisy" / "frame_0001.exr"
+    given, given_header = read_channels(source)
+    kept, kept_header = read_channels(tmp_path / "kept" / "frame_0001.exr")
+    assert set(kept) == set(given) | {"ViewLayer.Denoised.R", "ViewLayer.Denoised.G", "ViewLayer.Denoised.B"}
+    for name, pixels in given.items():
+        assert kept[name].dtype == pixels.dtype
+        np.testing.assert_array_equal(kept[name], pixels)
+    assert kept_header["BlenderMultiChannel"] == given_header["BlenderMultiChannel"]
+    plain = read_frame(tmp_path / "plain" / "frame_0001.exr")["color"]
+    np.testing.assert_array_equal(np.stack([kept[f"ViewLayer.Denoised.{c}"] for c in "RGB"], -1), plain)
+    assert read_header(tmp_path / "kept" / "frame_0001.exr").mapping.dialect == "blender"

@@ -11,9 +11,11 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
+from functools import cached_property
 from pathlib import Path
 
 from service import pipelines
+from service.dialects import ChannelMap
 from service.runtime import WEIGHTS_DIR_ENV
 
 PREFIX = "MCDENOISE_"
@@ -52,8 +54,15 @@ class Settings:
     api_key: str | None = None  # None (variable unset): no auth; one key, or comma-separated keys (one per client)
     warmup: str = ""  # comma-separated pipelines run on generated frames at start (not ready until done);
     # `default` names the API's default pipeline (pipelines.DEFAULT)
+    channel_map: str = ""  # a JSON channel map file (service/dialects.py) for frames without one of their session
+    view_layer: str = ""  # the Blender view layer to read from files with several, for frames without a session's
 
     def __post_init__(self) -> None:
+        if self.channel_map:
+            try:
+                self.default_channel_map  # noqa: B018 - parsed once here, so that a bad file refuses the start
+            except ValueError as err:
+                raise SettingsError(f"{PREFIX}CHANNEL_MAP: {err}") from None
         for name in ("max_body_mb", "max_width", "max_height", "max_sessions", "retry_after_s"):
             if getattr(self, name) < 1:
                 raise SettingsError(f"{PREFIX}{name.upper()} must be at least 1, got {getattr(self, name)}")
@@ -102,6 +111,11 @@ class Settings:
         """The pipelines to warm up at start, in order (`default`: pipelines.DEFAULT)."""
         names = (name.strip() for name in self.warmup.split(","))
         return tuple(pipelines.DEFAULT if name == "default" else name for name in names if name)
+
+    @cached_property
+    def default_channel_map(self) -> ChannelMap | None:
+        """The parsed MCDENOISE_CHANNEL_MAP file, or None (checked when the settings are made)."""
+        return ChannelMap.from_json(self.channel_map) if self.channel_map else None
 
     @property
     def max_body_bytes(self) -> int:

@@ -1,0 +1,108 @@
+"""Dialects over HTTP (service/dialects.py): a session's channel map and view layer, the service's default
+map, and the errors they give."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from service.api.core.config import Settings, SettingsError
+from service.cli import main
+from service.exr import read_frame
+from tests.service.api.conftest import call, exr_post
+
+BLENDER = Path(__file__).resolve().parents[3] / "models" / "data" / "samples" / "blender"
+MAP = {"layers": {"color": {"channels": ["beauty.r", "beauty.g", "beauty.b"]},
+                  "normal": {"channels": ["n.x", "n.y", "n.z"]}}}
+
+
+def _exr(channels: dict[str, np.ndarray]) -> bytes:
+    sink = io.BytesIO()
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION},
+                      {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}) as exr:
+        exr.write(sink)
+    return sink.getvalue()
+
+
+def _custom(seed: int = 0) -> bytes:
+    rng = np.random.default_rng(seed)
+    channels = {f"beauty.{c}": rng.uniform(0.2, 1.0, (16, 24)) for c in "rgb"}
+    channels.update({"n.x": np.zeros((16, 24)), "n.y": np.zeros((16, 24)), "n.z": np.ones((16, 24))})
+    return _exr(channels)
+
+
+def _two_view_layers() -> bytes:
+    rng = np.random.default_rng(1)
+    return _exr({f"{layer}.Combined.{c}": rng.uniform(0.2, 1.0, (16, 24))
+                 for layer in ("Front", "Back") for c in "RGBA"})
+
+
+def _session(url: str, **fields) -> dict:
+    answer = call(url, "POST", "/v1/sessions", json.dumps({"pipeline": "flr", "width": 24, "height": 16, **fields}),
+                  {"Content-Type": "application/json"})
+    return {"status": answer.status, **answer.json()}
+
+
+def test_a_session_reads_its_frames_with_its_channel_map(make_server):
+    url = make_server()
+    assert exr_post(url, "/v1/denoise?pipeline=flr", _custom()).status == 422  # no known layer without the map
+    info = _session(url, channel_map=MAP)
+    assert info["status"] == 201
+    for seed in range(2):
+        answer = exr_post(url, f"/v1/sessions/{info['id']}/frames", _custom(seed))
+        assert answer.status == 200
+        assert read_frame(answer.body)["color"].shape == (16, 24, 3)
+
+
+def test_a_bad_channel_map_is_refused_at_session_creation(make_server):
+    url = make_server()
+    bad = _session(url, channel_map={"layers": {"colour": {"channels": ["a", "b", "c"]}}})
+    assert bad["status"] == 400 and bad["code"] == "invalid_options" and bad["option"] == "channel_map"
+    assert "unknown layer 'colour'" in bad["message"]
+    info = _session(url, channel_map={"layers": {"color": {"channels": ["x.r", "x.g", "x.b"]}}})
+    answer = exr_post(url, f"/v1/sessions/{info['id']}/frames", _custom())
+    assert answer.status == 422 and answer.json()["layer"] == "color" and "lacks: x.r" in answer.json()["message"]
+
+
+def test_view_layers_over_http(make_server):
+    url = make_server()
+    answer = exr_post(url, "/v1/denoise?pipeline=bilateral", _two_view_layers())
+    assert answer.status == 422 and "view layers Back, Front" in answer.json()["message"]
+    info = _session(url, pipeline="bilateral", view_layer="Back")
+    assert exr_post(url, f"/v1/sessions/{info['id']}/frames", _two_view_layers()).status == 200
+    url = make_server(view_layer="Front")
+    assert exr_post(url, "/v1/denoise?pipeline=bilateral", _two_view_layers()).status == 200
+
+
+def test_the_service_default_channel_map(make_server, tmp_path):
+    path = tmp_path / "map.json"
+    path.write_text(json.dumps(MAP))
+    url = make_server(channel_map=str(path))
+    assert exr_post(url, "/v1/denoise?pipeline=flr", _custom()).status == 200
+    path.write_text("{}")
+    with pytest.raises(SettingsError, match="MCDENOISE_CHANNEL_MAP"):
+        Settings(channel_map=str(path))
+
+
+def test_stream_sends_the_channel_map_to_its_session(server, tmp_path, capsys):
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    for t in range(2):
+        (folder / f"frame_{t:04d}.exr").write_bytes(_custom(t))
+    map_file = tmp_path / "map.json"
+    map_file.write_text(json.dumps(MAP))
+    args = ["stream", "--pipeline", "flr", "--url", server, "--channel-map", str(map_file), str(folder),
+            str(tmp_path / "out")]
+    assert main(args) == 0, capsys.readouterr()
+    assert len(list((tmp_path / "out").glob("*.exr"))) == 2
+
+
+def test_a_blender_sequence_streams_as_it_is(server, tmp_path):
+    args = ["stream", "--pipeline", "flr", "--url", server, str(BLENDER / "noisy"), str(tmp_path / "out")]
+    assert main(args) == 0
+    assert len(list((tmp_path / "out").glob("*.exr"))) == 3
