@@ -10,6 +10,8 @@ Windows are clipped at the frame border (no padding), as in `service.kernels.win
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numba
 import numpy as np
 
@@ -112,23 +114,30 @@ def block_moments_reference(terms: PairTerms, target: np.ndarray, params: BlockP
     (Hc, Wc, G, K1, K1) and rhs X^T W Y (Hc, Wc, G, K1, M), float32 (arguments as `block_solve`).
     `solve_ridge_reference` of them is the twin of `block_solve`."""
     hc, wc, g, k1, m = _moment_shape(terms, target, params)
-    _, height, width = target.shape
-    s, r = params.sparsity, params.radius
-    spatial = spatial_weights(params)
     gram = np.zeros((hc, wc, g, k1, k1), np.float32)
     rhs = np.zeros((hc, wc, g, k1, m), np.float32)
+    for rows, cols, pixel, weight, feats in _window_pairs(terms, params, hc, wc):
+        y = target[(slice(None), *pixel)].reshape(g, m, *weight.shape)
+        wf = feats * weight
+        gram[rows, cols] += np.einsum("gkhw,glhw->hwgkl", wf, feats)
+        rhs[rows, cols] += np.einsum("gkhw,gmhw->hwgkm", wf, y)
+    return gram, rhs
+
+
+def _window_pairs(terms: PairTerms, params: BlockParams, hc: int, wc: int) -> Iterator[tuple]:
+    """The pairs of the numpy twins, one window offset at a time: (rows, cols) the centres (Hc x Wc grid
+    slices) with an in-frame pixel at that offset, `pixel` the pixels' slices, `weight` their pair weights
+    (h, w) and `feats` their pair features (G, K1, h, w), float32."""
+    height, width = terms.sigma.shape
+    s, r = params.sparsity, params.radius
+    spatial = spatial_weights(params)
     for dy, dx in window_offsets(r):
         rows, cols = _valid_centres(hc, height, s, dy), _valid_centres(wc, width, s, dx)
         if rows is None or cols is None:
             continue
         centre, pixel = _offset_slices(rows, cols, s, dy, dx)
         weight = _pair_weight(terms, centre, pixel) * spatial[dy + r, dx + r] + np.float32(WEIGHT_FLOOR)
-        feats = _pair_features(terms, centre, pixel)  # (G, K1, h, w)
-        y = target[(slice(None), *pixel)].reshape(g, m, *weight.shape)
-        wf = feats * weight
-        gram[rows, cols] += np.einsum("gkhw,glhw->hwgkl", wf, feats)
-        rhs[rows, cols] += np.einsum("gkhw,gmhw->hwgkm", wf, y)
-    return gram, rhs
+        yield rows, cols, pixel, weight, _pair_features(terms, centre, pixel)
 
 
 def _moment_shape(terms: PairTerms, target: np.ndarray, params: BlockParams) -> tuple[int, int, int, int, int]:
@@ -444,15 +453,7 @@ def block_reconstruct_reference(terms: PairTerms, beta: np.ndarray, params: Bloc
     hc, wc, g, _, m = beta.shape
     num = np.zeros((g * m, height, width), np.float32)
     den = np.zeros((height, width), np.float32)
-    s, r = params.sparsity, params.radius
-    spatial = spatial_weights(params)
-    for dy, dx in window_offsets(r):
-        rows, cols = _valid_centres(hc, height, s, dy), _valid_centres(wc, width, s, dx)
-        if rows is None or cols is None:
-            continue
-        centre, pixel = _offset_slices(rows, cols, s, dy, dx)
-        weight = _pair_weight(terms, centre, pixel) * spatial[dy + r, dx + r] + np.float32(WEIGHT_FLOOR)
-        feats = _pair_features(terms, centre, pixel)  # (G, K1, h, w)
+    for rows, cols, pixel, weight, feats in _window_pairs(terms, params, hc, wc):
         pred = np.einsum("gkhw,hwgkm->gmhw", feats, beta[rows, cols]).reshape(g * m, *weight.shape)
         num[(slice(None), *pixel)] += weight * pred
         den[pixel] += weight
