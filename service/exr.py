@@ -52,6 +52,7 @@ class ExrHeader:
     layers: frozenset[str]  # known layers present; `color` also when `colorA` and `colorB` are
     channels: tuple[str, ...] = ()  # every channel name in the file
     mapping: ChannelMap = field(default_factory=lambda: ChannelMap("mcdenoise"))  # how channels make layers
+    second: ChannelMap | None = None  # a second part with a `color`: a second render, the halves' colorB
 
     def channels_of(self, layers: Iterable[str]) -> tuple[str, ...]:
         """The channels to decode for `layers` (known layers; those absent are skipped): `colorA` and
@@ -77,19 +78,38 @@ def read_header(source: str | Path | bytes, channel_map: ChannelMap | None = Non
             header = exr.header()
             names = [ch.name for ch in header["channels"]]
             low, high = header["dataWindow"]
-            attributes = {k: v for k, v in header.items() if k == "BlenderMultiChannel"}
+            parts = [(names, {k: v for k, v in header.items() if k == "BlenderMultiChannel"})]
+            if len(exr.parts) > 1:  # a second render (`join_renders`)
+                second = exr.parts[1].header
+                parts.append(([ch.name for ch in second["channels"]],
+                              {k: v for k, v in second.items() if k == "BlenderMultiChannel"}))
     except Exception as err:  # the binding raises RuntimeError/TypeError/OSError/KeyError on bad data
         raise FrameError(f"{what} is not a readable OpenEXR image ({err})") from err
+    mapping = _part_mapping(what, parts[0], channel_map, view_layer)
+    second_map = _part_mapping(what, parts[1], channel_map, view_layer) if len(parts) > 1 else None
+    layers = set(mapping.layers)
+    if second_map is not None and "color" in second_map.layers and "color" in layers:
+        layers |= {"colorA", "colorB"}
+    else:
+        second_map = None
+    if {"colorA", "colorB"} <= layers:
+        layers.add("color")
+    return ExrHeader(int(high[0] - low[0] + 1), int(high[1] - low[1] + 1), frozenset(layers), tuple(names), mapping,
+                     second_map)
+
+
+def _part_mapping(what: str, part: tuple[list[str], dict[str, Any]], channel_map: ChannelMap | None,
+                  view_layer: str | None) -> ChannelMap:
+    """The dialect of one part's channel names and attributes; DialectError when a channel map names
+    channels the part lacks."""
+    names, attributes = part
     mapping = detect(names, attributes, channel_map=channel_map, view_layer=view_layer)
     missing = mapping.missing_channels(names)
     if missing:
         layer, channels = next(iter(missing.items()))
         raise DialectError(f"{what}: the channel map's layer '{layer}' names channels the file lacks: "
                            f"{', '.join(channels)}", layer)
-    layers = set(mapping.layers)
-    if {"colorA", "colorB"} <= layers:
-        layers.add("color")
-    return ExrHeader(int(high[0] - low[0] + 1), int(high[1] - low[1] + 1), frozenset(layers), tuple(names), mapping)
+    return mapping
 
 
 def read_layers(source: str | Path | bytes, header: ExrHeader, layers: Iterable[str] = LAYERS) -> dict[str, np.ndarray]:
@@ -118,8 +138,40 @@ def read_layers(source: str | Path | bytes, header: ExrHeader, layers: Iterable[
             raise FrameError(f"channel '{name}' is subsampled; every channel must have one value per pixel", layer)
         pixels[name] = np.frombuffer(raw, np.float32).reshape(header.height, header.width)
     wanted = set(layers) | ({"colorA", "colorB"} if "color" in layers else set())
-    return {layer: src.assemble(pixels, layer) for layer, src in header.mapping.layers.items()
-            if layer in wanted and layer in LAYERS}
+    out = {layer: src.assemble(pixels, layer) for layer, src in header.mapping.layers.items()
+           if layer in wanted and layer in LAYERS}
+    if header.second is not None and wanted & {"color", "colorA", "colorB"}:
+        out["colorA"] = out.pop("color")  # the Frame's `color` becomes the mean of the two renders
+        out["colorB"] = _second_color(source, header.second, what)
+    return out
+
+
+def _second_color(source: str | Path | bytes, mapping: ChannelMap, what: str) -> np.ndarray:
+    """The `color` of a file's second part, (H, W, 3) float32, in that part's dialect `mapping`."""
+    handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
+    try:
+        with OpenEXR.File(handle, separate_channels=True) as exr:
+            channels = exr.parts[1].channels
+            pixels = {name: np.asarray(channels[name].pixels, np.float32) for name in mapping.layers["color"].channels}
+    except Exception as err:  # the binding raises OSError/RuntimeError/TypeError on bad or truncated data
+        raise FrameError(f"{what}: its second part is not readable ({err})") from err
+    return mapping.layers["color"].assemble(pixels, "colorB")
+
+
+def join_renders(first: str | Path | bytes, second: str | Path | bytes) -> bytes:
+    """One two-part EXR of two renders of a frame with different seeds (files or bytes, any dialect):
+    part 0 every channel of `first`, part 1 those of `second`, their string attributes kept. Read back,
+    part 0 is the frame and part 1's `color` its second half (`read_header`: `colorA`, `colorB`)."""
+    parts = []
+    for index, render in enumerate((first, second)):
+        channels, header = read_channels(render)
+        attributes = {k: v for k, v in header.items() if isinstance(v, str) and k != "name"}
+        parts.append(OpenEXR.Part({**attributes, "compression": OpenEXR.ZIP_COMPRESSION,
+                                   "type": OpenEXR.scanlineimage}, channels, name=("first", "second")[index]))
+    sink = io.BytesIO()
+    with OpenEXR.File(parts) as exr:
+        exr.write(sink)
+    return sink.getvalue()
 
 
 def read_frame(source: str | Path | bytes, *, repair: bool = True, channel_map: ChannelMap | None = None,

@@ -9,11 +9,18 @@ import os
 import sys
 import time
 
-from service.cli.sequence_args import add_sequence_args, channel_map, parse_options, resolve_pipeline
+from service.cli.sequence_args import (
+    add_second_half_arg,
+    add_sequence_args,
+    channel_map,
+    parse_options,
+    resolve_pipeline,
+)
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
     add_sequence_args(p)
+    add_second_half_arg(p)
     p.add_argument("--url", default="http://127.0.0.1:8000", help="service url (default http://127.0.0.1:8000)")
     p.add_argument("--api-key", default=os.environ.get("MCDENOISE_API_KEY"),
                    help="API key (default: $MCDENOISE_API_KEY)")
@@ -26,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
 
     options = parse_options(args.option)
     mapping = channel_map(args)  # checked here; the session's server reads the frames with it
-    name = resolve_pipeline(args.pipeline, args.in_dir, mapping, args.view_layer)
+    name = resolve_pipeline(args.pipeline, args.in_dir, mapping, args.view_layer, args.second_half is not None)
     first = read_header(list_sequence(args.in_dir)[0], mapping, args.view_layer)
     map_json = json.loads(args.channel_map.read_text()) if args.channel_map else None
     try:
@@ -35,7 +42,8 @@ def run(args: argparse.Namespace) -> int:
             view_layer=args.view_layer,
         ) as session:
             start = time.perf_counter()
-            results = session.stream_folder(args.in_dir, args.out_dir, window=args.window)
+            results = session.stream_folder(args.in_dir, args.out_dir, window=args.window,
+                                             second_half=args.second_half)
             seconds = time.perf_counter() - start
             status = session.status()
     except ServiceError as err:

@@ -106,3 +106,29 @@ def test_a_blender_sequence_streams_as_it_is(server, tmp_path):
     args = ["stream", "--pipeline", "flr", "--url", server, str(BLENDER / "noisy"), str(tmp_path / "out")]
     assert main(args) == 0
     assert len(list((tmp_path / "out").glob("*.exr"))) == 3
+
+
+def test_two_renders_as_one_two_part_exr_feed_the_split_buffer_pipelines(make_server):
+    from service.exr import join_renders
+
+    url = make_server()
+    first, second = BLENDER / "noisy" / "frame_0001.exr", BLENDER / "second" / "frame_0001.exr"
+    answer = exr_post(url, "/v1/denoise?pipeline=crossregression", first.read_bytes())
+    assert answer.status == 422 and answer.json()["layer"] == "colorA"  # one render: no halves
+    joined = join_renders(first, second)
+    answer = exr_post(url, "/v1/denoise?pipeline=crossregression", joined)
+    assert answer.status == 200
+    local = read_frame(joined)
+    np.testing.assert_allclose(local["color"], 0.5 * (read_frame(first)["color"] + read_frame(second)["color"]))
+
+
+def test_stream_with_a_second_half_matches_the_cli(server, tmp_path):
+    second = ["--second-half", str(BLENDER / "second")]
+    cli = ["denoise", "--pipeline", "crossregression", str(BLENDER / "noisy"), str(tmp_path / "cli"), *second]
+    assert main(cli) == 0
+    streamed = ["stream", "--pipeline", "crossregression", "--url", server, str(BLENDER / "noisy"),
+                str(tmp_path / "streamed"), *second]
+    assert main(streamed) == 0
+    for path in sorted((tmp_path / "cli").glob("*.exr")):
+        np.testing.assert_array_equal(read_frame(tmp_path / "streamed" / path.name)["color"],
+                                      read_frame(path)["color"])
