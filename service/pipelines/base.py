@@ -114,7 +114,9 @@ class Pipeline(ABC):
                 raise FloatingPointError(f"pipeline '{self.name}' produced non-finite '{name}'")
         if self.guards and "colorA" in given and "colorB" in given:  # within the noise the halves show
             halves = given["colorA"], given["colorB"]  # (finite in, finite out: the band is finite or +inf)
-            buffers["color"] = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"))
+            exact = "emission" in frame  # the renderer's, or the exact pixels `with_exact_emission` found
+            buffers["color"] = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"),
+                                           exact=exact)
         state.frame_index += 1
         return Frame(buffers, dict(frame.nonfinite)), state
 

@@ -42,6 +42,7 @@ def noise_clamp(
     color_b: np.ndarray,
     emission: np.ndarray | None = None,
     k: float = NOISE_K,
+    exact: bool = True,
 ) -> np.ndarray:
     """`out` clipped to `color` +- k sd per pixel and channel (module docstring).
 
@@ -51,6 +52,8 @@ def noise_clamp(
     with emission keep `out` unclipped (there the samples' binary coverage of an emitter's edge can make
     the halves agree by chance, and the emission split already tells the denoiser what is exact). Returns
     a new (H, W, 3) float32 array. One parallel numba pass; `noise_clamp_reference` is the numpy twin.
+    exact=False: the caller knows that no pixel is exact (`exact.exact_emission` found none in a frame
+    without an emission layer), and the per-pixel test is skipped.
     """
     if not 0 <= k < np.inf:
         raise ValueError(f"noise clamp k must be finite and >= 0, got {k}")
@@ -62,8 +65,8 @@ def noise_clamp(
         raise ValueError(f"noise clamp: out, color, the halves and emission must share one (H, W, C) shape: {shapes}")
     result = np.empty_like(arrays[0])
     e = arrays[4] if emission is not None else arrays[1]
-    _clamp_kernel(*arrays[:4], e, emission is not None, np.float32(k), np.float32(EXACT_RTOL),
-                  np.float32(EXACT_MIN), result)
+    _clamp_kernel(*arrays[:4], e, emission is not None, exact or emission is not None, np.float32(k),
+                  np.float32(EXACT_RTOL), np.float32(EXACT_MIN), result)
     return result
 
 
@@ -91,10 +94,10 @@ def noise_clamp_reference(
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _clamp_kernel(out, color, a, b, e, has_emission, k, rtol, floor, result):  # pragma: no cover - jitted
+def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, result):  # pragma: no cover - jitted
     """A task per row: the 3-row column sums of (a - b)^2 along the interleaved (W * C) row, then the
-    3-column sums as shifts by C, then the clip; exact pixels take `color`, other pixels with emission
-    take `out` unclipped."""
+    3-column sums as shifts by C, then the clip; unless `exact` is False (and so `has_emission`), exact
+    pixels take `color`, other pixels with emission take `out` unclipped."""
     height, width, channels = out.shape
     n = width * channels
     for y in numba.prange(height):
@@ -122,21 +125,23 @@ def _clamp_kernel(out, color, a, b, e, has_emission, k, rtol, floor, result):  #
                     total += column[i + channels]
                 band = k * np.sqrt(total * edge)
                 rr[i] = min(max(ro[i], rc[i] - band), rc[i] + band)
+        if not exact:
+            continue
         re = e[y].reshape(n)
         for x in range(width):
             i = x * channels
-            if pixel_exact(ra, rb, i, channels, rtol, floor):
-                with_emission = True
-                for c in range(channels):
-                    with_emission = with_emission and (not has_emission or agree(rc[i + c], re[i + c], rtol))
-                if with_emission:
-                    for c in range(channels):
-                        rr[i + c] = rc[i + c]
-                    continue
-            if has_emission:
+            if has_emission:  # an exact pixel is all emission, so a pixel without any keeps its clip
                 emitted = False
                 for c in range(channels):
                     emitted = emitted or re[i + c] != 0
-                if emitted:
-                    for c in range(channels):
-                        rr[i + c] = ro[i + c]
+                if not emitted:
+                    continue
+                keep = pixel_exact(ra, rb, i, channels, rtol, floor)
+                for c in range(channels):
+                    keep = keep and agree(rc[i + c], re[i + c], rtol)
+                src = rc if keep else ro  # exact: the input; other emission: unclipped
+                for c in range(channels):
+                    rr[i + c] = src[i + c]
+            elif pixel_exact(ra, rb, i, channels, rtol, floor):
+                for c in range(channels):
+                    rr[i + c] = rc[i + c]
