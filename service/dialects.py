@@ -94,8 +94,8 @@ class LayerSource:
             out += np.stack([pixels[c] for c in self.add], axis=-1)
         if self.replace_zero is not None:
             out[(out == 0).all(axis=-1)] = self.replace_zero
-        if self.clip is not None:
-            np.clip(out, *self.clip, out=out)
+        if self.clip is not None:  # NaN and infinities stay, for the frame to repair and count
+            np.copyto(out, np.clip(out, *self.clip), where=np.isfinite(out))
         return out
 
     def describe(self) -> str:
@@ -132,7 +132,7 @@ class ChannelMap:
             where = f"channel map '{source}'"
             try:
                 data = json.loads(Path(source).read_text())
-            except (OSError, json.JSONDecodeError) as err:
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
                 raise ValueError(f"{where}: {err}") from err
         if not isinstance(data, Mapping) or set(data) - {"layers"} or not isinstance(data.get("layers"), Mapping):
             raise ValueError(f'{where}: expected an object {{"layers": {{LAYER: {{"channels": [...]}}}}}}')
@@ -167,19 +167,31 @@ def _parse_source(layer: str, spec: Any, where: str) -> LayerSource:
     if not channels:
         raise ValueError(f"{where}: layer '{layer}' needs channels")
     scale = spec.get("scale", [])
-    if not (isinstance(scale, list) and len(scale) in (0, count)
-            and all(isinstance(s, int | float) and np.isfinite(s) for s in scale)):
+    if not (isinstance(scale, list) and len(scale) in (0, count)):
         raise ValueError(f"{where}: layer '{layer}' scale must be {count} finite numbers")
+    scale = tuple(_finite(s, f"{where}: layer '{layer}' scale") for s in scale)
     clip = spec.get("clip")
-    if clip is not None and not (isinstance(clip, list) and len(clip) == 2
-                                 and all(isinstance(v, int | float) for v in clip) and clip[0] < clip[1]):
-        raise ValueError(f"{where}: layer '{layer}' clip must be [low, high] with low < high")
+    if clip is not None:
+        if not (isinstance(clip, list) and len(clip) == 2):
+            raise ValueError(f"{where}: layer '{layer}' clip must be [low, high] with low < high")
+        clip = tuple(_finite(v, f"{where}: layer '{layer}' clip") for v in clip)
+        if not clip[0] < clip[1]:
+            raise ValueError(f"{where}: layer '{layer}' clip must be [low, high] with low < high")
     zero = spec.get("replace_zero")
-    if zero is not None and not (isinstance(zero, int | float) and np.isfinite(zero)):
-        raise ValueError(f"{where}: layer '{layer}' replace_zero must be a finite number")
-    return LayerSource(channels, tuple(float(s) for s in scale), add,
-                       None if clip is None else (float(clip[0]), float(clip[1])),
-                       None if zero is None else float(zero))
+    zero = None if zero is None else _finite(zero, f"{where}: layer '{layer}' replace_zero")
+    return LayerSource(channels, scale, add, clip, zero)
+
+
+def _finite(value: Any, what: str) -> float:
+    """`value` as a finite float32-representable number; ValueError naming `what` otherwise (booleans,
+    strings, numbers beyond float32)."""
+    try:
+        number = float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+    except OverflowError:
+        number = None
+    if number is None or not abs(number) <= float(np.finfo(np.float32).max):
+        raise ValueError(f"{what} must be finite numbers within float32, got {str(value)[:32]}")
+    return number
 
 
 # ------------------------------------------------------------------------------------------ mcdenoise
@@ -227,13 +239,14 @@ _BLENDER_PASSES = frozenset({"Combined", "Noisy Image", "Denoising Albedo", "Den
 
 def _blender_passes(names: Iterable[str]) -> dict[str, dict[str, dict[str, str]]]:
     """view layer -> pass -> channel letter -> full name, for channels `VIEWLAYER.PASS.CHANNEL` (a view
-    layer name may hold dots; a pass name holds none)."""
+    layer name may hold dots; a pass name holds none). A view layer has a `Combined` or `Noisy Image` pass;
+    a prefix without one (an AOV whose name holds a dot) is not a view layer."""
     out: dict[str, dict[str, dict[str, str]]] = {}
     for full in names:
         parts = full.rsplit(".", 2)
         if len(parts) == 3 and parts[1] in _BLENDER_PASSES:
             out.setdefault(parts[0], {}).setdefault(parts[1], {})[parts[2]] = full
-    return out
+    return {layer: passes for layer, passes in out.items() if {"Combined", "Noisy Image"} & set(passes)}
 
 
 def blender(names: Iterable[str], view_layer: str | None = None) -> ChannelMap:
@@ -290,7 +303,7 @@ def is_mitsuba(names: Iterable[str]) -> bool:
 def mitsuba(names: Iterable[str]) -> ChannelMap:
     """Mitsuba 3's `aov` integrator output (module docstring)."""
     names = set(names)
-    layers = {"color": LayerSource(("R", "G", "B"))}
+    layers = {**native(names).layers, "color": LayerSource(("R", "G", "B"))}  # AOVs named after our layers too
     for layer, (aov, letters) in _MITSUBA.items():
         chans = tuple(f"{aov}.{c}" for c in letters)
         if all(c in names for c in chans):
@@ -303,17 +316,18 @@ def mitsuba(names: Iterable[str]) -> ChannelMap:
 _FORMAT_NAME = re.compile(r"^(" + "|".join(LAYERS) + r")\.[A-Za-z]+$")
 
 
-def detect(names: Iterable[str], header: Mapping[str, Any] | None = None, *, channel_map: ChannelMap | None = None,
-           view_layer: str | None = None) -> ChannelMap:
-    """The ChannelMap for a file with channels `names` (and header attributes `header`): the user's map
-    when given, else Blender's when the file is Blender's (its `BlenderMultiChannel` attribute, or its
-    pass names) and has no frame-format channel, else Mitsuba's AOV layout, else the frame format's."""
+def detect(names: Iterable[str], *, channel_map: ChannelMap | None = None, view_layer: str | None = None) -> ChannelMap:
+    """The ChannelMap for a file with channels `names`: the user's map when given, else Blender's when the
+    file has a view layer's passes, else Mitsuba's AOV layout, else the frame format's. Channels named in
+    the frame format (a `reference` added to a Blender file) are read as such in every dialect, and win
+    over the dialect's own for the same layer."""
     names = list(names)
     if channel_map is not None:
         return channel_map
-    ours = any(_FORMAT_NAME.match(n) for n in names)
-    if not ours and ((header or {}).get("BlenderMultiChannel") or _blender_passes(names)):
-        return blender(names, view_layer)
+    if _blender_passes(names):
+        found = blender(names, view_layer)
+        ours = native(n for n in names if _FORMAT_NAME.match(n)).layers
+        return ChannelMap(found.dialect, {**found.layers, **ours}, found.notes, found.result)
     if is_mitsuba(names) and not any(n.startswith("color.") for n in names):
         return mitsuba(names)
     return native(names)

@@ -43,6 +43,10 @@ def read_channels(source: str | Path | bytes) -> tuple[dict[str, np.ndarray], di
     return channels, header
 
 
+RENDER_PARTS = ("first", "second")  # the part names of two renders of a frame in one file (`join_renders`)
+_WINDOWS = ("dataWindow", "displayWindow")  # where the pixels lie: kept when a file is written again
+
+
 @dataclass(frozen=True)
 class ExrHeader:
     """What an EXR header tells without decoding pixels."""
@@ -50,16 +54,25 @@ class ExrHeader:
     width: int  # pixels, of the data window
     height: int  # pixels, of the data window
     layers: frozenset[str]  # known layers present; `color` also when `colorA` and `colorB` are
-    channels: tuple[str, ...] = ()  # every channel name in the file
+    channels: tuple[str, ...] = ()  # every channel name in the file (of its first part)
     mapping: ChannelMap = field(default_factory=lambda: ChannelMap("mcdenoise"))  # how channels make layers
-    second: ChannelMap | None = None  # a second part with a `color`: a second render, the halves' colorB
+    second: ChannelMap | None = None  # a second render in part `second` (`join_renders`): the halves' colorB
+    second_channels: tuple[str, ...] = ()  # every channel name of that part
 
-    def channels_of(self, layers: Iterable[str]) -> tuple[str, ...]:
-        """The channels to decode for `layers` (known layers; those absent are skipped): `colorA` and
-        `colorB` too for `color` when the file has no color channels (the frame contract averages them)."""
+    def wanted(self, layers: Iterable[str]) -> set[str]:
+        """The layers to assemble for `layers`: `colorA` and `colorB` too for `color` when the file has no
+        color channels (the frame contract averages them); with a second render, the first render's
+        `color` for any of the three."""
         wanted = set(layers)
         if "color" in wanted and "color" not in self.mapping.layers:
             wanted |= {"colorA", "colorB"}
+        if self.second is not None and wanted & {"color", "colorA", "colorB"}:
+            wanted.add("color")
+        return wanted
+
+    def channels_of(self, layers: Iterable[str]) -> tuple[str, ...]:
+        """The channels of the first part to decode for `layers` (`wanted`; those absent are skipped)."""
+        wanted = self.wanted(layers)
         needed = {c for name, src in self.mapping.layers.items() if name in wanted for c in src.file_channels()}
         return tuple(c for c in self.channels if c in needed)
 
@@ -67,64 +80,71 @@ class ExrHeader:
 def read_header(source: str | Path | bytes, channel_map: ChannelMap | None = None,
                 view_layer: str | None = None) -> ExrHeader:
     """Size, layers and dialect of an EXR file or in-memory EXR bytes, from its header alone
-    (`service.dialects.detect`, with the user's `channel_map` and Blender `view_layer` when given).
+    (`service.dialects.detect`, with the user's `channel_map` and Blender `view_layer` when given). A file
+    of exactly two parts named `first` and `second` (`join_renders`) holds two renders of the frame: the
+    colour of the second is the halves' `colorB`. Of any other multi-part file the first part is read.
 
-    Raises FrameError when the data is not a readable OpenEXR image, when a channel map names channels
-    the file lacks, or for a Blender file with several view layers and none named."""
+    Raises FrameError when the data is not a readable OpenEXR image, or its second render has another size
+    or no colour (naming `colorB`); DialectError when a channel map names channels the file lacks, or for
+    a Blender file with several view layers and none named."""
     handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
     what = "data" if isinstance(source, bytes | bytearray) else f"file '{source}'"
     try:
         with OpenEXR.File(handle, header_only=True) as exr:  # the header dict empties when the file closes
             header = exr.header()
             names = [ch.name for ch in header["channels"]]
-            low, high = header["dataWindow"]
-            parts = [(names, {k: v for k, v in header.items() if k == "BlenderMultiChannel"})]
-            if len(exr.parts) > 1:  # a second render (`join_renders`)
-                second = exr.parts[1].header
-                parts.append(([ch.name for ch in second["channels"]],
-                              {k: v for k, v in second.items() if k == "BlenderMultiChannel"}))
+            window = tuple(tuple(int(v) for v in corner) for corner in header["dataWindow"])
+            second: tuple[list[str], tuple] | None = None
+            if len(exr.parts) == 2 and tuple(part.name() for part in exr.parts) == RENDER_PARTS:
+                other = exr.parts[1].header
+                second = ([ch.name for ch in other["channels"]],
+                          tuple(tuple(int(v) for v in corner) for corner in other["dataWindow"]))
     except Exception as err:  # the binding raises RuntimeError/TypeError/OSError/KeyError on bad data
         raise FrameError(f"{what} is not a readable OpenEXR image ({err})") from err
-    mapping = _part_mapping(what, parts[0], channel_map, view_layer)
-    second_map = _part_mapping(what, parts[1], channel_map, view_layer) if len(parts) > 1 else None
-    layers = set(mapping.layers)
-    if second_map is not None and "color" in second_map.layers and "color" in layers:
-        layers |= {"colorA", "colorB"}
-    else:
-        second_map = None
+    (x0, y0), (x1, y1) = window
+    width, height = x1 - x0 + 1, y1 - y0 + 1
+    mapping = detect(names, channel_map=channel_map, view_layer=view_layer)
+    _check_channels(what, mapping, names, mapping.layers)
+    second_map, second_names = None, ()
+    if second is not None:
+        second_names, second_window = tuple(second[0]), second[1]
+        if second_window != window:
+            (u0, v0), (u1, v1) = second_window
+            raise FrameError(f"{what}: its second render is {u1 - u0 + 1}x{v1 - v0 + 1} but the first is "
+                             f"{width}x{height}", "colorB")
+        second_map = detect(second_names, channel_map=channel_map, view_layer=view_layer)
+        if "color" not in second_map.layers or "color" not in mapping.layers:
+            raise FrameError(f"{what}: both renders need a colour (layer 'color' in their dialect)", "colorB")
+        _check_channels(what, second_map, second_names, ("color",))
+    layers = set(mapping.layers) | ({"colorA", "colorB"} if second_map is not None else set())
     if {"colorA", "colorB"} <= layers:
         layers.add("color")
-    return ExrHeader(int(high[0] - low[0] + 1), int(high[1] - low[1] + 1), frozenset(layers), tuple(names), mapping,
-                     second_map)
+    return ExrHeader(width, height, frozenset(layers), tuple(names), mapping, second_map, second_names)
 
 
-def _part_mapping(what: str, part: tuple[list[str], dict[str, Any]], channel_map: ChannelMap | None,
-                  view_layer: str | None) -> ChannelMap:
-    """The dialect of one part's channel names and attributes; DialectError when a channel map names
-    channels the part lacks."""
-    names, attributes = part
-    mapping = detect(names, attributes, channel_map=channel_map, view_layer=view_layer)
+def _check_channels(what: str, mapping: ChannelMap, names: Iterable[str], layers: Iterable[str]) -> None:
+    """DialectError naming the first of `layers` whose channels in `mapping` are not all among `names`."""
     missing = mapping.missing_channels(names)
-    if missing:
-        layer, channels = next(iter(missing.items()))
-        raise DialectError(f"{what}: the channel map's layer '{layer}' names channels the file lacks: "
-                           f"{', '.join(channels)}", layer)
-    return mapping
+    for layer in layers:
+        if layer in missing:
+            raise DialectError(f"{what}: the channel map's layer '{layer}' names channels the file lacks: "
+                               f"{', '.join(missing[layer])}", layer)
 
 
 def read_layers(source: str | Path | bytes, header: ExrHeader, layers: Iterable[str] = LAYERS) -> dict[str, np.ndarray]:
     """The known `layers` of an EXR file or bytes whose header is `header` (`read_header`), decoding only
-    their channels (`ExrHeader.channels_of`): no other channel is ever converted or held in memory.
+    their channels (`ExrHeader.channels_of`): no other channel of a single-part file is ever converted or
+    held in memory (a file of two renders is decoded whole, for the second render's colour).
 
-    Returns layer -> (H, W, C) float32 array in spec channel order (the header's `mapping`). Raises FrameError when
-    the pixel data is unreadable (truncated, corrupt), a channel is subsampled, or a layer's channels do not
-    match its spec (naming the layer).
+    Returns layer -> (H, W, C) float32 array in spec channel order (the header's `mapping`). Raises FrameError
+    when the pixel data is unreadable (truncated, corrupt), a channel is subsampled, or a layer's channels do
+    not match its spec (naming the layer).
     """
     names = header.channels_of(layers)
     handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
     what = "data" if isinstance(source, bytes | bytearray) else f"file '{source}'"
     try:
-        exr = OpenEXR.InputFile(handle)  # the binding's channel-selective reader
+        exr = OpenEXR.InputFile(handle)  # the binding's channel-selective reader (of the first part)
         try:
             data = exr.channels(list(names), _FLOAT) if names else []
         finally:
@@ -137,41 +157,67 @@ def read_layers(source: str | Path | bytes, header: ExrHeader, layers: Iterable[
             layer = next((k for k, src in header.mapping.layers.items() if name in src.file_channels()), None)
             raise FrameError(f"channel '{name}' is subsampled; every channel must have one value per pixel", layer)
         pixels[name] = np.frombuffer(raw, np.float32).reshape(header.height, header.width)
-    wanted = set(layers) | ({"colorA", "colorB"} if "color" in layers else set())
+    wanted = header.wanted(layers)
     out = {layer: src.assemble(pixels, layer) for layer, src in header.mapping.layers.items()
            if layer in wanted and layer in LAYERS}
-    if header.second is not None and wanted & {"color", "colorA", "colorB"}:
+    if header.second is not None and "color" in out:
         out["colorA"] = out.pop("color")  # the Frame's `color` becomes the mean of the two renders
-        out["colorB"] = _second_color(source, header.second, what)
+        out["colorB"] = _second_color(source, header, what)
     return out
 
 
-def _second_color(source: str | Path | bytes, mapping: ChannelMap, what: str) -> np.ndarray:
-    """The `color` of a file's second part, (H, W, 3) float32, in that part's dialect `mapping`."""
+def _second_color(source: str | Path | bytes, header: ExrHeader, what: str) -> np.ndarray:
+    """The `color` of the file's second render, (H, W, 3) float32, in that part's dialect."""
+    source_map = header.second.layers["color"]
     handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
     try:
         with OpenEXR.File(handle, separate_channels=True) as exr:
             channels = exr.parts[1].channels
-            pixels = {name: np.asarray(channels[name].pixels, np.float32) for name in mapping.layers["color"].channels}
+            pixels = {name: np.asarray(channels[name].pixels, np.float32) for name in source_map.file_channels()}
     except Exception as err:  # the binding raises OSError/RuntimeError/TypeError on bad or truncated data
-        raise FrameError(f"{what}: its second part is not readable ({err})") from err
-    return mapping.layers["color"].assemble(pixels, "colorB")
+        raise FrameError(f"{what}: its second render is not readable ({err})", "colorB") from err
+    if any(p.shape != (header.height, header.width) for p in pixels.values()):
+        raise FrameError(f"{what}: its second render's colour is subsampled", "colorB")
+    return source_map.assemble(pixels, "colorB")
 
 
 def join_renders(first: str | Path | bytes, second: str | Path | bytes) -> bytes:
-    """One two-part EXR of two renders of a frame with different seeds (files or bytes, any dialect):
-    part 0 every channel of `first`, part 1 those of `second`, their string attributes kept. Read back,
-    part 0 is the frame and part 1's `color` its second half (`read_header`: `colorA`, `colorB`)."""
-    parts = []
-    for index, render in enumerate((first, second)):
-        channels, header = read_channels(render)
-        attributes = {k: v for k, v in header.items() if isinstance(v, str) and k != "name"}
-        parts.append(OpenEXR.Part({**attributes, "compression": OpenEXR.ZIP_COMPRESSION,
-                                   "type": OpenEXR.scanlineimage}, channels, name=("first", "second")[index]))
+    """One EXR of two renders of a frame with different seeds (files or bytes, any dialect): part `first`
+    every channel of `first` (its string attributes and windows kept), part `second` the colour channels of
+    `second` in its dialect (all of them when it has none that the reader recognises). Read back, the
+    second render's colour is the halves' `colorB` (`read_header`). FrameError when the sizes differ."""
+    channels, header = read_channels(first)
+    other, other_header = read_channels(second)
+    shapes = {next(iter(c.values())).shape for c in (channels, other)}
+    if len(shapes) != 1:
+        (h0, w0), (h1, w1) = (next(iter(c.values())).shape for c in (channels, other))
+        raise FrameError(f"the second render is {w1}x{h1} but the first is {w0}x{h0}", "colorB")
+    colour = detect(other).layers.get("color")
+    if colour is not None and not colour.error:
+        other = {name: other[name] for name in colour.file_channels()}
+    kept = {k: v for k, v in header.items() if (isinstance(v, str) and k != "name") or k in _WINDOWS}
+    common = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    other_kept = {k: v for k, v in other_header.items() if isinstance(v, str) and k != "name"}
+    parts = [OpenEXR.Part({**kept, **common}, channels, name=RENDER_PARTS[0]),
+             OpenEXR.Part({**other_kept, **{k: header[k] for k in _WINDOWS if k in header}, **common}, other,
+                          name=RENDER_PARTS[1])]
     sink = io.BytesIO()
     with OpenEXR.File(parts) as exr:
         exr.write(sink)
     return sink.getvalue()
+
+
+def write_with_input(path: str | Path, source: str | Path, color: np.ndarray, mapping: ChannelMap) -> None:
+    """Write the EXR file `source`'s channels (their pixel types, its string attributes such as Blender's
+    `BlenderMultiChannel`, and its data and display windows kept) plus `color` ((H, W, 3) float32) as the
+    channels `mapping.result` names (Blender: a `Denoised` pass of the view layer read), to `path`."""
+    channels, header = read_channels(source)
+    channels.update({name: np.ascontiguousarray(color[..., c], np.float32) for c, name in enumerate(mapping.result)})
+    kept = {k: v for k, v in header.items() if isinstance(v, str) or k in _WINDOWS}
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with OpenEXR.File({**kept, "compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      channels) as exr:
+        exr.write(str(path))
 
 
 def read_frame(source: str | Path | bytes, *, repair: bool = True, channel_map: ChannelMap | None = None,
@@ -218,19 +264,6 @@ def _write(target: str | io.BytesIO, buffers: Mapping[str, np.ndarray] | Frame, 
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with OpenEXR.File(header, channels) as exr:
         exr.write(target)
-
-
-def write_with_input(path: str | Path, source: str | Path, color: np.ndarray, mapping: ChannelMap) -> None:
-    """Write the EXR file `source`'s channels (their pixel types and its string attributes, such as
-    Blender's `BlenderMultiChannel`, kept) plus `color` ((H, W, 3) float32) as the channels
-    `mapping.result` names (Blender: a `Denoised` pass of the view layer read), to `path`."""
-    channels, header = read_channels(source)
-    channels.update({name: np.ascontiguousarray(color[..., c], np.float32) for c, name in enumerate(mapping.result)})
-    attributes = {k: v for k, v in header.items() if isinstance(v, str)}
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with OpenEXR.File({**attributes, "compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
-                      channels) as exr:
-        exr.write(str(path))
 
 
 def list_sequence(folder: str | Path) -> list[Path]:

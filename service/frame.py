@@ -213,7 +213,9 @@ def from_two_renders(first: Frame, second: Frame) -> Frame:
         raise FrameError(f"the second render is {second.width}x{second.height} but the first is "
                          f"{first.width}x{first.height}", "colorB")
     a, b = first["color"], second["color"]
-    counts = {**first.nonfinite, **({"colorB": second.nonfinite["color"]} if "color" in second.nonfinite else {})}
+    counts = {k: v for k, v in first.nonfinite.items() if k != "color"}
     if "color" in first.nonfinite:
         counts["colorA"] = first.nonfinite["color"]
+    if "color" in second.nonfinite:
+        counts["colorB"] = second.nonfinite["color"]
     return Frame({**first.buffers, "colorA": a, "colorB": b, "color": np.float32(0.5) * (a + b)}, counts)

@@ -57,7 +57,10 @@ def denoise_folder(
             try:
                 frame = read_frame(path, channel_map=channel_map, view_layer=view_layer)
                 if second is not None:
-                    other = read_frame(second, channel_map=channel_map, view_layer=view_layer)
+                    try:
+                        other = read_frame(second, channel_map=channel_map, view_layer=view_layer)
+                    except FrameError as err:
+                        raise FrameError(f"second render {second}: {err}", err.layer) from err
                     frame = from_two_renders(frame, other)
                 if state is None:
                     state = pipeline.start(frame.height, frame.width)

@@ -98,8 +98,11 @@ def decode(body: bytes, settings: Settings, layers: Iterable[str], channel_map: 
     """
     header = exr_header(body, channel_map or settings.default_channel_map, view_layer or settings.view_layer or None)
     check_size(header.width, header.height, settings.max_width, settings.max_height)
-    second = 3 if header.second is not None else 0  # the second render's colour, decoded in full (its part)
-    check_memory(header, len(header.channels_of(layers)) + second, settings.max_frame_mb)
+    if header.second is None:
+        decoded = len(header.channels_of(layers))
+    else:  # a file of two renders is decoded whole
+        decoded = len(header.channels) + len(header.second_channels)
+    check_memory(header, decoded, settings.max_frame_mb)
     try:
         buffers = read_layers(body, header, layers)
     except FrameError as err:

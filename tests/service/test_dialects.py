@@ -263,3 +263,138 @@ def test_keep_layers_writes_the_input_with_a_denoised_pass_blender_can_load(tmp_
     plain = read_frame(tmp_path / "plain" / "frame_0001.exr")["color"]
     np.testing.assert_array_equal(np.stack([kept[f"ViewLayer.Denoised.{c}"] for c in "RGB"], -1), plain)
     assert read_header(tmp_path / "kept" / "frame_0001.exr").mapping.dialect == "blender"
+
+
+# ------------------------------------------------------------------------------- edge cases (review)
+
+
+def _write_exr(path: Path, channels: dict[str, np.ndarray], **header) -> Path:
+    import OpenEXR
+
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, **header},
+                      {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}) as exr:
+        exr.write(str(path))
+    return path
+
+
+def _plane(value: float = 0.5, shape: tuple[int, int] = (4, 6)) -> np.ndarray:
+    return np.full(shape, value, np.float32)
+
+
+def test_frame_format_channels_in_a_blender_file_are_read_beside_its_passes(tmp_path):
+    channels = {f"ViewLayer.Combined.{c}": _plane() for c in "RGBA"}
+    channels.update({f"ViewLayer.Denoising Albedo.{c}": _plane(0.3) for c in "RGB"})
+    channels.update({f"reference.{c}": _plane(0.4) for c in "RGB"})
+    frame = read_frame(_write_exr(tmp_path / "f.exr", channels))
+    assert set(frame.buffers) == {"color", "albedo", "reference"}
+    np.testing.assert_array_equal(frame["reference"], np.float32(0.4))
+
+
+def test_mitsuba_keeps_aovs_named_after_our_layers(tmp_path):
+    channels = {c: _plane() for c in "RGB"} | {"depth.T": _plane(2.0)}
+    channels.update({f"normal.{c}": _plane(v) for c, v in zip("XYZ", (0.0, 1.0, 0.0), strict=True)})
+    channels.update({f"reference.{c}": _plane(0.4) for c in "RGB"})
+    header = read_header(_write_exr(tmp_path / "m.exr", channels))
+    assert header.mapping.dialect == "mitsuba" and header.layers == {"color", "normal", "depth", "reference"}
+
+
+def test_not_view_layers_are_not_blender(tmp_path):
+    # a multilayer file without view-layer passes (a compositor output), and an AOV whose name holds a dot
+    plain = read_header(_write_exr(tmp_path / "p.exr", {f"Image.{c}": _plane() for c in "RGB"},
+                                   BlenderMultiChannel="Blender V2.55.1 and newer"))
+    assert plain.mapping.dialect == "mcdenoise"
+    names = [f"ViewLayer.Combined.{c}" for c in "RGBA"] + ["ViewLayer.my.Depth.Z"]
+    assert detect(names).dialect == "blender"  # one view layer, no phantom "ViewLayer.my"
+
+
+def test_numbers_of_a_channel_map_must_be_finite_float32():
+    for spec in ({"scale": [10**400, 1, 1]}, {"clip": [0, 10**400]}, {"scale": [True, 1, 1]},
+                 {"replace_zero": "1"}, {"clip": [0, 1e39]}):
+        with pytest.raises(ValueError, match="finite numbers within float32"):
+            ChannelMap.from_json({"layers": {"color": {"channels": ["a", "b", "c"], **spec}}})
+
+
+def test_clipping_leaves_nan_and_inf_for_the_frame_to_repair_and_count(tmp_path):
+    albedo = _plane(0.5)
+    albedo[0, 0] = np.inf
+    channels = {f"ViewLayer.Combined.{c}": _plane() for c in "RGB"}
+    channels.update({f"ViewLayer.Denoising Albedo.{c}": albedo for c in "RGB"})
+    frame = read_frame(_write_exr(tmp_path / "f.exr", channels))
+    assert frame.nonfinite["albedo"] == 3 and frame["albedo"].max() <= 1
+
+
+def test_two_renders_in_one_file(tmp_path):
+    from service.exr import join_renders, read_layers
+
+    first = _write_exr(tmp_path / "a.exr", {f"color.{c}": _plane(0.2) for c in "RGB"} | {"albedo.R": _plane(),
+                       "albedo.G": _plane(), "albedo.B": _plane()})
+    second = _write_exr(tmp_path / "b.exr", {f"color.{c}": _plane(0.6) for c in "RGB"} | {"depth.Z": _plane()})
+    joined = join_renders(first, second)
+    header = read_header(joined)
+    assert header.second_channels == ("color.B", "color.G", "color.R")  # only the second render's colour
+    for layers in (("color", "albedo"), ("colorA", "colorB", "albedo"), ("colorB",)):
+        out = read_layers(joined, header, layers)
+        np.testing.assert_array_equal(out["colorB"], np.float32(0.6))
+    frame = read_frame(joined)
+    np.testing.assert_allclose(frame["color"], 0.4)
+    small = _write_exr(tmp_path / "s.exr", {f"color.{c}": _plane(0.6, (2, 6)) for c in "RGB"})
+    with pytest.raises(FrameError, match="the second render is 6x2 but the first is 6x4") as err:
+        join_renders(first, small)
+    assert err.value.layer == "colorB"
+
+
+def test_only_two_parts_named_by_join_renders_are_two_renders(tmp_path):
+    import io
+
+    import OpenEXR
+
+    parts = [OpenEXR.Part({"compression": OpenEXR.ZIP_COMPRESSION}, {f"{c}": _plane(v) for c in "RGB"}, name=name)
+             for name, v in (("rgba", 0.2), ("diffuse", 0.6), ("albedo", 0.5))]
+    sink = io.BytesIO()
+    with OpenEXR.File(parts) as exr:
+        exr.write(sink)
+    header = read_header(sink.getvalue())
+    assert header.second is None and header.layers == {"color"}
+    np.testing.assert_array_equal(read_frame(sink.getvalue())["color"], np.float32(0.2))
+
+
+def test_a_second_render_of_another_size_is_refused_from_the_header(tmp_path):
+    import io
+
+    import OpenEXR
+
+    def window(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([0, 0], np.int32), np.array([width - 1, height - 1], np.int32)
+
+    parts = [OpenEXR.Part({"compression": OpenEXR.ZIP_COMPRESSION, "displayWindow": window(60, 40),
+                           "dataWindow": window(shape[1], shape[0])},
+                          {f"color.{c}": _plane(0.2, shape) for c in "RGB"}, name=name)
+             for name, shape in (("first", (4, 6)), ("second", (40, 60)))]
+    sink = io.BytesIO()
+    with OpenEXR.File(parts) as exr:
+        exr.write(sink)
+    with pytest.raises(FrameError, match="second render is 60x40 but the first is 6x4"):
+        read_header(sink.getvalue())
+
+
+def test_two_renders_count_repaired_values_once():
+    from service.frame import Frame
+
+    color = np.full((2, 2, 3), 0.5, np.float32)
+    color[0, 0, 0] = np.nan
+    first = Frame.from_buffers({"color": color})
+    split = from_two_renders(first, Frame.from_buffers({"color": np.full((2, 2, 3), 0.5, np.float32)}))
+    assert split.nonfinite == {"colorA": 1} and split.nonfinite_total == 1
+
+
+def test_keep_layers_keeps_the_data_window(tmp_path):
+    from service.dialects import native
+    from service.exr import write_with_input
+
+    window = (np.array([8, 4], np.int32), np.array([13, 7], np.int32))
+    source = _write_exr(tmp_path / "w.exr", {f"color.{c}": _plane() for c in "RGB"}, dataWindow=window,
+                        displayWindow=(np.array([0, 0], np.int32), np.array([63, 63], np.int32)))
+    write_with_input(tmp_path / "out.exr", source, np.zeros((4, 6, 3), np.float32), native(["color.R"]))
+    _, header = read_channels(tmp_path / "out.exr")
+    np.testing.assert_array_equal(header["dataWindow"][0], [8, 4])
+    np.testing.assert_array_equal(header["displayWindow"][1], [63, 63])

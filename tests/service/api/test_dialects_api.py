@@ -132,3 +132,28 @@ def test_stream_with_a_second_half_matches_the_cli(server, tmp_path):
     for path in sorted((tmp_path / "cli").glob("*.exr")):
         np.testing.assert_array_equal(read_frame(tmp_path / "streamed" / path.name)["color"],
                                       read_frame(path)["color"])
+
+
+def test_huge_numbers_in_a_session_channel_map_are_a_400(make_server):
+    url = make_server()
+    spec = {"layers": {"color": {"channels": ["beauty.r", "beauty.g", "beauty.b"], "scale": [1e300, 1, 1]}}}
+    bad = _session(url, channel_map=spec)
+    assert bad["status"] == 400 and bad["option"] == "channel_map" and "within float32" in bad["message"]
+
+
+def test_a_two_render_file_counts_both_parts_against_the_memory_budget():
+    from service.api import codec
+    from service.api.core.errors import ApiError
+    from service.exr import join_renders
+
+    size = (512, 512)
+    first = {f"color.{c}": np.full(size, 0.5) for c in "RGB"} | {f"junk.{i}": np.zeros(size) for i in range(17)}
+    joined = join_renders(_exr(first), _exr({f"color.{c}": np.full(size, 0.5) for c in "RGB"}))
+    header = codec.exr_header(joined)
+    assert len(header.channels) + len(header.second_channels) == 23
+    per_channel = size[0] * size[1] * 4 * codec.MEMORY_FACTOR / 2**20  # MiB
+    settings = Settings(max_frame_mb=int(np.ceil(10 * per_channel)))  # a 3-channel read fits, 23 channels do not
+    with pytest.raises(ApiError, match="23 channels"):
+        codec.decode(joined, settings, ["color"])
+    single = _exr(first)
+    assert codec.decode(single, settings, ["color"])["color"].shape == (512, 512, 3)
