@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 
 from service.cli.sequence_args import (
-    add_second_half_arg,
     add_sequence_args,
     channel_map,
     parse_options,
@@ -16,7 +15,6 @@ from service.cli.sequence_args import (
 
 def add_args(p: argparse.ArgumentParser) -> None:
     add_sequence_args(p)
-    add_second_half_arg(p)
     p.add_argument("--png", action="store_true", help="also write tone-mapped PNG previews")
     p.add_argument("--keep-layers", action="store_true",
                    help="write each input file's channels plus the result (Blender: a Denoised pass of the view layer; "

@@ -24,6 +24,9 @@ def add_sequence_args(p: argparse.ArgumentParser) -> None:
                    help="pipeline option, repeatable (see `pipelines --json`)")
     p.add_argument("--online", action="store_true",
                    help="fine-tune the pipeline's network while the sequence runs (sets option online=true)")
+    p.add_argument("--second-half", type=Path, metavar="DIR",
+                   help="a second render of the same frames with another seed: frame i of each makes the halves "
+                        "colorA, colorB (the split-buffer pipelines need them)")
     add_dialect_args(p)
 
 
@@ -32,12 +35,6 @@ def add_dialect_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--channel-map", type=Path, metavar="FILE.json",
                    help="JSON map from the files' channel names to frame-format layers (README, frame format)")
     p.add_argument("--view-layer", metavar="NAME", help="the Blender view layer to read, when a file holds several")
-
-
-def add_second_half_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--second-half", type=Path, metavar="DIR",
-                   help="a second render of the same frames with another seed: frame i of each makes the halves "
-                        "colorA, colorB (the split-buffer pipelines need them)")
 
 
 def channel_map(args: argparse.Namespace) -> ChannelMap | None:

@@ -10,7 +10,6 @@ import sys
 import time
 
 from service.cli.sequence_args import (
-    add_second_half_arg,
     add_sequence_args,
     channel_map,
     parse_options,
@@ -20,7 +19,6 @@ from service.cli.sequence_args import (
 
 def add_args(p: argparse.ArgumentParser) -> None:
     add_sequence_args(p)
-    add_second_half_arg(p)
     p.add_argument("--url", default="http://127.0.0.1:8000", help="service url (default http://127.0.0.1:8000)")
     p.add_argument("--api-key", default=os.environ.get("MCDENOISE_API_KEY"),
                    help="API key (default: $MCDENOISE_API_KEY)")
