@@ -6,8 +6,8 @@
     rel(x, y) = (x - y)^2 / (y^2 + eps),  eps = 1e-2
 
 per channel, averaged over channels and pixels, all in log1p radiance (as the authors' code computes it).
-The temporal labels follow the paper's eq. 13 (crossed); the authors' code pairs output A with the previous
-pilot A instead. Both are independent of the current frame's noise in A.
+The temporal labels are crossed, as in the paper's eq. 13 and the authors' code (main.py: prev_label1 =
+prev_ols2): independent of the current frame's noise in A.
 """
 
 from __future__ import annotations
