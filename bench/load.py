@@ -36,6 +36,7 @@ from service import pipelines
 from service.client import Client, ServiceError, Session
 from service.exr import encode_frame, read_frame
 from service.frame import Frame
+from service.process import configure
 
 ROOT = Path(__file__).resolve().parents[1]
 BUSY_RETRY_S = 0.05  # wait before resending a frame answered 503 busy (the service says Retry-After: 1)
@@ -128,6 +129,7 @@ def start_server(workers: int, max_inflight: int) -> tuple[str, subprocess.Popen
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()  # an entry point that runs the service's kernels (service/process.py)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sessions", type=int, default=8)
     parser.add_argument("--frames", type=int, default=30, help="frames per session")

@@ -15,6 +15,7 @@ import sys
 import time
 
 from models.data import scenes
+from service.process import configure
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -58,6 +59,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()  # an entry point that runs the service's kernels (service/process.py)
     args = _parser().parse_args(argv)
     if args.command == "scenes":
         for spec in scenes.SCENES.values():

@@ -10,6 +10,7 @@ import argparse
 import dataclasses
 
 from models.train.train import RECIPES, TrainOptions, train
+from service.process import configure
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -31,6 +32,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()  # an entry point that runs the service's kernels (service/process.py)
     args = vars(_parser().parse_args(argv))
     resume = args.pop("resume")
     try:

@@ -30,6 +30,7 @@ from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import dssim, rel_l2
 from service.pipelines.crossreg import prepare_frame
+from service.process import configure
 from service.stages.cross_regression import cross_regression, pilots_to_radiance
 
 log = logging.getLogger("models.train.crossreg_evidence")
@@ -204,6 +205,7 @@ def timing(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()  # an entry point that runs the service's kernels (service/process.py)
     parser = argparse.ArgumentParser(
         prog="python -m models.train.crossreg_evidence", description=__doc__.splitlines()[0]
     )

@@ -33,6 +33,7 @@ from models.train.step import LEARNING_RATE, forward, make_optimizer, samples_to
 from service.exr import list_sequence, read_frame
 from service.frame import RADIANCE_LAYERS, Frame
 from service.pipelines.crossreg import History, Prepared, next_history, prepare_frame
+from service.process import configure
 from service.stages.cross_regression import cross_regression
 
 log = logging.getLogger("models.train.warm_start")
@@ -138,6 +139,7 @@ def train(sequences: list[Sequence], *, seconds: float, max_steps: int, seed: in
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()  # an entry point that runs the service's kernels (service/process.py)
     parser = argparse.ArgumentParser(prog="python -m models.train.warm_start", description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, action="append", default=[], help="folder of sequences (repeatable)")
     parser.add_argument("--synthetic", type=int, default=0, help="also this many bench.synthetic sequences")

@@ -69,6 +69,6 @@ def limit_threads(n: int) -> None:
 
     wanted = int(os.environ["NUMBA_NUM_THREADS"])
     if not parallel._is_initialized:  # no kernel has run: the thread pool starts with `wanted` threads
-        numba.config.NUMBA_NUM_THREADS = wanted
+        numba.config.NUMBA_NUM_THREADS = parallel.NUM_THREADS = wanted
     elif wanted != numba.config.NUMBA_NUM_THREADS:
         print(f"warning: numba runs {numba.config.NUMBA_NUM_THREADS} threads already, not {wanted}", file=sys.stderr)

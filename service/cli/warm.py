@@ -60,5 +60,9 @@ def _warm_in_processes(names: list[str], jobs: int) -> int:
 
     with ThreadPoolExecutor(jobs) as pool:
         codes = list(pool.map(child, names))
+    failed = [name for name, code in zip(names, codes, strict=True) if code]
+    if failed:
+        print(f"error: warming failed for {', '.join(failed)}", file=sys.stderr)
+        return next(code for code in codes if code)
     print(f"warmed {len(names)} pipelines in {time.perf_counter() - start:.0f} s", flush=True)
-    return next((code for code in codes if code), 0)
+    return 0

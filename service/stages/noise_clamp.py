@@ -130,11 +130,15 @@ def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, resu
         re = e[y].reshape(n)
         for x in range(width):
             i = x * channels
-            if has_emission:  # an exact pixel is all emission, so a pixel without any keeps its clip
-                emitted = False
+            if has_emission:  # an exact pixel is all emission: without any, only a black colour can be
+                emitted, black = False, True
                 for c in range(channels):
                     emitted = emitted or re[i + c] != 0
+                    black = black and rc[i + c] == 0
                 if not emitted:
+                    if black and pixel_exact(ra, rb, i, channels, rtol, floor):  # (a repaired NaN colour)
+                        for c in range(channels):
+                            rr[i + c] = rc[i + c]
                     continue
                 keep = pixel_exact(ra, rb, i, channels, rtol, floor)
                 for c in range(channels):

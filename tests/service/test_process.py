@@ -1,3 +1,4 @@
+import ast
 import os
 import platform
 import subprocess
@@ -72,3 +73,66 @@ def test_the_command_line_configures_the_process(tmp_path):
 
 def test_keep_freed_buffers_applies_on_glibc():
     assert keep_freed_buffers() is (sys.platform == "linux" and platform.libc_ver()[0] == "glibc")
+
+
+def _repository_imports(root: Path) -> dict[str, set[str]]:
+    """module name -> the repository modules it imports (any `import`/`from` in its source), for service,
+    bench, models and export."""
+    modules = {}
+    for folder in ("service", "bench", "models", "export"):
+        for path in (root / folder).rglob("*.py"):
+            parts = path.relative_to(root).with_suffix("").parts
+            modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            targets = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                targets = [node.module, *(f"{node.module}.{a.name}" for a in node.names)]
+            found |= {t for t in targets if t in modules}
+        graph[name] = found
+    return graph
+
+
+def test_every_entry_point_that_runs_kernels_configures_the_process():
+    """A command of the repository (a module with `main` or a `__main__` block) whose imports reach the
+    service's numba kernels calls `configure()`: without it they cache beside the sources (keyed on their
+    own file only) and OpenMP busy-waits. A `__main__` that only calls another module's `main` is exempt."""
+    root = Path(service.__file__).resolve().parents[1]
+    graph = _repository_imports(root)
+    kernels = {m for m in graph if m.split(".")[:2] in (["service", "stages"], ["service", "regression"],
+                                                         ["service", "kernels"])}
+
+    def reaches(module: str, seen: set[str]) -> bool:
+        if module in kernels:
+            return True
+        seen.add(module)
+        return any(reaches(m, seen) for m in graph[module] - seen)
+
+    missing = []
+    for module in graph:
+        path = root / Path(*module.split(".")).with_suffix(".py")
+        if not path.is_file():
+            continue
+        text = path.read_text()
+        command = "def main(" in text or 'if __name__ == "__main__"' in text
+        if command and "configure()" not in text and "def main(" in text and reaches(module, set()):
+            missing.append(module)
+    assert sorted(missing) == []
+
+
+def test_the_server_caps_numbas_threads_before_they_start(tmp_path):
+    code = (
+        "import threading, numba\n"
+        "from service.cli.serve import limit_threads\n"
+        "from service import pipelines\n"
+        "from service.warmup import warm_up\n"
+        "limit_threads(1)\n"
+        "warm_up(pipelines.get('bilateral'))\n"
+        "seen = []\n"
+        "t = threading.Thread(target=lambda: seen.append(numba.get_num_threads())); t.start(); t.join()\n"
+        "print(numba.get_num_threads(), seen[0])"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS") and k != "MCDENOISE_ORT_THREADS"}
+    assert _run(code, env) == ["1", "1"]

@@ -77,3 +77,29 @@ def test_refuses_mismatched_shapes_and_negative_k():
             noise_clamp(x, x, x, x, k=k)
     with pytest.raises(ValueError, match="share one"):
         noise_clamp(x, x, x, x, emission=x[:, :2])
+
+
+@pytest.mark.parametrize("with_emission", [False, True])
+@pytest.mark.parametrize("exact", [False, True])
+def test_matches_the_twin_on_exact_pixels_emitters_and_repaired_colours(with_emission, exact):
+    """Exact pixels (halves agree), emitters, and a black colour over agreeing halves (a NaN colour the
+    frame repaired to 0): the twin's answer whether or not the frame has an emission layer. exact=False is
+    only for frames without exact pixels, so it is compared where there are none."""
+    rng = np.random.default_rng(7)
+    a = rng.uniform(0.1, 1.0, (9, 11, 3)).astype(np.float32)
+    b = rng.uniform(0.1, 1.0, (9, 11, 3)).astype(np.float32)
+    color = np.float32(0.5) * (a + b)
+    emission = np.zeros_like(a)
+    if exact:
+        b[2, 3] = a[2, 3]  # exact, all emission when there is a layer
+        color[2, 3] = emission[2, 3] = a[2, 3]
+        b[4, 5] = a[4, 5]  # halves agree, colour repaired to black
+        color[4, 5] = 0.0
+    emission[6, 7] = 0.3  # an emitter's edge: emission, halves that differ
+    out = rng.uniform(0.0, 2.0, a.shape).astype(np.float32)
+    given = emission if with_emission else None
+    expected = noise_clamp_reference(out, color, a, b, given)
+    result = noise_clamp(out, color, a, b, given, exact=exact or with_emission)
+    np.testing.assert_allclose(result, expected, rtol=1e-6, atol=1e-6)  # the band's sum order: an ulp
+    if exact:
+        np.testing.assert_array_equal(result[4, 5], 0.0)  # exact: the input, a repaired black
