@@ -129,9 +129,10 @@ def test_stream_with_a_second_half_matches_the_cli(server, tmp_path):
     streamed = ["stream", "--pipeline", "crossregression", "--url", server, str(BLENDER / "noisy"),
                 str(tmp_path / "streamed"), *second]
     assert main(streamed) == 0
-    for path in sorted((tmp_path / "cli").glob("*.exr")):
-        np.testing.assert_array_equal(read_frame(tmp_path / "streamed" / path.name)["color"],
-                                      read_frame(path)["color"])
+    for path in sorted((tmp_path / "cli").glob("*.exr")):  # the server runs 1 numba thread per frame here, the
+        # CLI 2: crossregression's rows are split by thread count, so sums differ in float32 rounding only
+        np.testing.assert_allclose(read_frame(tmp_path / "streamed" / path.name)["color"],
+                                   read_frame(path)["color"], rtol=1e-5, atol=1e-6)
 
 
 def test_huge_numbers_in_a_session_channel_map_are_a_400(make_server):
