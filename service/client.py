@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote, urlencode, urlsplit
 
-from service.exr import join_renders, list_sequence
+from service.exr import join_renders, paired_sequence
 
 EXR = "image/x-exr"
 PNG = "image/png"
@@ -219,16 +219,13 @@ class Session:
         """Stream every frame of a sequence folder; write each denoised frame as `out_dir/<same name>`. With
         `second_half`, a folder of a second render of the same frames (another seed), frame i of both goes
         as one two-part EXR (`service.exr.join_renders`): the halves of frame i."""
-        paths = list_sequence(in_dir)
+        pairs = paired_sequence(in_dir, second_half)
+        paths = [path for path, _ in pairs]
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         sources: Iterable[FrameSource] = paths
         if second_half is not None:
-            seconds = list_sequence(second_half)
-            if len(seconds) != len(paths):
-                raise ValueError(f"the second render '{second_half}' has {len(seconds)} frames; "
-                                 f"'{in_dir}' has {len(paths)}")
-            sources = (join_renders(a, b) for a, b in zip(paths, seconds, strict=True))
+            sources = (join_renders(a, b) for a, b in pairs)
         results = []
         for path, answer in zip(paths, self.stream(sources, window=window), strict=True):
             if isinstance(answer, ServiceError):

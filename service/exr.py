@@ -45,6 +45,7 @@ def read_channels(source: str | Path | bytes) -> tuple[dict[str, np.ndarray], di
 
 RENDER_PARTS = ("first", "second")  # the part names of two renders of a frame in one file (`join_renders`)
 _WINDOWS = ("dataWindow", "displayWindow")  # where the pixels lie: kept when a file is written again
+_WRITTEN = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}  # how we write a file
 
 
 @dataclass(frozen=True)
@@ -134,73 +135,77 @@ def _check_channels(what: str, mapping: ChannelMap, names: Iterable[str], layers
 def read_layers(source: str | Path | bytes, header: ExrHeader, layers: Iterable[str] = LAYERS) -> dict[str, np.ndarray]:
     """The known `layers` of an EXR file or bytes whose header is `header` (`read_header`), decoding only
     their channels (`ExrHeader.channels_of`): no other channel of a single-part file is ever converted or
-    held in memory (a file of two renders is decoded whole, for the second render's colour).
+    held in memory (a file of two renders is decoded whole, once, for the second render's colour).
 
     Returns layer -> (H, W, C) float32 array in spec channel order (the header's `mapping`). Raises FrameError
     when the pixel data is unreadable (truncated, corrupt), a channel is subsampled, or a layer's channels do
     not match its spec (naming the layer).
     """
     names = header.channels_of(layers)
-    handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
     what = "data" if isinstance(source, bytes | bytearray) else f"file '{source}'"
+    handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
+    second = None
     try:
-        exr = OpenEXR.InputFile(handle)  # the binding's channel-selective reader (of the first part)
-        try:
-            data = exr.channels(list(names), _FLOAT) if names else []
-        finally:
-            exr.close()
+        if header.second is None:
+            exr = OpenEXR.InputFile(handle)  # the binding's channel-selective reader
+            try:
+                data = exr.channels(list(names), _FLOAT) if names else []
+            finally:
+                exr.close()
+            pixels = {name: np.frombuffer(raw, np.float32) for name, raw in zip(names, data, strict=True)}
+        else:
+            with OpenEXR.File(handle, separate_channels=True) as exr:  # every part, decoded once
+                first, other = (part.channels for part in exr.parts)
+                pixels = {name: np.asarray(first[name].pixels, np.float32).ravel() for name in names}
+                colour = header.second.layers["color"].file_channels()
+                second = {name: np.asarray(other[name].pixels, np.float32).ravel() for name in colour}
     except Exception as err:  # the binding raises OSError/RuntimeError/TypeError on bad or truncated data
         raise FrameError(f"{what} is not a readable OpenEXR image ({err})") from err
-    pixels: dict[str, np.ndarray] = {}
-    for name, raw in zip(names, data, strict=True):
-        if len(raw) != 4 * header.width * header.height:
-            layer = next((k for k, src in header.mapping.layers.items() if name in src.file_channels()), None)
-            raise FrameError(f"channel '{name}' is subsampled; every channel must have one value per pixel", layer)
-        pixels[name] = np.frombuffer(raw, np.float32).reshape(header.height, header.width)
+    pixels = {name: _full_size(name, values, header, header.mapping) for name, values in pixels.items()}
     wanted = header.wanted(layers)
     out = {layer: src.assemble(pixels, layer) for layer, src in header.mapping.layers.items()
            if layer in wanted and layer in LAYERS}
-    if header.second is not None and "color" in out:
+    if second is not None and "color" in out:
         out["colorA"] = out.pop("color")  # the Frame's `color` becomes the mean of the two renders
-        out["colorB"] = _second_color(source, header, what)
+        second = {name: _full_size(name, values, header, header.second) for name, values in second.items()}
+        out["colorB"] = header.second.layers["color"].assemble(second, "colorB")
     return out
 
 
-def _second_color(source: str | Path | bytes, header: ExrHeader, what: str) -> np.ndarray:
-    """The `color` of the file's second render, (H, W, 3) float32, in that part's dialect."""
-    source_map = header.second.layers["color"]
-    handle = io.BytesIO(source) if isinstance(source, bytes | bytearray) else str(source)
-    try:
-        with OpenEXR.File(handle, separate_channels=True) as exr:
-            channels = exr.parts[1].channels
-            pixels = {name: np.asarray(channels[name].pixels, np.float32) for name in source_map.file_channels()}
-    except Exception as err:  # the binding raises OSError/RuntimeError/TypeError on bad or truncated data
-        raise FrameError(f"{what}: its second render is not readable ({err})", "colorB") from err
-    if any(p.shape != (header.height, header.width) for p in pixels.values()):
-        raise FrameError(f"{what}: its second render's colour is subsampled", "colorB")
-    return source_map.assemble(pixels, "colorB")
+def _full_size(name: str, values: np.ndarray, header: ExrHeader, mapping: ChannelMap) -> np.ndarray:
+    """Channel `name`'s decoded values (flat float32) as (H, W); FrameError naming its layer when it holds
+    fewer values (a subsampled channel)."""
+    if values.size != header.width * header.height:
+        layer = "colorB" if mapping is header.second else next(
+            (k for k, src in mapping.layers.items() if name in src.file_channels()), None)
+        raise FrameError(f"channel '{name}' is subsampled; every channel must have one value per pixel", layer)
+    return values.reshape(header.height, header.width)
+
+
+def _kept_attributes(header: Mapping[str, Any]) -> dict[str, Any]:
+    """What a file written from another keeps of its header: the string attributes (Blender's
+    `BlenderMultiChannel`, ...) but the part name, and where its pixels lie (`_WINDOWS`)."""
+    return {k: v for k, v in header.items() if (isinstance(v, str) and k != "name") or k in _WINDOWS}
 
 
 def join_renders(first: str | Path | bytes, second: str | Path | bytes) -> bytes:
     """One EXR of two renders of a frame with different seeds (files or bytes, any dialect): part `first`
-    every channel of `first` (its string attributes and windows kept), part `second` the colour channels of
-    `second` in its dialect (all of them when it has none that the reader recognises). Read back, the
-    second render's colour is the halves' `colorB` (`read_header`). FrameError when the sizes differ."""
+    every channel of `first` (`_kept_attributes` of its header), part `second` the colour channels of
+    `second` in its dialect (all of them when it has none that the reader recognises), in the same windows.
+    Read back, the second render's colour is the halves' `colorB` (`read_header`). FrameError when the
+    sizes differ."""
     channels, header = read_channels(first)
     other, other_header = read_channels(second)
-    shapes = {next(iter(c.values())).shape for c in (channels, other)}
-    if len(shapes) != 1:
-        (h0, w0), (h1, w1) = (next(iter(c.values())).shape for c in (channels, other))
+    (h0, w0), (h1, w1) = (next(iter(c.values())).shape for c in (channels, other))
+    if (h0, w0) != (h1, w1):
         raise FrameError(f"the second render is {w1}x{h1} but the first is {w0}x{h0}", "colorB")
     colour = detect(other).layers.get("color")
     if colour is not None and not colour.error:
         other = {name: other[name] for name in colour.file_channels()}
-    kept = {k: v for k, v in header.items() if (isinstance(v, str) and k != "name") or k in _WINDOWS}
-    common = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    other_kept = {k: v for k, v in other_header.items() if isinstance(v, str) and k != "name"}
-    parts = [OpenEXR.Part({**kept, **common}, channels, name=RENDER_PARTS[0]),
-             OpenEXR.Part({**other_kept, **{k: header[k] for k in _WINDOWS if k in header}, **common}, other,
-                          name=RENDER_PARTS[1])]
+    kept = _kept_attributes(header)
+    second_kept = {**_kept_attributes(other_header), **{k: v for k, v in kept.items() if k in _WINDOWS}}
+    parts = [OpenEXR.Part({**kept, **_WRITTEN}, channels, name=RENDER_PARTS[0]),
+             OpenEXR.Part({**second_kept, **_WRITTEN}, other, name=RENDER_PARTS[1])]
     sink = io.BytesIO()
     with OpenEXR.File(parts) as exr:
         exr.write(sink)
@@ -208,15 +213,13 @@ def join_renders(first: str | Path | bytes, second: str | Path | bytes) -> bytes
 
 
 def write_with_input(path: str | Path, source: str | Path, color: np.ndarray, mapping: ChannelMap) -> None:
-    """Write the EXR file `source`'s channels (their pixel types, its string attributes such as Blender's
-    `BlenderMultiChannel`, and its data and display windows kept) plus `color` ((H, W, 3) float32) as the
-    channels `mapping.result` names (Blender: a `Denoised` pass of the view layer read), to `path`."""
+    """Write the EXR file `source`'s channels (their pixel types, and `_kept_attributes` of its header) plus
+    `color` ((H, W, 3) float32) as the channels `mapping.result` names (Blender: a `Denoised` pass of the view
+    layer read), to `path`."""
     channels, header = read_channels(source)
     channels.update({name: np.ascontiguousarray(color[..., c], np.float32) for c, name in enumerate(mapping.result)})
-    kept = {k: v for k, v in header.items() if isinstance(v, str) or k in _WINDOWS}
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with OpenEXR.File({**kept, "compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
-                      channels) as exr:
+    with OpenEXR.File({**_kept_attributes(header), **_WRITTEN}, channels) as exr:
         exr.write(str(path))
 
 
@@ -261,8 +264,7 @@ def _write(target: str | io.BytesIO, buffers: Mapping[str, np.ndarray] | Frame, 
         with np.errstate(over="ignore"):
             for c, chan in enumerate(spec.channels):
                 channels[f"{layer}.{chan}"] = np.ascontiguousarray(arr[:, :, c], dtype=dtype)
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with OpenEXR.File(header, channels) as exr:
+    with OpenEXR.File(dict(_WRITTEN), channels) as exr:
         exr.write(target)
 
 
@@ -278,6 +280,18 @@ def list_sequence(folder: str | Path) -> list[Path]:
     if not files:
         raise FrameError(f"sequence folder '{folder}' holds no .exr file")
     return files
+
+
+def paired_sequence(folder: str | Path, second: str | Path | None = None) -> list[tuple[Path, Path | None]]:
+    """The frames of a sequence folder (`list_sequence`), each with frame i of `second`, a folder of a
+    second render of the same frames, or None. FrameError when the two hold different counts."""
+    paths = list_sequence(folder)
+    if second is None:
+        return [(path, None) for path in paths]
+    seconds = list_sequence(second)
+    if len(seconds) != len(paths):
+        raise FrameError(f"the second render '{second}' has {len(seconds)} frames; '{folder}' has {len(paths)}")
+    return list(zip(paths, seconds, strict=True))
 
 
 def read_sequence(folder: str | Path, channel_map: ChannelMap | None = None,

@@ -208,14 +208,11 @@ def from_two_renders(first: Frame, second: Frame) -> Frame:
     """`first` with the halves of a split made from two renders of the same frame with different seeds:
     `colorA` its `color`, `colorB` the `color` of `second`, `color` their mean. The renders must be
     independent (for Cycles: both skip sample 0, which sits at the pixel centre whatever the seed).
-    FrameError when the sizes differ or either lacks `color`."""
-    if (first.height, first.width) != (second.height, second.width):
-        raise FrameError(f"the second render is {second.width}x{second.height} but the first is "
-                         f"{first.width}x{first.height}", "colorB")
-    a, b = first["color"], second["color"]
+    FrameError when the sizes differ (naming `colorB`) or either lacks `color`. Both are repaired Frames: their
+    repair counts move with their colours."""
+    rest = {k: v for k, v in first.buffers.items() if k != "color"}
+    joined = Frame.from_buffers({**rest, "colorA": first["color"], "colorB": second["color"]}, repair=False)
     counts = {k: v for k, v in first.nonfinite.items() if k != "color"}
-    if "color" in first.nonfinite:
-        counts["colorA"] = first.nonfinite["color"]
-    if "color" in second.nonfinite:
-        counts["colorB"] = second.nonfinite["color"]
-    return Frame({**first.buffers, "colorA": a, "colorB": b, "color": np.float32(0.5) * (a + b)}, counts)
+    counts.update({half: frame.nonfinite["color"] for half, frame in (("colorA", first), ("colorB", second))
+                   if "color" in frame.nonfinite})
+    return Frame(joined.buffers, counts)

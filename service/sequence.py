@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from service.dialects import ChannelMap
-from service.exr import list_sequence, read_frame, read_header, write_frame, write_with_input
-from service.frame import FrameError, from_two_renders
+from service.exr import paired_sequence, read_frame, read_header, read_layers, write_frame, write_with_input
+from service.frame import Frame, FrameError, from_two_renders
 from service.metrics import TRIM_FRACTION, rel_l2
 from service.pipelines import Pipeline
 from service.preview import write_preview
@@ -44,18 +44,12 @@ def denoise_folder(
     the end (stopping an online-training worker, if any).
     """
     out_dir = Path(out_dir)
-    paths = list_sequence(in_dir)
-    seconds: list[Path | None] = [None] * len(paths)
-    if second_half is not None:
-        seconds = list(list_sequence(second_half))
-        if len(seconds) != len(paths):
-            raise FrameError(f"the second render '{second_half}' has {len(seconds)} frames; "
-                             f"'{in_dir}' has {len(paths)}")
     state = None
     try:
-        for path, second in zip(paths, seconds, strict=True):
+        for path, second in paired_sequence(in_dir, second_half):
             try:
-                frame = read_frame(path, channel_map=channel_map, view_layer=view_layer)
+                header = read_header(path, channel_map, view_layer)
+                frame = Frame.from_buffers(read_layers(path, header))
                 if second is not None:
                     try:
                         other = read_frame(second, channel_map=channel_map, view_layer=view_layer)
@@ -70,8 +64,7 @@ def denoise_folder(
             except FrameError as err:
                 raise FrameError(f"{path.name}: {err}", err.layer) from err
             if keep_layers:
-                mapping = read_header(path, channel_map, view_layer).mapping
-                write_with_input(out_dir / path.name, path, out["color"], mapping)
+                write_with_input(out_dir / path.name, path, out["color"], header.mapping)
             else:
                 write_frame(out_dir / path.name, {"color": out["color"]})
             if png:

@@ -67,3 +67,10 @@ def test_auto_picks_the_preferred_pipeline_the_frames_can_feed(tiny_sequence_dir
     write_frame(only_color / "frame_0000.exr", {"color": np.ones((4, 4, 3), np.float32)})
     assert main(["denoise", str(only_color), str(tmp_path / "o2")]) == 0
     assert capsys.readouterr().out.startswith("pipeline: bilateral (auto")
+
+
+def test_the_parser_knows_auto_without_importing_the_pipelines():
+    from service import pipelines
+    from service.cli.sequence_args import AUTO
+
+    assert AUTO == pipelines.AUTO

@@ -224,24 +224,6 @@ def test_a_second_render_of_another_length_is_refused(tmp_path, capsys):
     assert "has 1 frames" in capsys.readouterr().err
 
 
-def test_a_blender_frame_denoises_over_http(make_server_url):
-    from service.client import Client
-
-    with Client(make_server_url) as client:
-        data = client.denoise(BLENDER / "noisy" / "frame_0000.exr", "flr")
-    assert data[:4] == b"\x76\x2f\x31\x01"
-
-
-@pytest.fixture()
-def make_server_url(tmp_path):
-    from service.api.core.config import Settings
-    from tests.service.api.conftest import ThreadServer
-
-    server = ThreadServer(Settings()).start()
-    yield server.url
-    server.stop()
-
-
 def test_write_frame_round_trips_in_the_frame_format(tmp_path):
     frame = read_frame(BLENDER / "noisy" / "frame_0000.exr")
     write_frame(tmp_path / "f.exr", frame)
