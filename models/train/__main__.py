@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from models.train.train import RECIPES, TrainOptions, train
+from models.train.train import DEVICES, RECIPES, TrainOptions, train
 from service.process import configure
 
 
@@ -27,6 +27,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--ema", type=float, default=defaults["ema"], help="weight-average decay (0: raw weights)")
     p.add_argument("--minutes", type=float, default=defaults["minutes"], help="wall-time limit (0: none)")
     p.add_argument("--warp", action="store_true", help="warp the recurrent state by motion between frames")
+    p.add_argument("--device", choices=DEVICES, default=defaults["device"], help="where the network trains")
     p.add_argument("--init", default="", help="start from this checkpoint's weights (fine-tune)")
     return p
 

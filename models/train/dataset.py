@@ -33,6 +33,7 @@ from service.stages.rae_inputs import ROUGHNESS_ABSENT, demodulated, guide_plane
 NOISY = ("color", "colorA", "colorB")  # the estimates a window may take its noisy input from
 NOISY_P = (0.5, 0.25, 0.25)
 ROUGHNESS_DROP = 0.2  # share of windows that see no roughness
+WINDOW_FIELDS = ("noisy", "target", "guides", "motion")
 ROUGHNESS_PLANE = 4  # index of roughness in the guides (service.stages.rae_inputs.guide_planes)
 
 
@@ -103,6 +104,10 @@ class Window:
     guides: torch.Tensor  # (T, 5, S, S) normal, log1p relative depth, roughness
     motion: torch.Tensor  # (T, 2, S, S) backward motion in pixels, in the window's orientation
 
+    def to(self, device: str | torch.device) -> Window:
+        """The same window with every tensor on `device` (copied without blocking from the CPU)."""
+        return Window(*(getattr(self, f).to(device, non_blocking=True) for f in WINDOW_FIELDS))
+
 
 def _rotate_motion(motion: np.ndarray, k: int) -> np.ndarray:
     """(..., 2, S, S) motion (x right, y down) of an image rotated by np.rot90(k) (counter-clockwise)."""
@@ -162,4 +167,4 @@ class SequenceBank:
 
 def collate(windows: list[Window]) -> Window:
     """Stack windows along a new batch axis 0: tensors (N, T, C, S, S)."""
-    return Window(*(torch.stack([getattr(w, f) for w in windows]) for f in ("noisy", "target", "guides", "motion")))
+    return Window(*(torch.stack([getattr(w, f) for w in windows]) for f in WINDOW_FIELDS))

@@ -66,13 +66,15 @@ class RaeRecipe:
 
     @torch.no_grad()
     def denoise(self, net: RecurrentAutoencoder, seq: Sequence) -> torch.Tensor:
-        """The whole sequence denoised from its full `color`: (F, 3, H, W) float32 linear radiance with the
-        emission added back, as the serving pipeline returns it (before its guards)."""
-        noisy = torch.from_numpy(seq.noisy[0])
-        features = self.inputs(noisy, torch.from_numpy(seq.guides))
+        """The whole sequence denoised from its full `color` on the network's device: (F, 3, H, W) float32 CPU
+        tensor of linear radiance with the emission added back, as the serving pipeline returns it (before its
+        guards)."""
+        device = next(net.parameters()).device
+        noisy = torch.from_numpy(seq.noisy[0]).to(device)
+        features = self.inputs(noisy, torch.from_numpy(seq.guides).to(device))
         h, w = features.shape[-2:]
         a = net.alignment
         pad = (0, (-w) % a, 0, (-h) % a)
-        motion = F.pad(torch.from_numpy(seq.motion), pad, mode="replicate")
+        motion = F.pad(torch.from_numpy(seq.motion).to(device), pad, mode="replicate")
         pred = self.run(net, F.pad(features, pad, mode="replicate")[None], motion[None])[0, :, :, :h, :w]
-        return prediction_to_linear(pred) * torch.from_numpy(seq.albedo) + torch.from_numpy(seq.emission)
+        return prediction_to_linear(pred).cpu() * torch.from_numpy(seq.albedo) + torch.from_numpy(seq.emission)

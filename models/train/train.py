@@ -3,8 +3,8 @@
 One run writes into its output folder:
 - `checkpoint.pt`: network constructor args and weights, optimizer, step, random-generator states and the
   run's arguments, every `checkpoint_every` steps and at the end; `--resume` continues from it exactly;
-- `best.pt`: the checkpoint with the lowest validation relL2 so far (what export/ exports: its weight average,
-  `inference_state`);
+- `best.pt`: the step with the lowest validation relL2 so far, without the optimiser state and the raw weights
+  (what export/ exports and `--init` starts from: its weight average, `inference_state`);
 - `log.csv`: one row per `log_every` steps (mean loss terms, learning rate, sequences per second) and one
   per validation (relL2 and temporal error on the held-out sequences, service/metrics.py);
 - `curves.png`: the training loss and the validation scores against the step.
@@ -35,11 +35,12 @@ from models.train.rae import RaeRecipe
 from service.metrics import TRIM_FRACTION, rel_l2, temporal_rel_l2
 
 RECIPES = {"rae": RaeRecipe}  # NET name -> how to build, feed and score it (constructed with warp=)
-RESUME_MAY_CHANGE = ("steps", "minutes", "threads", "out")  # options a resumed run may set anew
+RESUME_MAY_CHANGE = ("steps", "minutes", "threads", "out", "device")  # options a resumed run may set anew
 CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"
 LOG = "log.csv"
 CURVES = "curves.png"
+DEVICES = ("cpu", "cuda")
 LOG_FIELDS = ("step", "kind", "loss", "spatial", "gradient", "temporal", "lr", "seq_per_s", "val_rel_l2",
               "val_temporal", "seconds")
 
@@ -66,6 +67,7 @@ class TrainOptions:
     init: str = ""  # start from this checkpoint's weights (a fine-tune; a fresh optimiser and step 0)
     ema: float = 0.999  # decay of the exponential moving average of the weights that is validated and
     # exported (Polyak averaging; 0: the raw weights). Batches of 4 windows make single steps noisy.
+    device: str = "cpu"  # where the network trains: "cpu" or "cuda" (windows are cut on the CPU either way)
 
     def __post_init__(self):
         if self.net not in RECIPES:
@@ -77,6 +79,8 @@ class TrainOptions:
             raise ValueError(f"lr must be in (0, 1], got {self.lr}")
         if not 0 <= self.ema < 1:
             raise ValueError(f"ema must be in [0, 1), got {self.ema}")
+        if self.device not in DEVICES:
+            raise ValueError(f"device must be one of {', '.join(DEVICES)}, got '{self.device}'")
 
 
 def learning_rate(step: int, peak: float, warmup: int) -> float:
@@ -107,15 +111,17 @@ def _geometric_mean(values: list[float]) -> float:
     return float(np.exp(np.mean(np.log(np.maximum(values, 1e-12)))))
 
 
-def machine() -> dict[str, Any]:
-    """Where training runs: device, CPU model, torch threads and version (stored in every checkpoint)."""
+def machine(device: str = "cpu") -> dict[str, Any]:
+    """Where training runs: device (the GPU's name with cuda), CPU model, torch threads and version (stored in
+    every checkpoint)."""
     cpu = platform.processor() or platform.machine()
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.is_file():
         names = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
                  if line.startswith("model name")]
         cpu = names[0] if names else cpu
-    return {"device": "cpu", "cpu": cpu, "cores": os.cpu_count(), "threads": torch.get_num_threads(),
+    where = torch.cuda.get_device_name() if device == "cuda" else "cpu"
+    return {"device": where, "cpu": cpu, "cores": os.cpu_count(), "threads": torch.get_num_threads(),
             "torch": torch.__version__, "python": platform.python_version()}
 
 
@@ -189,6 +195,7 @@ def _start(opts: TrainOptions, recipe: RaeRecipe, ckpt_path: Path, resume: bool)
                              + ", ".join(f"{k} {old!r} -> {new!r}" for k, (old, new) in changed.items()))
         net = recipe.load(ckpt["config"])
         net.load_state_dict(ckpt["state_dict"])
+        net.to(opts.device)  # before the optimizer, whose loaded state follows its parameters' device
         optimizer = torch.optim.Adam(net.parameters(), lr=opts.lr, betas=(0.9, 0.99))
         optimizer.load_state_dict(ckpt["optimizer"])
         rng = np.random.default_rng()
@@ -203,6 +210,7 @@ def _start(opts: TrainOptions, recipe: RaeRecipe, ckpt_path: Path, resume: bool)
         start = inference_state(torch.load(opts.init, map_location="cpu", weights_only=False))
         net = recipe.load(start["config"])
         net.load_state_dict(start["state_dict"])
+    net.to(opts.device)
     optimizer = torch.optim.Adam(net.parameters(), lr=opts.lr, betas=(0.9, 0.99))
     return net, copy.deepcopy(net), optimizer, 0, math.inf, np.random.default_rng(opts.seed), 0.0
 
@@ -213,6 +221,10 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
 
     if opts.threads:
         torch.set_num_threads(opts.threads)
+    if opts.device == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError("device cuda: torch sees no CUDA GPU here")
+        torch.backends.cudnn.benchmark = True  # fixed window shapes: let cuDNN pick its fastest convolutions
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
     recipe = RECIPES[opts.net](warp=opts.warp)
@@ -222,34 +234,35 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
     if step == 0:
         log_path.unlink(missing_ok=True)
     extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences],
-             "machine": machine()}
+             "machine": machine(opts.device)}
     started = time.perf_counter() - elapsed  # wall time counts across resumes
-    sums, count, tick = np.zeros(4), 0, time.perf_counter()
+    sums, count, tick = torch.zeros(4, device=opts.device), 0, time.perf_counter()
     bar = tqdm(total=opts.steps, initial=step, unit="step", disable=not progress, desc=opts.net)
     net.train()
     while step < opts.steps:
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(step, opts.lr, opts.warmup)
         batch = collate([bank.sample(rng, recipe.frames, recipe.crop, reverse=recipe.reverse)
-                         for _ in range(opts.batch)])
+                         for _ in range(opts.batch)]).to(opts.device)
         terms = recipe.loss(net, batch)
         optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
         optimizer.step()
         update_average(ema, net, opts.ema, step)
         step += 1
-        sums += [t.item() for t in (terms.total, terms.spatial, terms.gradient, terms.temporal)]
+        # summed on the device: no synchronisation per step, so the next windows are cut while the GPU works
+        sums += torch.stack([terms.total, terms.spatial, terms.gradient, terms.temporal]).detach()
         count += 1
         bar.update(1)
         if step % opts.log_every == 0:
             now = time.perf_counter()
             rate = count * opts.batch / (now - tick)
-            mean = sums / count
+            mean = (sums / count).tolist()
             _append_log(log_path, {"step": step, "kind": "train", "loss": mean[0], "spatial": mean[1],
                                    "gradient": mean[2], "temporal": mean[3], "lr": optimizer.param_groups[0]["lr"],
                                    "seq_per_s": rate, "seconds": now - started})
             bar.set_postfix(loss=f"{mean[0]:.4f}", seq_s=f"{rate:.2f}")
-            sums, count, tick = np.zeros(4), 0, now
+            sums, count, tick = torch.zeros(4, device=opts.device), 0, now
         timed_out = opts.minutes > 0 and time.perf_counter() - started - elapsed > 60 * opts.minutes
         if step % opts.val_every == 0 or step == opts.steps or timed_out:
             rel, tmp = validate(recipe, ema, held_out)
@@ -259,8 +272,8 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
             bar.write(f"step {step}: held-out relL2 {rel:.4f}, temporal {tmp:.4f}")
             if rel < best:
                 best = rel
-                torch.save(_state(net, ema, optimizer, step, rng, opts, best, time.perf_counter() - started, extra),
-                           out / BEST)
+                state = _state(net, ema, optimizer, step, rng, opts, best, time.perf_counter() - started, extra)
+                torch.save({k: v for k, v in state.items() if k not in ("optimizer", "state_dict")}, out / BEST)
         if step % opts.checkpoint_every == 0 or step == opts.steps or timed_out:
             torch.save(_state(net, ema, optimizer, step, rng, opts, best, time.perf_counter() - started, extra),
                        ckpt_path)

@@ -125,6 +125,15 @@ def test_options_are_validated():
         TrainOptions(net="nope", data="d", val="v", out="o")
     with pytest.raises(ValueError, match="steps must be >= 1"):
         TrainOptions(net="rae", data="d", val="v", out="o", steps=0)
+    with pytest.raises(ValueError, match="device must be one of cpu, cuda, got 'tpu'"):
+        TrainOptions(net="rae", data="d", val="v", out="o", device="tpu")
+
+
+def test_best_checkpoint_keeps_only_what_export_and_fine_tuning_read(tmp_path):
+    train(_opts(tmp_path, 2), progress=False)
+    best = torch.load(tmp_path / "run" / BEST, map_location="cpu", weights_only=False)
+    assert "optimizer" not in best and "state_dict" not in best
+    assert {"config", "ema_state_dict", "options", "step", "data", "val", "machine"} <= set(best)
 
 
 def test_export_writes_the_model_and_a_manifest_of_how_it_was_made(tmp_path):

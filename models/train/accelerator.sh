@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Render a training set with Mitsuba's cuda_ad_rgb variant and train `rae` on one CUDA GPU, in a fixed time.
+#
+# usage: models/train/accelerator.sh OUT RENDER_SECONDS TRAIN_MINUTES [WORKERS]
+#
+# 1. Renders, for at most RENDER_SECONDS, WORKERS `python -m models.data dataset` processes side by side on
+#    the one GPU: worker 0 renders make data's training seeds (2-5), worker k > 0 the seeds 7 + 4(k-1) ..
+#    10 + 4(k-1), every library scene at each seed in turn (128x128, 8 frames, 2/4/8 spp, 1024-spp
+#    references). Seeds 0 (benchmark), 1 (hard cases) and 6 (validation) are never trained on. A sequence
+#    cut off by the time limit has no sequence.json and is not used. The validation set (seed 6, one
+#    sequence per scene, as make data's) renders beside them.
+# 2. Trains one run (OUT/rae, with the hidden-state warp, as the shipped weights) for TRAIN_MINUTES.
+#    `python -m export rae OUT/rae/best.pt OUT.onnx` exports it.
+#
+# Needs: a CUDA GPU, torch with CUDA, mitsuba (cuda_ad_rgb), OpenEXR, numba, tqdm, matplotlib (or DEVICE=cpu
+# and MCDENOISE_MI_VARIANT=llvm_ad_rgb or scalar_rgb, slowly).
+# Logs: OUT/logs/. Time it took on an H100: models/weights/rae.json (`machine`, `training_seconds`).
+set -u
+out=${1:?OUT}
+render_s=${2:?RENDER_SECONDS}
+train_min=${3:?TRAIN_MINUTES}
+workers=${4:-8}
+py=${PYTHON:-python3}
+device=${DEVICE:-cuda}  # DEVICE=cpu: the same steps without a GPU (slow; for trying the script)
+export MCDENOISE_MI_VARIANT=${MCDENOISE_MI_VARIANT:-cuda_ad_rgb}
+mkdir -p "$out/logs"
+
+timeout "$render_s" $py -m models.data dataset --out "$out/data/val" --sequences-per-scene 1 --first-seed 6 \
+  >"$out/logs/render_val.log" 2>&1 &
+for k in $(seq 0 $((workers - 1))); do
+  first=$((k == 0 ? 2 : 7 + 4 * (k - 1)))
+  timeout "$render_s" $py -m models.data dataset --out "$out/data/train" --sequences-per-scene 4 \
+    --first-seed "$first" >"$out/logs/render_$k.log" 2>&1 &
+done
+wait
+echo "rendered: $(ls "$out"/data/train/*/sequence.json 2>/dev/null | wc -l) training and" \
+  "$(ls "$out"/data/val/*/sequence.json 2>/dev/null | wc -l) validation sequences in ${render_s} s or less"
+
+common=(--data "$out/data/train" --val "$out/data/val" --device "$device" --steps 1000000 --minutes "$train_min"
+        --batch 16 --lr 0.001 --warmup 200 --seed 0 --val-every 500 --log-every 50 --checkpoint-every 500
+        --ema 0.999)
+$py -m models.train rae "${common[@]}" --warp --out "$out/rae" >"$out/logs/train.log" 2>&1
