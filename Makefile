@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 SAMPLE ?= models/data/samples/shadows
 DEMO_PIPELINE ?= auto
 
-.PHONY: setup demo test lint clean bench bench-data
+.PHONY: setup demo test lint clean bench bench-data bench-long bench-long-data
 
 setup: $(STAMP)
 
@@ -50,18 +50,40 @@ BENCH_OUT ?= out/bench/report
 BENCH_SCENES ?= disocclusion fireflies textures
 BENCH_RENDER ?= --frames 8 --size 128x128 --spp 4 --ref-spp 512 --seed 0
 
-bench-data: $(STAMP)
-	@for scene in $(BENCH_SCENES); do \
-		if [ -d "$(BENCH_DATA)/$$scene" ]; then echo "bench-data: $$scene exists, skipped"; continue; fi; \
-		rm -rf "$(BENCH_DATA)/.partial-$$scene"; \
-		$(PY) -m models.data render --scene $$scene $(BENCH_RENDER) --out "$(BENCH_DATA)/.partial-$$scene" \
-			&& mv "$(BENCH_DATA)/.partial-$$scene" "$(BENCH_DATA)/$$scene" || exit 1; \
+# $(call render-sequences,FOLDER,SCENES,RENDER ARGS): each scene into FOLDER/scene, skipped when present
+define render-sequences
+	@for scene in $(2); do \
+		if [ -d "$(1)/$$scene" ]; then echo "$(1): $$scene exists, skipped"; continue; fi; \
+		rm -rf "$(1)/.partial-$$scene"; \
+		$(PY) -m models.data render --scene $$scene $(3) --out "$(1)/.partial-$$scene" \
+			&& mv "$(1)/.partial-$$scene" "$(1)/$$scene" || exit 1; \
 	done
+endef
+
+bench-data: $(STAMP)
+	$(call render-sequences,$(BENCH_DATA),$(BENCH_SCENES),$(BENCH_RENDER))
 
 bench: $(STAMP) bench-data
 	$(PY) -m bench run --out $(BENCH_OUT) --sequences \
 		$$($(PY) -c "from models.data import SAMPLE_DIRS; print(' '.join(str(p) for p in SAMPLE_DIRS if p.is_dir()))") \
 		$(addprefix $(BENCH_DATA)/,$(BENCH_SCENES))
+
+# Long sequences (docs/benchmarks.md, "Long sequences"): crossreg from its warm start with and without online
+# training, beside its pilots (crossregression), svgf and OIDN-high, over 64 frames of four scenes; the
+# report adds relL2 against the frame index (per_frame.png). One timed pass: the online worker's timing
+# varies from run to run anyway.
+BENCH_LONG_DATA ?= out/bench-long-data
+BENCH_LONG_OUT ?= out/bench-long/report
+BENCH_LONG_SCENES ?= shadows disocclusion fireflies textures
+BENCH_LONG_RENDER ?= --frames 64 --size 128x128 --spp 4 --ref-spp 256 --seed 0
+BENCH_LONG_METHODS ?= crossreg crossreg:online=true crossregression svgf
+
+bench-long-data: $(STAMP)
+	$(call render-sequences,$(BENCH_LONG_DATA),$(BENCH_LONG_SCENES),$(BENCH_LONG_RENDER))
+
+bench-long: $(STAMP) bench-long-data
+	$(PY) -m bench run --out $(BENCH_LONG_OUT) --repeats 1 --no-flip --pipelines $(BENCH_LONG_METHODS) \
+		--anchors oidn-high --sequences $(addprefix $(BENCH_LONG_DATA)/,$(BENCH_LONG_SCENES))
 
 # Data set (README, "Rendering data and training"; docs/rendering.md): each models.data library scene with
 # variation seeds 2..5 (0 and 1 held out), 8 frames at 128x128, 2/4/8 spp noisy input, 1024 spp references, into $(DATA_OUT)

@@ -31,12 +31,18 @@ def _names(text: str) -> list[str]:
     return [n for n in text.replace(",", " ").split() if n]
 
 
+def _methods(values: list[str]) -> list[str]:
+    """--pipelines values: names separated by spaces or commas, or one pipeline with options per value
+    (`NAME:KEY=VALUE,KEY=VALUE`, whose commas separate options)."""
+    return [n for v in values for n in ([v] if ":" in v else _names(v))]
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from bench.methods import select
     from bench.report import overall_table, write_all
     from bench.run import benchmark
 
-    methods = select(args.pipelines, args.anchors)
+    methods = select(None if args.pipelines is None else _methods(args.pipelines), args.anchors)
     print(f"methods: {', '.join(m.name for m in methods)}; sequences: {', '.join(map(str, args.sequences))}")
     command = ["python", "-m", "bench", *sys.argv[1:]]
     results, runs = benchmark(args.sequences, methods, flip=not args.no_flip, repeats=args.repeats, command=command)
@@ -107,7 +113,8 @@ def main() -> int:
 
     run = sub.add_parser("run", help="every pipeline and the anchors on the same sequences; writes the report")
     run.add_argument("--sequences", type=Path, nargs="+", required=True, help="sequence folders (EXR + reference)")
-    run.add_argument("--pipelines", type=_names, default=None, help="names, 'all' (default) or 'none'")
+    run.add_argument("--pipelines", nargs="+", default=None,
+                     help="names, 'all' (default) or 'none'; NAME:KEY=VALUE,... runs a pipeline with options")
     run.add_argument("--anchors", type=_names, default=None, help="noisy, oidn-high, oidn-fast, oidn, all (default)")
     run.add_argument("--out", type=Path, required=True, help="report folder")
     run.add_argument("--no-flip", action="store_true", help="skip FLIP (the slowest metric)")

@@ -25,10 +25,9 @@ import time
 
 import numpy as np
 
-from bench.methods import OidnFastAnchor, OidnHighAnchor, OidnHighDefaultAnchor
+from bench.methods import OidnFastAnchor, OidnHighAnchor, OidnHighDefaultAnchor, pipeline_method
 from bench.synthetic import synthetic_frame
 from service import pipelines
-from service.cli.sequence_args import parse_options
 from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import TRIM_FRACTION, rel_l2
@@ -48,8 +47,7 @@ def make_methods(specs: list[str], oidn: list[str]) -> dict[str, Pipeline]:
     """Label -> pipeline object. specs: NAME or NAME:KEY=VALUE,KEY=VALUE (pipeline options); oidn: keys of OIDN."""
     methods: dict[str, Pipeline] = {}
     for spec in specs:
-        name, _, option_text = spec.partition(":")
-        methods[spec] = pipelines.get(name, **parse_options(option_text.split(",") if option_text else []))
+        methods[spec] = pipeline_method(spec).make()
     for key in oidn:
         anchor = OIDN[key]()
         methods[anchor.name] = anchor

@@ -24,8 +24,10 @@ from typing import Any, ClassVar
 import numpy as np
 
 from service import pipelines
+from service.cli.sequence_args import parse_options
 from service.frame import Frame
 from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.options import build as build_options
 
 ANCHORS = ("noisy", "oidn-high", "oidn-fast")
 # `--anchors` shorthands.
@@ -118,10 +120,16 @@ def _method(cls: type[Pipeline], kind: str, make: Callable[[], Pipeline]) -> Met
     return Method(cls.name, kind, make, tuple(cls.requires), bool(cls.temporal))
 
 
-def pipeline_method(name: str) -> Method:
-    """The registered pipeline `name` as a Method (raises UnknownPipelineError naming the choices)."""
+def pipeline_method(spec: str) -> Method:
+    """A registered pipeline as a Method. `spec` is its name, or its name with options,
+    `NAME:KEY=VALUE,KEY=VALUE` (values parsed as the CLI's `--option`), which also names the column: e.g.
+    `crossreg:online=true`. Raises UnknownPipelineError naming the choices, or OptionError naming a bad
+    option, here rather than at the first frame."""
+    name, _, text = spec.partition(":")
     cls = pipelines.pipeline_class(name)
-    return _method(cls, "pipeline", lambda: pipelines.get(name))
+    options = parse_options(text.split(",")) if text else {}
+    build_options(cls.Options, options, f"pipeline '{name}'")
+    return Method(spec, "pipeline", lambda: pipelines.get(name, **options), tuple(cls.requires), bool(cls.temporal))
 
 
 def anchor_method(name: str) -> Method:

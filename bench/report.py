@@ -1,4 +1,4 @@
-"""The four outputs of `python -m bench run`: results.json, report.md, pareto.png, report.html.
+"""The outputs of `python -m bench run`: results.json, report.md, pareto.png, report.html, curves-NAME.png.
 
 report.md holds one table per sequence and the overall table; pareto.png plots ms per megapixel
 against relL2 (log-log) with the Pareto front; report.html shows, per sequence, one crop of the last
@@ -43,7 +43,8 @@ def _fmt(value: Any, pattern: str) -> str:
 
 
 def write_all(results: dict[str, Any], runs: list[SequenceRun], out: Path) -> dict[str, Path]:
-    """Write the four outputs into `out` (created); returns their paths by name."""
+    """Write the four outputs and each sequence's per-frame error curves (curves-NAME.png, also in report.html and
+    report.md) into `out` (created); returns their paths by name."""
     out.mkdir(parents=True, exist_ok=True)
     paths = {
         "results.json": out / "results.json",
@@ -55,6 +56,9 @@ def write_all(results: dict[str, Any], runs: list[SequenceRun], out: Path) -> di
     paths["report.md"].write_text(markdown(results))
     pareto_plot(results["overall"], paths["pareto.png"], subtitle=_subtitle(results))
     paths["report.html"].write_text(html_report(results, runs))
+    for seq in results["sequences"]:
+        paths[f"curves-{seq['name']}.png"] = out / f"curves-{seq['name']}.png"
+        paths[f"curves-{seq['name']}.png"].write_bytes(_curves_png(seq))
     return paths
 
 
@@ -131,6 +135,8 @@ def markdown(results: dict[str, Any]) -> str:
             f"{seq['width']}x{seq['height']}, {seq['frames']} frames, `{seq['path']}`",
             "",
             sequence_table(seq),
+            "",
+            f"![per-frame errors](curves-{seq['name']}.png)",
             "",
         ]
     return "\n".join(parts)

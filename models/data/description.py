@@ -100,3 +100,20 @@ class SceneSpec:
     build: Callable[[float, int], SceneState] = field(repr=False)  # (frame time, variation seed) -> state
     max_depth: int = 6  # path length limit of the path tracer (Mitsuba max_depth)
     ao_distance: float = 0.5  # ambient-occlusion ray length, scene units (a quarter of a room)
+    # frames after which the animation plays backwards, then forwards again (`scene_clock`): scenes whose
+    # camera or objects move in a straight line and would leave the view; 0: the clock runs on
+    period: float = 0.0
+
+    def state(self, t: float, seed: int) -> SceneState:
+        """The scene at frame time `t` (frames) of variation `seed`: `build` at `scene_clock(t, period)`."""
+        return self.build(scene_clock(t, self.period), seed)
+
+
+def scene_clock(t: float, period: float) -> float:
+    """Frame time -> the scene's own time: `t` up to `period` (and for any t when period is 0), beyond it a
+    triangle wave between 0 and `period` (back to 0 at 2 period, up again...), so that a sequence of any
+    length keeps moving within the frames the scene was designed for. Continuous in t."""
+    if period <= 0 or t <= period:
+        return t
+    u = t % (2 * period)
+    return u if u <= period else 2 * period - u

@@ -121,7 +121,7 @@ def render_frame(mi: ModuleType, spec: SceneSpec, frame: int, opts: RenderOption
                  previous: tuple[GBuffer, View]) -> RenderedFrame:
     """Render frame `frame` of `spec` (all layers); `previous` is frame-1's G-buffer and view."""
     start = time.perf_counter()
-    state = spec.build(float(frame), opts.seed)
+    state = spec.state(float(frame), opts.seed)
     layers = {**_radiance_layers(mi, spec, state, frame, opts), **_surface_layers(mi, spec, state, frame, opts)}
     gbuffer = render_gbuffer(mi, state, opts)
     layers["depth"] = gbuffer.depth[..., None]
@@ -195,5 +195,5 @@ def _unit_or_zero(normal: np.ndarray) -> np.ndarray:
 
 def previous_of(mi: ModuleType, spec: SceneSpec, frame: int, opts: RenderOptions) -> tuple[GBuffer, View]:
     """G-buffer and view of frame `frame` - 1 rendered on their own (for the first frame of a sequence)."""
-    state = spec.build(float(frame - 1), opts.seed)
+    state = spec.state(float(frame - 1), opts.seed)
     return render_gbuffer(mi, state, opts), make_view(state, opts.width, opts.height)

@@ -1,6 +1,6 @@
 """The scene library: animated procedural scenes chosen to stress denoisers.
 
-Every scene animates its camera and at least one object; `SCENES[name].build(t, seed)` gives the state
+Every scene animates its camera and at least one object; `SCENES[name].state(t, seed)` gives the state
 at frame time `t` (frames, float). Seed 0 is the canonical animation; other seeds vary phases, speeds
 and the camera path a little, for training data. Units are scene units (the rooms are 2 units wide).
 `python -m models.data scenes` lists the names with what each stresses.
@@ -353,12 +353,13 @@ SCENES: dict[str, SceneSpec] = {
     for spec in (
         SceneSpec("shadows", "hard (spot) and soft (area) shadows of moving objects that no G-buffer shows", _shadows),
         SceneSpec("disocclusion", "a fast box near the camera uncovers textured background every frame",
-                  _disocclusion),
+                  _disocclusion, period=8.0),  # the box crosses the view in about 8 frames
         SceneSpec("fireflies", "glossy metal/plastic under a tiny very bright light: fireflies and caustics",
                   _fireflies, max_depth=8),
         SceneSpec("indirect", "only indirect light reaches visible surfaces (the lit ceiling is out of view)",
                   _indirect, max_depth=8),
-        SceneSpec("textures", "high-frequency noise, stripe and checker textures with minification", _textures),
+        SceneSpec("textures", "high-frequency noise, stripe and checker textures with minification", _textures,
+                  period=16.0),  # the camera flies in: at frame 30 it would reach the ball
         SceneSpec("thin", "thin fence bars and wires against a bright sky, camera parallax", _thin,
                   ao_distance=0.25),
         SceneSpec("dark", "a dim room (radiance ~1e-2) lit by a weak point light and a small window", _dark),

@@ -59,7 +59,7 @@ def render_sequence(spec: SceneSpec, out: str | Path, opts: RenderOptions, frame
         write_frame(out / frame_name(index), rendered.layers, half=half)
         previous = (rendered.gbuffer, rendered.view)
         seconds.append(rendered.seconds)
-        per_frame.append(frame_metadata(spec.build(float(index), opts.seed), opts))
+        per_frame.append(frame_metadata(spec.state(float(index), opts.seed), opts))
         if on_frame is not None:
             on_frame(index, rendered.seconds)
     meta = {

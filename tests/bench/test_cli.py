@@ -19,11 +19,12 @@ def test_stability_prints_the_matrix() -> None:
 
 
 def test_run_writes_the_report(tiny_sequence_dir: Path, tmp_path: Path) -> None:
-    done = _bench("run", "--sequences", str(tiny_sequence_dir), "--pipelines", "bilateral", "--anchors", "noisy",
-                  "--no-flip", "--out", str(tmp_path / "r"))
+    done = _bench("run", "--sequences", str(tiny_sequence_dir), "--pipelines", "bilateral", "bilateral:radius=1",
+                  "--anchors", "noisy", "--no-flip", "--out", str(tmp_path / "r"))
     assert done.returncode == 0, done.stderr
-    assert {p.name for p in (tmp_path / "r").iterdir()} == {"results.json", "report.md", "pareto.png", "report.html"}
-    assert "| bilateral |" in done.stdout
+    assert {p.name for p in (tmp_path / "r").iterdir()} == {"results.json", "report.md", "pareto.png", "report.html",
+                                                           f"curves-{tiny_sequence_dir.name}.png"}
+    assert "| bilateral |" in done.stdout and "| bilateral:radius=1 |" in done.stdout
 
 
 def test_bad_size_is_a_usage_error() -> None:

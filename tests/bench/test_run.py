@@ -49,6 +49,8 @@ def test_benchmark_writes_all_four_outputs(tiny_sequence_dir: Path, tmp_path: Pa
     page = paths["report.html"].read_text()
     assert page.count("<figure>") == 2 + 1 + 2  # input, bilateral, oidn-high, oidn-fast, reference
     assert paths["pareto.png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert paths[f"curves-{tiny_sequence_dir.name}.png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert f"(curves-{tiny_sequence_dir.name}.png)" in md
 
 
 def test_sequence_without_reference_is_refused(tmp_path: Path) -> None:
@@ -98,3 +100,15 @@ def test_scaling_measures_time_and_memory(tmp_path: Path) -> None:
     assert record["ms_per_megapixel"] == pytest.approx(record["ms_per_frame"] / (32 * 16 / 1e6))
     assert record["peak_traced_mib"] > 0
 
+
+
+def test_a_method_may_name_pipeline_options_and_bad_ones_are_refused_up_front() -> None:
+    from bench.methods import pipeline_method
+
+    method = pipeline_method("bilateral:radius=1,sigma2_albedo=0.5")
+    assert method.name == "bilateral:radius=1,sigma2_albedo=0.5" and method.kind == "pipeline"
+    assert method.make().options.radius == 1
+    with pytest.raises(ValueError, match="pipeline 'bilateral' has no option 'radiu'"):
+        pipeline_method("bilateral:radiu=1")
+    with pytest.raises(ValueError, match="radius"):
+        pipeline_method("bilateral:radius=99")

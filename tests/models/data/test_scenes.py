@@ -71,3 +71,27 @@ def test_every_scene_renders(name):
     result = render_or_fail(render_scene, name)  # in a child process: a native abort fails this test only
     assert result["finite"] == 1.0
     assert result["reference_mean"] > 0
+
+
+def test_scene_clock_is_the_frame_time_up_to_the_period_then_a_continuous_triangle_wave():
+    from models.data.description import scene_clock
+
+    assert [scene_clock(t, 0.0) for t in (-1.0, 5.0, 100.0)] == [-1.0, 5.0, 100.0]
+    assert [scene_clock(t, 8.0) for t in (-1.0, 0.0, 8.0, 9.0, 16.0, 17.0, 24.0, 25.0)] == \
+        [-1.0, 0.0, 8.0, 7.0, 0.0, 1.0, 8.0, 7.0]
+    t = np.linspace(0.0, 100.0, 2001)
+    clock = np.array([scene_clock(x, 8.0) for x in t])
+    assert np.abs(np.diff(clock)).max() <= np.diff(t).max() + 1e-12  # continuous, never faster than time
+    assert clock.min() >= 0.0 and clock.max() <= 8.0
+
+
+@pytest.mark.parametrize("name", list(scenes.SCENES))
+def test_long_sequences_keep_moving_within_the_designed_frames(name):
+    """Every scene at frames 0..63 (the long benchmark): consecutive frames differ, and a periodic scene is
+    its own animation within the period."""
+    spec = scenes.get(name)
+    origins = [spec.state(float(t), 0).camera.origin for t in range(64)]
+    assert all(a != b for a, b in zip(origins, origins[1:], strict=False))
+    if spec.period:
+        t = spec.period / 2
+        assert spec.state(t, 0).camera.origin == spec.build(t, 0).camera.origin
