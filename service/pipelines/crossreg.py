@@ -36,7 +36,7 @@ from service.pipelines.options import MAX_THREADS, option
 from service.runtime import OnnxModel, WeightError, default_init, weight_names
 from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
 from service.stages.reprojection import ReprojectionParams, reproject
-from service.stages.spatiotemporal_filter import FilterOutput, screen_history, spatiotemporal_filter
+from service.stages.spatiotemporal_filter import N_PRECISIONS, FilterOutput, screen_history, spatiotemporal_filter
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +61,9 @@ class CrossregOptions:
     # ONNX Runtime intra-op threads (0: $MCDENOISE_ORT_THREADS or ORT's default)
     threads: int = option(0, low=0, high=MAX_THREADS)
     screen: bool = option(True)  # reject history outside the current pilots' 7x7 range (authors' code)
+    # floor of the network's temporal weight theta_alpha (the current frame's share, eq. 8): 0 as in the paper;
+    # 1 drops the history (a spatial filter of the pilots)
+    min_alpha: float = option(0.0, low=0.0, high=1.0)
     seed: int = option(0, low=0, high=2**32 - 1)  # random initialisation and crop positions
 
 
@@ -244,6 +247,8 @@ class CrossregPipeline(Pipeline):
             self._take_published_weights(state)
         prepared = prepare_frame(frame, state.history, screen=self.options.screen)
         params = state.model.run_planes(prepared.planes)
+        if self.options.min_alpha > 0:
+            np.maximum(params[N_PRECISIONS], np.float32(self.options.min_alpha), out=params[N_PRECISIONS])
         output = filter_frame(prepared, params)
         if state.trainer is not None:
             state.trainer.submit(prepared.sample(), state.frame_index)
