@@ -32,7 +32,7 @@ from service.pipelines.base import Pipeline, SequenceState
 from service.pipelines.networks import registered_model
 from service.pipelines.options import MAX_THREADS, option
 from service.runtime import OnnxModel, weight_names
-from service.stages.hidden_warp import warp_state
+from service.stages.hidden_warp import warp_states
 from service.stages.rae_inputs import radiance_from_output, rae_planes
 from service.stages.reprojection import surface_hit
 
@@ -113,7 +113,7 @@ class RaePipeline(Pipeline):
             hidden = [np.zeros(spec.shape(height, width), np.float32) for spec in info.state]
         elif self.warps:
             motion = pad_planes(frame["motion"].transpose(2, 0, 1), info.alignment).transpose(1, 2, 0)
-            hidden = [warp_state(h, motion, spec.scale) for h, spec in zip(hidden, info.state, strict=True)]
+            hidden = warp_states(hidden, motion, [spec.scale for spec in info.state])
         feeds = {info.input_name: padded[None], **{spec.input: h for spec, h in zip(info.state, hidden, strict=True)}}
         outputs = model.run(feeds)
         if not all(np.isfinite(value).all() for value in outputs.values()):
