@@ -28,13 +28,12 @@ import torch
 
 from service.exr import list_sequence, read_frame, read_metadata
 from service.stages.albedo import remodulate
-from service.stages.rae_inputs import ROUGHNESS_ABSENT, demodulated, guide_planes
+from service.stages.rae_inputs import GUIDE_PLANES, ROUGHNESS_ABSENT, demodulated, guide_planes
 
 NOISY = ("color", "colorA", "colorB")  # the estimates a window may take its noisy input from
 NOISY_P = (0.5, 0.25, 0.25)
 ROUGHNESS_DROP = 0.2  # share of windows that see no roughness
 WINDOW_FIELDS = ("noisy", "target", "guides", "motion")
-ROUGHNESS_PLANE = 4  # index of roughness in the guides (service.stages.rae_inputs.guide_planes)
 
 
 @dataclass
@@ -153,7 +152,7 @@ class SequenceBank:
         guides = seq.guides[window]
         if rng.random() < ROUGHNESS_DROP:
             guides = guides.copy()
-            guides[:, ROUGHNESS_PLANE] = ROUGHNESS_ABSENT
+            guides[:, GUIDE_PLANES["roughness"]] = ROUGHNESS_ABSENT
         motion = seq.motion[window]
         if order[0] > order[-1]:  # played backwards: no forward motion is stored, so none is given
             motion = np.zeros_like(motion)

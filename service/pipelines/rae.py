@@ -103,9 +103,9 @@ class RaePipeline(Pipeline):
         model = self.model()
         info = model.info
         albedo, color = frame["albedo"], frame["color"]
-        background = ~surface_hit(frame["normal"])[..., None]  # (H, W, 1): nothing was hit
-        planes = rae_planes(np.where(background, np.float32(0), color), albedo, frame["normal"], frame["depth"],
-                            frame.get("roughness"))
+        background = ~surface_hit(frame["normal"])  # (H, W): nothing was hit
+        planes = rae_planes(color, albedo, frame["normal"], frame["depth"], frame.get("roughness"),
+                            background=background)
         padded = np.ascontiguousarray(pad_planes(planes, info.alignment))
         height, width = padded.shape[1:]
         hidden = state.hidden
@@ -122,4 +122,4 @@ class RaePipeline(Pipeline):
                                      "its recurrent state was reset")
         state.hidden = [outputs[spec.output] for spec in info.state]
         radiance = radiance_from_output(outputs[info.output_name][0, :, : frame.height, : frame.width], albedo)
-        return {"color": np.where(background, color, radiance)}, state
+        return {"color": np.where(background[..., None], color, radiance)}, state

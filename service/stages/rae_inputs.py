@@ -15,16 +15,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.layout import RAE_INPUTS, total_channels
+from service.layout import RAE_INPUTS, channel_slices, total_channels
 from service.stages.albedo import demodulate, remodulate
 from service.stages.reprojection import surface_hit
 
 DEPTH_CLIP = 16.0  # relative depth above this (misses, far background) reads as this
 DEPTH_STRIDE = 4  # the median depth is taken over every 4th row and column (a 1/16 subsample)
 LOG_RADIANCE_MAX = 30.0  # log1p output clipped here before expm1: demodulated radiance up to ~1e13
-PLANES = total_channels(RAE_INPUTS)  # 8
-GUIDES = PLANES - 3  # normal, depth, roughness
 ROUGHNESS_ABSENT = -1.0  # the roughness plane of a frame without `roughness` (outside the range [0, 1])
+
+# Plane positions, all from the layout. The radiance leads and the guides follow it: training stores the
+# guides apart and stacks [radiance, guides] (models/train/rae.py, RaeRecipe.inputs).
+if RAE_INPUTS[0].name != "radiance":
+    raise ImportError("service.layout.RAE_INPUTS must lead with 'radiance' (training stacks it first)")
+PLANES = total_channels(RAE_INPUTS)  # 8: the network input
+RADIANCE = channel_slices(RAE_INPUTS)["radiance"]  # the radiance planes of the network input
+GUIDE_GROUPS = RAE_INPUTS[1:]  # normal, depth, roughness: what `guide_planes` returns, in this order
+GUIDE_PLANES = channel_slices(GUIDE_GROUPS)  # group name -> its planes in `guide_planes`' output
+GUIDES = total_channels(GUIDE_GROUPS)  # 5
 
 
 def median_depth(depth: np.ndarray, normal: np.ndarray) -> float:
@@ -50,21 +58,24 @@ def guide_planes(normal: np.ndarray, depth: np.ndarray, roughness: np.ndarray | 
     normal, log1p relative depth, roughness; written into `out` when given."""
     h, w = normal.shape[:2]
     out = np.empty((GUIDES, h, w), np.float32) if out is None else out
-    out[0:3] = normal.transpose(2, 0, 1)
+    out[GUIDE_PLANES["normal"]] = normal.transpose(2, 0, 1)
     scale = np.float32(median_depth(depth, normal))
     relative = np.minimum(np.maximum(depth[..., 0], 0) / scale, np.float32(DEPTH_CLIP))
-    out[3] = np.log1p(relative)
-    out[4] = ROUGHNESS_ABSENT if roughness is None else roughness[..., 0]
+    out[GUIDE_PLANES["depth"]] = np.log1p(relative)
+    out[GUIDE_PLANES["roughness"]] = ROUGHNESS_ABSENT if roughness is None else roughness[..., 0]
     return out
 
 
 def rae_planes(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray, depth: np.ndarray,
-               roughness: np.ndarray | None) -> np.ndarray:
+               roughness: np.ndarray | None, *, background: np.ndarray | None = None) -> np.ndarray:
     """The network input of one frame: (8, H, W) float32 planes in RAE_INPUTS order, from color (H, W, 3)
-    float32 linear radiance without emission and the layers of `demodulated` and `guide_planes`."""
+    float32 linear radiance without emission and the layers of `demodulated` and `guide_planes`.
+    background: (H, W) bool or None; where True the radiance planes are 0, as for a black `color` there."""
     out = np.empty((PLANES, *color.shape[:2]), np.float32)
-    out[:3] = np.log1p(demodulated(color, albedo)).transpose(2, 0, 1)
-    guide_planes(normal, depth, roughness, out[3:])
+    out[RADIANCE] = np.log1p(demodulated(color, albedo)).transpose(2, 0, 1)
+    if background is not None:
+        np.copyto(out[RADIANCE], np.float32(0), where=background)
+    guide_planes(normal, depth, roughness, out[RADIANCE.stop:])
     return out
 
 

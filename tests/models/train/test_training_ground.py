@@ -10,7 +10,6 @@ torch = pytest.importorskip("torch")
 
 from models.data import SAMPLE_DIRS  # noqa: E402
 from models.train.dataset import (  # noqa: E402
-    ROUGHNESS_PLANE,
     Sequence,
     SequenceBank,
     _rotate_motion,
@@ -19,7 +18,7 @@ from models.train.dataset import (  # noqa: E402
 )
 from models.train.train import BEST, CHECKPOINT, CURVES, LOG, TrainOptions, learning_rate, train  # noqa: E402
 from service.exr import read_sequence  # noqa: E402
-from service.stages.rae_inputs import ROUGHNESS_ABSENT, demodulated  # noqa: E402
+from service.stages.rae_inputs import GUIDE_PLANES, ROUGHNESS_ABSENT, demodulated  # noqa: E402
 
 SAMPLE = SAMPLE_DIRS[0]
 
@@ -61,7 +60,7 @@ def test_colour_modulation_is_one_factor_per_channel_for_noisy_and_target_alike(
 
 def test_some_windows_see_no_roughness(bank):
     rng = np.random.default_rng(3)
-    dropped = [bool((bank.sample(rng, 7, 96).guides[:, ROUGHNESS_PLANE] == ROUGHNESS_ABSENT).all())
+    dropped = [bool((bank.sample(rng, 7, 96).guides[:, GUIDE_PLANES["roughness"]] == ROUGHNESS_ABSENT).all())
                for _ in range(40)]
     assert 0 < sum(dropped) < 40
 

@@ -5,15 +5,17 @@ import numpy as np
 import pytest
 
 from service.layout import RAE_INPUTS, channel_slices
-from service.stages.albedo import ALBEDO_EPS
+from service.stages.albedo import ALBEDO_EPS, demodulate
 from service.stages.rae_inputs import (
     DEPTH_CLIP,
+    RADIANCE,
     ROUGHNESS_ABSENT,
     demodulated,
     guide_planes,
     radiance_from_output,
     rae_planes,
 )
+from tests.tolerances import TWIN_ATOL
 
 
 def _frame(h=6, w=7, seed=0):
@@ -81,12 +83,32 @@ def test_output_is_finite_and_non_negative_for_any_network_output():
     assert np.isfinite(out).all() and (out >= 0).all()
 
 
-def test_torch_training_inputs_match_the_serving_planes():
+def test_background_planes_are_those_of_a_black_colour():
+    color, albedo, normal, depth, rough = _frame(h=9, w=11, seed=5)
+    background = np.zeros((9, 11), bool)
+    background[:3], background[5, 7] = True, True
+    np.testing.assert_array_equal(rae_planes(color, albedo, normal, depth, rough, background=background),
+                                  rae_planes(np.where(background[..., None], np.float32(0), color), albedo, normal,
+                                             depth, rough))
+
+
+@pytest.mark.parametrize(("size", "roughness"), [((13, 17), True), ((1, 1), True), ((37, 9), False)])
+def test_torch_training_inputs_match_the_serving_planes(size, roughness):
+    """What training feeds the network (RaeRecipe.inputs: torch's clamp and log1p of the demodulated radiance,
+    then the `guide_planes` the data set stores) against what serving feeds it, on random data of odd sizes.
+    The radiance goes in unclamped, negative values included, so the torch clamp is held to numpy's too."""
     torch = pytest.importorskip("torch")
     from models.train.rae import RaeRecipe
 
-    color, albedo, normal, depth, rough = _frame(seed=3)
+    rng = np.random.default_rng(size[0])
+    color, albedo, normal, depth, rough = _frame(*size, seed=size[1])
+    color = (rng.standard_normal(color.shape) * 4).astype(np.float32)  # a third negative
+    albedo[rng.uniform(size=albedo.shape) < 0.2] = 0.0
+    rough = rough if roughness else None
     served = rae_planes(color, albedo, normal, depth, rough)
-    noisy = torch.from_numpy(demodulated(color, albedo).transpose(2, 0, 1).copy())
-    trained = RaeRecipe.inputs(noisy, torch.from_numpy(guide_planes(normal, depth, rough)))
-    np.testing.assert_allclose(trained.numpy(), served, rtol=1e-6, atol=1e-7)
+    noisy = torch.from_numpy(demodulate(color, albedo).transpose(2, 0, 1).copy())  # not clamped here
+    guides = torch.from_numpy(guide_planes(normal, depth, rough))
+    trained = RaeRecipe.inputs(noisy[None], guides[None])[0].numpy()
+    assert trained.shape == served.shape == (8, *size)
+    np.testing.assert_allclose(trained, served, rtol=1e-6, atol=TWIN_ATOL)
+    np.testing.assert_array_equal(trained[RADIANCE.stop:], served[RADIANCE.stop:])
