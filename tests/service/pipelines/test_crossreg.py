@@ -57,7 +57,7 @@ def test_min_alpha_floors_the_temporal_weight_and_zero_leaves_the_network_alone(
         return filter_frame(prepared, params)
 
     monkeypatch.setattr(crossreg, "filter_frame", spy)
-    _run(pipelines.get("crossreg"), odd_frames)
+    _run(pipelines.get("crossreg", min_alpha=0.0), odd_frames)
     network = seen[:]
     seen.clear()
     _run(pipelines.get("crossreg", min_alpha=min_alpha), odd_frames)
