@@ -87,7 +87,7 @@ def _network_of(path: str, _mtime_ns: int, _size: int) -> str | None:
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
     options.log_severity_level = 4  # fatal only: a file that is not a model is an answer here, not an error
     try:
-        text = _session(Path(path).read_bytes(), options).get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+        text = _contract(_session(Path(path).read_bytes(), options))
         return str(json.loads(text)["network"]) if text else None
     except Exception:  # ONNX Runtime raises its own types for a file that is not a model
         return None
@@ -168,6 +168,11 @@ def _session(model_bytes: bytes, options: ort.SessionOptions) -> ort.InferenceSe
     return ort.InferenceSession(model_bytes, sess_options=options, providers=["CPUExecutionProvider"])
 
 
+def _contract(session: ort.InferenceSession) -> str | None:
+    """The JSON text of a model's METADATA_KEY entry; None when it has none."""
+    return session.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+
+
 class OnnxModel:
     """One ONNX network with its metadata contract and swappable weights.
 
@@ -180,7 +185,7 @@ class OnnxModel:
         self._threads = threads
         self.swappable = swappable
         self._session_obj = _session(model_bytes, session_options(threads, optimize_all=not swappable))
-        text = self._session_obj.get_modelmeta().custom_metadata_map.get(METADATA_KEY)
+        text = _contract(self._session_obj)
         if text is None:
             raise ValueError(f"ONNX model has no '{METADATA_KEY}' metadata; export it with export/")
         self.info = ModelInfo.from_json(text)

@@ -77,17 +77,22 @@ class RaePipeline(Pipeline):
     def __init__(self, **options: Any):
         super().__init__(**options)
         self._model: OnnxModel | None = None  # loaded on first use; sessions share it (no state inside)
+        self._warps = False  # `warps`, settled when the model loads
 
     def model(self) -> OnnxModel:
         if self._model is None:
-            self._model = registered_model(self.options.weights, NETWORK, threads=self.options.threads or None,
-                                           swappable=False)
+            model = registered_model(self.options.weights, NETWORK, threads=self.options.threads or None,
+                                     swappable=False)
+            warp = self.options.warp
+            self._warps = trained_with_warp(model) if warp is None else warp
+            self._model = model
         return self._model
 
     @property
     def warps(self) -> bool:
-        warp = self.options.warp
-        return trained_with_warp(self.model()) if warp is None else warp
+        """Whether the hidden state is moved by `motion`: the `warp` option, else as the weights were trained."""
+        self.model()
+        return self._warps
 
     def new_state(self, height: int, width: int) -> RaeState:
         self.model()  # a bad `weights` file fails at the start of the sequence, not at its first frame
@@ -116,7 +121,10 @@ class RaePipeline(Pipeline):
             hidden = warp_states(hidden, motion, [spec.scale for spec in info.state])
         feeds = {info.input_name: padded[None], **{spec.input: h for spec, h in zip(info.state, hidden, strict=True)}}
         outputs = model.run(feeds)
-        if not all(np.isfinite(value).all() for value in outputs.values()):
+        # The radiance alone is checked: each hidden state is an encoder level's output, which also reaches
+        # the radiance through that level's skip connection, and NaN and Inf survive convolutions and leaky
+        # ReLU; a non-finite state shows in this frame's radiance, at the latest in the next frame's.
+        if not np.isfinite(outputs[info.output_name]).all():
             state.hidden = []  # a non-finite state would fail every later frame: the next starts afresh
             raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite values; "
                                      "its recurrent state was reset")
