@@ -23,7 +23,7 @@ import torch
 
 from export import onnx as onnx_export
 from models.nets import count_parameters
-from models.nets.rae import SPACE_TO_DEPTH, RecurrentAutoencoder, load_network
+from models.nets.rae import RecurrentAutoencoder, load_network
 from models.train.train import LOG, inference_state
 from service.layout import RAE_INPUTS, RAE_OUTPUTS, groups_to_json
 
@@ -50,8 +50,8 @@ def export_bytes(net: RecurrentAutoencoder, *, extra: dict[str, Any] | None = No
         "alignment": a,
         "inputs": {INPUT_NAME: groups_to_json(RAE_INPUTS)},
         "outputs": {OUTPUT_NAME: groups_to_json(RAE_OUTPUTS)},
-        "state": [{"input": i, "output": o, "channels": c, "scale": SPACE_TO_DEPTH * 2**level}
-                  for level, ((i, o), c) in enumerate(zip(names, net.config.widths, strict=True))],
+        "state": [{"input": i, "output": o, "channels": c, "scale": s}
+                  for (i, o), c, s in zip(names, net.config.widths, net.config.scales, strict=True)],
         **(extra or {}),
     }
     # never hot-swapped (the pipeline loads it with swappable=False), so initializers may be merged

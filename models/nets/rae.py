@@ -57,13 +57,15 @@ class RaeConfig:
     def levels(self) -> int:
         return len(self.widths)
 
+    @property
+    def scales(self) -> tuple[int, ...]:
+        """Each level's (and its hidden state's) downsampling of the frame: space-to-depth, then one 2x
+        pooling per level above it."""
+        return tuple(SPACE_TO_DEPTH * 2**level for level in range(self.levels))
+
     def hidden_shapes(self, height: int, width: int) -> list[tuple[int, int, int]]:
         """(channels, rows, columns) of each hidden state for an (aligned) frame of height x width pixels."""
-        out = []
-        for level, c in enumerate(self.widths):
-            scale = SPACE_TO_DEPTH * 2**level
-            out.append((c, height // scale, width // scale))
-        return out
+        return [(c, height // s, width // s) for c, s in zip(self.widths, self.scales, strict=True)]
 
 
 def _conv(cin: int, cout: int) -> nn.Conv2d:

@@ -14,7 +14,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from models.nets.rae import SPACE_TO_DEPTH, RaeConfig, RecurrentAutoencoder, config_from_dict, make_rae
+from models.nets.rae import RaeConfig, RecurrentAutoencoder, config_from_dict, make_rae
 from models.nets.warp import warp_level
 from models.train.dataset import Sequence, Window
 from models.train.rae_loss import LossTerms, prediction_to_linear, rae_loss
@@ -55,8 +55,8 @@ class RaeRecipe:
         outputs = []
         for i in range(t):
             if self.warp and i > 0:
-                hidden = [warp_level(state, motion[:, i], SPACE_TO_DEPTH * 2**level)
-                          for level, state in enumerate(hidden)]
+                hidden = [warp_level(state, motion[:, i], scale)
+                          for state, scale in zip(hidden, net.config.scales, strict=True)]
             out, *hidden = net(features[:, i], *hidden)
             outputs.append(out)
         return torch.stack(outputs, dim=1)

@@ -27,6 +27,7 @@ def test_contract_alignment_and_size():
 
 def test_shapes_of_output_and_hidden_state():
     net = make_rae(RaeConfig(widths=(4, 6, 8)), seed=0).eval()
+    assert net.config.scales == (2, 4, 8) and net.alignment == 16
     hidden = net.zero_hidden(2, 32, 48)
     assert [tuple(h.shape) for h in hidden] == [(2, 4, 16, 24), (2, 6, 8, 12), (2, 8, 4, 6)]
     out, *new = net(torch.randn(2, 8, 32, 48), *hidden)

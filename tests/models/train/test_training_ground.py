@@ -80,6 +80,26 @@ def test_rotating_motion_with_the_image_keeps_it_pointing_at_the_same_content():
     assert np.array_equal(_rotate_motion(motion, 4), motion)
 
 
+def test_with_warp_each_level_moves_by_the_motion_over_its_scale():
+    """Every pixel was 4 px to the right: the state of scale 2 moves 2 columns, that of scale 4 one, and
+    what comes from outside the frame is zero."""
+    from models.nets.rae import RaeConfig, make_rae
+    from models.train.rae import RaeRecipe
+
+    net = make_rae(RaeConfig(widths=(4, 6)), seed=0).eval()
+    features = torch.randn(1, 2, 8, 16, 16)
+    motion = torch.zeros(1, 2, 2, 16, 16)
+    motion[:, :, 0] = 4.0
+    with torch.no_grad():
+        out = RaeRecipe(warp=True).run(net, features, motion)
+        _, *hidden = net(features[:, 0], *net.zero_hidden(1, 16, 16))
+        moved = [torch.zeros_like(h) for h in hidden]
+        for h, m, columns in zip(hidden, moved, (2, 1), strict=True):
+            m[..., :-columns] = h[..., columns:]
+        expected = net(features[:, 1], *moved)[0]
+    torch.testing.assert_close(out[:, 1], expected)
+
+
 def test_learning_rate_ramps_tenfold_then_falls_as_one_over_sqrt():
     assert learning_rate(0, 1e-3, 100) == pytest.approx(1e-4)
     assert learning_rate(100, 1e-3, 100) == pytest.approx(1e-3)
