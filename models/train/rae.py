@@ -14,7 +14,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from models.nets.rae import RaeConfig, RecurrentAutoencoder, config_from_dict, make_rae
+from models.nets.rae import RaeConfig, RecurrentAutoencoder, load_network, make_rae
 from models.nets.warp import warp_level
 from models.train.dataset import Sequence, Window
 from models.train.rae_loss import LossTerms, prediction_to_linear, rae_loss
@@ -34,12 +34,13 @@ class RaeRecipe:
         self.warp = warp
         self.reverse = not warp  # backward playback has no motion to warp by
 
-    def build(self, config: dict[str, Any] | None, seed: int) -> RecurrentAutoencoder:
-        return make_rae(config_from_dict(config) if config else RaeConfig(), seed=seed)
+    def build(self, seed: int) -> RecurrentAutoencoder:
+        """A freshly initialised network of the default configuration, reproducible in `seed`."""
+        return make_rae(RaeConfig(), seed=seed)
 
-    def load(self, config: dict[str, Any]) -> RecurrentAutoencoder:
-        """An untrained network of a checkpoint's stored constructor args (weights loaded by the caller)."""
-        return RecurrentAutoencoder(config_from_dict(config))
+    def load(self, state: dict[str, Any]) -> RecurrentAutoencoder:
+        """The network of a checkpoint's {'config', 'state_dict'} (models.nets.rae.load_network), weights loaded."""
+        return load_network(state)
 
     @staticmethod
     def inputs(noisy: torch.Tensor, guides: torch.Tensor) -> torch.Tensor:

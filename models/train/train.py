@@ -193,8 +193,7 @@ def _start(opts: TrainOptions, recipe: RaeRecipe, ckpt_path: Path, resume: bool)
         if changed:
             raise ValueError("--resume with other options than the run had (was, now): "
                              + ", ".join(f"{k} {old!r} -> {new!r}" for k, (old, new) in changed.items()))
-        net = recipe.load(ckpt["config"])
-        net.load_state_dict(ckpt["state_dict"])
+        net = recipe.load(ckpt)
         net.to(opts.device)  # before the optimizer, whose loaded state follows its parameters' device
         optimizer = torch.optim.Adam(net.parameters(), lr=opts.lr, betas=(0.9, 0.99))
         optimizer.load_state_dict(ckpt["optimizer"])
@@ -205,11 +204,10 @@ def _start(opts: TrainOptions, recipe: RaeRecipe, ckpt_path: Path, resume: bool)
         ema.load_state_dict(ckpt["ema_state_dict"])
         return net, ema, optimizer, int(ckpt["step"]), float(ckpt["best_val_rel_l2"]), rng, float(ckpt["seconds"])
     torch.manual_seed(opts.seed)
-    net = recipe.build(None, opts.seed)
-    if opts.init:
-        start = inference_state(torch.load(opts.init, map_location="cpu", weights_only=False))
-        net = recipe.load(start["config"])
-        net.load_state_dict(start["state_dict"])
+    if opts.init:  # a fine-tune: the weights the checkpoint serves with
+        net = recipe.load(inference_state(torch.load(opts.init, map_location="cpu", weights_only=False)))
+    else:
+        net = recipe.build(opts.seed)
     net.to(opts.device)
     optimizer = torch.optim.Adam(net.parameters(), lr=opts.lr, betas=(0.9, 0.99))
     return net, copy.deepcopy(net), optimizer, 0, math.inf, np.random.default_rng(opts.seed), 0.0

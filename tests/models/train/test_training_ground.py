@@ -155,6 +155,19 @@ def test_best_checkpoint_keeps_only_what_export_and_fine_tuning_read(tmp_path):
     assert {"config", "ema_state_dict", "options", "step", "data", "val", "machine"} <= set(best)
 
 
+def test_a_fine_tune_starts_from_the_weights_its_checkpoint_serves_with(tmp_path):
+    from models.train.rae import RaeRecipe
+    from models.train.train import _start, inference_state
+
+    train(_opts(tmp_path, 2), progress=False)
+    served = inference_state(torch.load(tmp_path / "run" / BEST, map_location="cpu", weights_only=False))
+    opts = TrainOptions(**{**_opts(tmp_path, 4, "tuned").__dict__, "init": str(tmp_path / "run" / BEST)})
+    net, ema, _optimizer, step, *_ = _start(opts, RaeRecipe(), tmp_path / "tuned" / CHECKPOINT, resume=False)
+    assert step == 0
+    for name, value in served["state_dict"].items():
+        assert torch.equal(net.state_dict()[name], value) and torch.equal(ema.state_dict()[name], value), name
+
+
 def test_export_writes_the_model_and_a_manifest_of_how_it_was_made(tmp_path):
     pytest.importorskip("onnx")
     import json
