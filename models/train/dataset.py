@@ -26,8 +26,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from service.exr import list_sequence, read_frame, read_metadata
+from service.exr import list_sequence, read_frame
 from service.stages.albedo import remodulate
+from service.stages.emission import subtract_emission
 from service.stages.rae_inputs import GUIDE_PLANES, ROUGHNESS_ABSENT, demodulated, guide_planes
 
 NOISY = ("color", "colorA", "colorB")  # the estimates a window may take its noisy input from
@@ -48,7 +49,6 @@ class Sequence:
     emission: np.ndarray  # (F, 3, H, W) float32 emission layer (zeros when absent)
     motion: np.ndarray  # (F, 2, H, W) float32 backward motion, pixels (zeros when absent)
     reference: np.ndarray  # (F, 3, H, W) float32 reference radiance (with emission), for validation scores
-    spp: int  # samples per pixel of `color` (from sequence.json; 0 when unknown)
 
     @property
     def frames(self) -> int:
@@ -69,10 +69,14 @@ def load_sequence(folder: str | Path) -> Sequence:
         if missing:
             raise ValueError(f"{path}: training frames need layers {missing}")
         h, w = frame.height, frame.width
+        split = [frame[k] for k in (*NOISY, "reference")]
         emit = frame.get("emission")
-        emit = np.zeros((h, w, 3), np.float32) if emit is None else emit
-        noisy.append([_planes(demodulated(frame[k] - emit, frame["albedo"])) for k in NOISY])
-        target.append(_planes(demodulated(frame["reference"] - emit, frame["albedo"])))
+        if emit is None:
+            emit = np.zeros((h, w, 3), np.float32)
+        else:  # taken out as Pipeline.denoise_split takes it (subtract_emission: up to 3 layers a pass)
+            split = subtract_emission(split[:3], emit) + subtract_emission(split[3:], emit)
+        noisy.append([_planes(demodulated(x, frame["albedo"])) for x in split[:-1]])
+        target.append(_planes(demodulated(split[-1], frame["albedo"])))
         guides.append(guide_planes(frame["normal"], frame["depth"], frame.get("roughness")))
         albedo.append(_planes(remodulate(np.ones((h, w, 3), np.float32), frame["albedo"])))
         emission.append(_planes(emit))
@@ -81,9 +85,8 @@ def load_sequence(folder: str | Path) -> Sequence:
         reference.append(_planes(frame["reference"]))
     if not target:
         raise ValueError(f"{folder}: no frames")
-    meta = read_metadata(folder) or {}
     return Sequence(folder.name, np.stack(noisy, axis=1), np.stack(target), np.stack(guides), np.stack(albedo),
-                    np.stack(emission), np.stack(motion), np.stack(reference), int(meta.get("spp", 0)))
+                    np.stack(emission), np.stack(motion), np.stack(reference))
 
 
 def sequence_folders(root: str | Path) -> list[Path]:

@@ -2,6 +2,7 @@
 an exact resume, and validation scores on the benchmark's metrics."""
 
 import csv
+import dataclasses
 
 import numpy as np
 import pytest
@@ -10,7 +11,6 @@ torch = pytest.importorskip("torch")
 
 from models.data import SAMPLE_DIRS  # noqa: E402
 from models.train.dataset import (  # noqa: E402
-    Sequence,
     SequenceBank,
     _rotate_motion,
     collate,
@@ -36,19 +36,32 @@ def test_sequences_lose_their_emission_and_albedo_as_the_pipeline_splits_them(ba
     assert seq.noisy.shape == (3, 8, 3, 120, 120) and seq.guides.shape == (8, 5, 120, 120)
 
 
-def test_windows_have_the_requested_shape_and_stay_within_the_data(bank):
+def test_windows_are_consecutive_frames_of_one_square_crop(bank):
+    """Guides tagged with each pixel's frame, row and column: every window is T consecutive frames (either
+    way) of one crop that lies within the sequence, turned as a whole."""
+    seq = bank.sequences[0]
+    f, _, h, w = seq.guides.shape
+    tags = np.zeros_like(seq.guides)
+    tags[:, :3] = np.indices((f, h, w), np.float32).transpose(1, 0, 2, 3)
+    tagged = SequenceBank([dataclasses.replace(seq, guides=tags)])
     rng = np.random.default_rng(0)
-    windows = [bank.sample(rng, 7, 96) for _ in range(8)]
+    windows = [tagged.sample(rng, 7, 96) for _ in range(8)]
     batch = collate(windows)
     assert batch.noisy.shape == (8, 7, 3, 96, 96) and batch.guides.shape == (8, 7, 5, 96, 96)
     assert batch.motion.shape == (8, 7, 2, 96, 96)
-    assert (batch.noisy >= 0).all() and (batch.target >= 0).all()
+    for window in windows:
+        frame, row, column = window.guides[:, :3].numpy().transpose(1, 0, 2, 3)
+        assert (frame == frame[:, :1, :1]).all() and abs(np.diff(frame[:, 0, 0])).tolist() == [1] * 6
+        assert (row == row[:1]).all() and (column == column[:1]).all()  # the same crop in every frame
+        rows, columns = np.unique(row), np.unique(column)
+        assert len(rows) == len(columns) == 96 and (np.diff(rows) == 1).all() and (np.diff(columns) == 1).all()
+        assert 0 <= min(rows[0], columns[0]) and rows[-1] < h and columns[-1] < w
+        assert len(np.unique(row * w + column)) == 96 * 96  # every pixel of the crop once
 
 
 def test_colour_modulation_is_one_factor_per_channel_for_noisy_and_target_alike(bank):
     seq = bank.sequences[0]
-    ones = Sequence("ones", np.ones_like(seq.noisy), np.ones_like(seq.target), seq.guides, seq.albedo,
-                    seq.emission, seq.motion, seq.reference, seq.spp)
+    ones = dataclasses.replace(seq, name="ones", noisy=np.ones_like(seq.noisy), target=np.ones_like(seq.target))
     rng = np.random.default_rng(2)
     for _ in range(4):
         window = SequenceBank([ones]).sample(rng, 7, 96)
