@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
-pytest.importorskip("onnx")
+onnx = pytest.importorskip("onnx")
 
 from export.rae import export_bytes, state_names  # noqa: E402
 from models.nets.rae import RaeConfig, make_rae  # noqa: E402
@@ -48,7 +48,9 @@ def test_torch_and_onnxruntime_agree_over_recurrent_steps(exported, size, swappa
 
 
 def test_metadata_contract(exported):
+    """One entry, under the key the runtime reads, with the contract the pipeline needs."""
     net, model_bytes = exported
+    assert [p.key for p in onnx.load_from_string(model_bytes).metadata_props] == [METADATA_KEY]
     info = OnnxModel(model_bytes).info
     assert info.network == "rae" and info.alignment == net.alignment == 16
     assert info.input_name == "features" and info.output_name == "radiance"
@@ -66,11 +68,3 @@ def test_a_model_loaded_without_swapping_refuses_new_weights(exported):
     _net, model_bytes = exported
     with pytest.raises(WeightError, match="without weight swapping"):
         OnnxModel(model_bytes, swappable=False).swap_weights({"head.bias": np.zeros(12, np.float32)})
-
-
-def test_metadata_key_is_what_the_runtime_reads(exported):
-    import onnx
-
-    _net, model_bytes = exported
-    keys = [p.key for p in onnx.load_from_string(model_bytes).metadata_props]
-    assert keys == [METADATA_KEY]
