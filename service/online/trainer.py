@@ -3,6 +3,7 @@ sequence streams, and hands back new weights (Choi et al. 2024, sec. 4.3: one Ad
 
     trainer = OnlineTrainer(model_bytes, None, OnlineConfig(publish_every=4, crop=128))
     trainer.submit(sample, frame_index)      # never blocks: a full inbox drops the frame from training
+    trainer.submit(sample, frame_index, wait=300.0)   # lockstep: returns once the worker trained on it
     weights = trainer.poll()                 # newest published weights, or None; never blocks
     trainer.status()                         # running / lagging / crashed, counters, weights version
 
@@ -32,6 +33,7 @@ from typing import Any
 import numpy as np
 
 WORKER_MODULE = "models.train.online_worker"  # imported in the child process only
+LOCKSTEP_POLL_S = 0.002  # how often a lockstep submit looks for the worker's answer, seconds
 
 
 class OnlineUnavailableError(ValueError):
@@ -122,6 +124,7 @@ class OnlineTrainer:
         self._failed = False
         self._pending: tuple[int, dict[str, np.ndarray]] | None = None
         self._last_dropped = False
+        self._trained_index = -1  # frame index of the worker's latest "trained" message
         self._closed = False
         self._process = ctx.Process(
             target=_child_main,
@@ -155,23 +158,46 @@ class OnlineTrainer:
     def alive(self) -> bool:
         return self._process.is_alive() and not self._failed
 
-    def submit(self, sample: np.ndarray, frame_index: int) -> bool:
+    def submit(self, sample: np.ndarray, frame_index: int, *, wait: float = 0.0) -> bool:
         """Offer one frame's training sample (H, W, 22) float32; returns False when it was dropped (worker
-        busy or gone). Never blocks: cropping and one non-blocking put."""
+        busy or gone). With wait 0 it never blocks: cropping and one non-blocking put. With wait > 0 (seconds;
+        lockstep, Choi 2024's one step per frame) it waits for room in the inbox, then until the worker has
+        trained on this frame and sent any weights due after it (`poll` returns them); a timeout or a dead
+        worker counts as a drop."""
         self.frames_submitted += 1
         if self._closed or not self.alive():
-            self.frames_dropped += 1
-            self._last_dropped = True
-            return False
+            return self._dropped()
         crop = random_crop(sample, self.config.crop, self.config.alignment, self._rng)
+        deadline = time.monotonic() + wait
         try:
-            self._inbox.put_nowait((frame_index, crop))
+            if wait > 0:
+                self._inbox.put((frame_index, crop), timeout=wait)
+            else:
+                self._inbox.put_nowait((frame_index, crop))
         except queue.Full:
-            self.frames_dropped += 1
-            self._last_dropped = True
-            return False
+            return self._dropped()
+        if wait > 0 and not self._await_trained(frame_index, deadline):
+            return self._dropped()
         self._last_dropped = False
         return True
+
+    def _dropped(self) -> bool:
+        self.frames_dropped += 1
+        self._last_dropped = True
+        return False
+
+    def _await_trained(self, frame_index: int, deadline: float) -> bool:
+        """Wait until the worker reported frame `frame_index` trained and every publication due by then has
+        arrived; False on a failed or dead worker or at `deadline` (time.monotonic())."""
+        while time.monotonic() < deadline:
+            self._drain()
+            if self._failed or not self._process.is_alive():
+                return False
+            due = self.frames_trained // self.config.publish_every
+            if self._trained_index >= frame_index and self.published >= due:
+                return True
+            time.sleep(LOCKSTEP_POLL_S)
+        return False
 
     def _drain(self) -> None:
         """Take in every message the reader thread has received; keep the newest weights for `poll`."""
@@ -184,6 +210,7 @@ class OnlineTrainer:
                 self._ready = True
             elif kind == "trained":
                 self.frames_trained = payload["frames"]
+                self._trained_index = payload["frame_index"]
                 self.last_loss = payload["loss"]
                 self.losses.append((payload["frame_index"], payload["loss"]))
             elif kind == "weights":

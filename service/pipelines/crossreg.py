@@ -44,6 +44,8 @@ NETWORK = "crossreg_unet"  # the network a `weights` file must hold (its ONNX me
 DEFAULT_WEIGHTS = "crossreg_unet"  # shipped warm start: models/weights/crossreg_unet.onnx (and .json manifest)
 # Depth and normal consistency, success mask eroded 3x3 (Choi 2024 authors' code: reproject + erosion2d).
 REPROJECTION = ReprojectionParams(erode=True)
+# lockstep: longest wait for the worker on one frame, seconds (its first frame includes importing torch)
+LOCKSTEP_TIMEOUT_S = 300.0
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,10 @@ class CrossregOptions:
     # and $MCDENOISE_WEIGHTS_DIR), never a path
     weights: str = option(DEFAULT_WEIGHTS, choices=functools.partial(weight_names, NETWORK))
     online: bool = option(False)  # fine-tune online in a torch worker process (needs the `train` extra)
+    # with online: wait for the worker's step on each frame before answering it (the paper's schedule: no frame
+    # is dropped and weights follow every K frames exactly; each frame's time includes a training step).
+    # Without it frames never wait, and those that arrive while the worker is busy are not trained on.
+    lockstep: bool = option(False)
     publish_every: int = option(4, low=1, high=1000)  # K: frames the worker trains between weight publications
     # side of the random training crop sent to the worker, pixels (0: whole frame)
     crop: int = option(128, low=0, high=4096)
@@ -252,7 +258,8 @@ class CrossregPipeline(Pipeline):
             np.maximum(params[N_PRECISIONS], np.float32(self.options.min_alpha), out=params[N_PRECISIONS])
         output = filter_frame(prepared, params)
         if state.trainer is not None:
-            state.trainer.submit(prepared.sample(), state.frame_index)
+            state.trainer.submit(prepared.sample(), state.frame_index,
+                                 wait=LOCKSTEP_TIMEOUT_S if self.options.lockstep else 0.0)
         state.history = next_history(frame, prepared, output.color)
         radiance = np.maximum(log_to_linear(output.color), np.float32(0.0)).transpose(1, 2, 0)
         return {"color": np.ascontiguousarray(radiance)}, state

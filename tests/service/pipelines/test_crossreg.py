@@ -154,7 +154,7 @@ class _FakeTrainer:
         weights, self.weights = self.weights, None
         return None if weights is None else (1, weights)
 
-    def submit(self, sample, frame_index):
+    def submit(self, sample, frame_index, *, wait=0.0):
         self.submitted += 1
         return True
 
@@ -217,6 +217,28 @@ def test_online_session_trains_swaps_weights_and_survives_a_worker_crash(odd_fra
         status = state.online_status
         assert status["crashed"] and status["state"] == "crashed" and "exited" in status["last_error"]
         assert status["weights_version"] >= 1  # running on the last good weights
+    finally:
+        state.close()
+
+
+def test_lockstep_trains_on_every_frame_and_swaps_weights_on_schedule(odd_frames):
+    pytest.importorskip("torch")
+    frames = odd_frames + odd_frames[:2]  # 5 frames
+    warm, _ = _run(pipelines.get("crossreg"), frames)
+    pipeline = pipelines.get("crossreg", online=True, lockstep=True, publish_every=2, crop=8)
+    state = pipeline.start(13, 17)
+    try:
+        outs = []
+        for index, frame in enumerate(frames):
+            out, state = pipeline.step(frame, state)
+            outs.append(out["color"])
+            status = state.online_status
+            assert status["frames_trained"] == index + 1 and status["frames_dropped"] == 0, status
+        # weights published after frames 2 and 4 (1-based), swapped in at the start of frames 3 and 5
+        assert status["weights_published"] == 2 and status["weights_version"] == 2, status
+        for index in range(2):
+            np.testing.assert_array_equal(outs[index], warm[index])
+        assert not np.array_equal(outs[2], warm[2])
     finally:
         state.close()
 
