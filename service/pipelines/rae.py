@@ -123,7 +123,8 @@ class RaePipeline(Pipeline):
         outputs = model.run(feeds)
         # The radiance alone is checked: each hidden state is an encoder level's output, which also reaches
         # the radiance through that level's skip connection, and NaN and Inf survive convolutions and leaky
-        # ReLU; a non-finite state shows in this frame's radiance, at the latest in the next frame's.
+        # ReLU, so a non-finite state shows in this frame's radiance; one that got past (fed back in) shows
+        # in the next frame's at the latest, and that frame resets the state.
         if not np.isfinite(outputs[info.output_name]).all():
             state.hidden = []  # a non-finite state would fail every later frame: the next starts afresh
             raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite values; "
