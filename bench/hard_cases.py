@@ -33,6 +33,7 @@ from service.frame import Frame
 from service.metrics import rel_l2_map
 from service.pipelines.base import Pipeline
 from service.process import configure
+from service.stages.error_estimate import tile_sums
 from service.stages.exact import exact_mask
 
 HARD_DIR = Path(__file__).resolve().parents[1] / "models" / "data" / "samples" / "hard"
@@ -131,13 +132,7 @@ class FrameScore:
 def tile_means(errors: np.ndarray, tile: int = TILE) -> np.ndarray:
     """Mean of `errors` ((H, W) float64) over each tile x tile tile; the last row and column of tiles
     take what is left of the frame. Returns (ceil(H / tile), ceil(W / tile)) float64."""
-    height, width = errors.shape
-    rows, cols = -(-height // tile), -(-width // tile)
-    sums = np.zeros((rows, cols))
-    counts = np.zeros((rows, cols))
-    iy, ix = np.arange(height) // tile, np.arange(width) // tile
-    np.add.at(sums, (iy[:, None], ix[None, :]), errors)
-    np.add.at(counts, (iy[:, None], ix[None, :]), 1.0)
+    sums, counts = tile_sums(errors, tile)
     return sums / counts
 
 

@@ -1,0 +1,74 @@
+"""A denoiser's error estimated without a reference, per tile, from the two half buffers.
+
+A denoiser f run on half A alone is independent of half B, and both halves are unbiased estimates of the
+pixel mean mu with the same variance (equal sample counts). So, per pixel and channel,
+
+    E[(f(A) - B)^2] = E[(f(A) - mu)^2] + Var(B)       (the cross term vanishes: f(A) and B are independent)
+    E[(A - B)^2] / 2 = Var(B)
+
+and  d = (f(A) - B)^2 - (A - B)^2 / 2  is an unbiased estimate of f(A)'s squared error. Scaled like relL2
+(service.metrics.rel_l2_map: divided by the squared channel mean plus REL_L2_EPS, here of a `scale` image
+the caller gives: smooth, so that it does not correlate with the noise, and the same for every candidate
+compared, so that it weighs their errors alike) and averaged over the channels and a tile's pixels, it
+estimates the tile's relL2. Single pixels are very noisy (d can be negative); a tile of 32x32 averages 1024 of them. The
+variance of a tile's estimate is the sample variance of its pixels' d over their count (pixels taken as
+independent, which a denoiser's output is not quite: a lower bound).
+
+It estimates the error of f on half the samples, not on the full frame: the ranking of candidates is what
+it is for (bench/error_estimate.py measures how well it ranks them against the true error of f on the
+full frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.metrics import REL_L2_EPS
+
+TILE = 32  # tile side, pixels (issue 28's example)
+
+
+@dataclass(frozen=True)
+class TileError:
+    """Per-tile estimates, (ceil(H / tile), ceil(W / tile)) float64 arrays; the last row and column of tiles
+    take what is left of the frame."""
+
+    mean: np.ndarray  # estimated relL2 of the tile (may be slightly negative where the error is ~0)
+    variance: np.ndarray  # variance of that estimate (pixels taken as independent)
+    tile: int
+
+
+def tile_sums(values: np.ndarray, tile: int) -> tuple[np.ndarray, np.ndarray]:
+    """(sums, counts) of (H, W) float64 `values` over tile x tile tiles: ((th, tw) float64, (th, tw) int64)."""
+    height, width = values.shape
+    rows = np.arange(0, height, tile)
+    cols = np.arange(0, width, tile)
+    sums = np.add.reduceat(np.add.reduceat(values, rows, axis=0), cols, axis=1)
+    counts = np.outer(np.diff(np.append(rows, height)), np.diff(np.append(cols, width)))
+    return sums, counts
+
+
+def pixel_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray,
+                eps: float = REL_L2_EPS) -> np.ndarray:
+    """(H, W) float64 per-pixel estimate d of out_a's relative squared error (module docstring), the mean over
+    channels. out_a: (H, W, 3) a denoiser's output from half A alone; color_a, color_b: (H, W, 3) the halves;
+    scale: (H, W, 3) the image whose channel mean normalises (module docstring); all linear radiance."""
+    fa, a, b = (x.astype(np.float64) for x in (out_a, color_a, color_b))
+    m = scale.astype(np.float64).mean(axis=-1, keepdims=True)
+    d = ((fa - b) ** 2 - 0.5 * (a - b) ** 2) / (m * m + eps)
+    return d.mean(axis=-1)
+
+
+def tile_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray, tile: int = TILE,
+               eps: float = REL_L2_EPS) -> TileError:
+    """Per-tile estimated relL2 of `out_a` and the variance of each estimate (arguments as `pixel_error`)."""
+    if tile < 1:
+        raise ValueError(f"tile must be >= 1, got {tile}")
+    d = pixel_error(out_a, color_a, color_b, scale, eps)
+    sums, counts = tile_sums(d, tile)
+    squares, _ = tile_sums(d * d, tile)
+    mean = sums / counts
+    spread = np.maximum(squares / counts - mean * mean, 0.0) * counts / np.maximum(counts - 1, 1)
+    return TileError(mean, spread / counts, tile)

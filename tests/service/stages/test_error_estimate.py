@@ -1,0 +1,65 @@
+"""The reference-free error estimate from the half buffers: unbiased against known truth, calibrated variance."""
+
+import numpy as np
+import pytest
+
+from service.metrics import REL_L2_EPS
+from service.stages.error_estimate import pixel_error, tile_error, tile_sums
+
+
+def _halves(rng, mu, sigma):
+    """Two independent unbiased halves of the pixel means `mu` with noise `sigma` (arrays (H, W, 3))."""
+    return [(mu + sigma * rng.standard_normal(mu.shape)).astype(np.float32) for _ in range(2)]
+
+
+def _scene(rng, height=96, width=128):
+    y, x = np.mgrid[0:height, 0:width] / 40.0
+    mu = np.stack([1.0 + 0.5 * np.sin(x), 0.5 + 0.4 * np.cos(y), 0.8 + 0.3 * np.sin(x + y)], axis=-1)
+    sigma = 0.3 * mu  # relative noise, like a path tracer's
+    return mu.astype(np.float32), sigma.astype(np.float32)
+
+
+def _truth(out, mu, tile):
+    """Per-tile true relative squared error of `out`, normalised as the estimate is here (by `mu`)."""
+    scale = mu.astype(np.float64).mean(axis=-1, keepdims=True)
+    err = (((out - mu) ** 2) / (scale * scale + REL_L2_EPS)).mean(axis=-1)
+    sums, counts = tile_sums(err, tile)
+    return sums / counts
+
+
+@pytest.mark.parametrize("kind", ["biased", "identity", "perfect"])
+def test_estimate_is_unbiased_and_its_variance_calibrated(kind):
+    rng = np.random.default_rng(1)
+    mu, sigma = _scene(rng)
+    z = []
+    for _ in range(20):
+        a, b = _halves(rng, mu, sigma)
+        out = {"biased": mu * 1.1 + 0.05, "identity": a, "perfect": mu}[kind].astype(np.float32)
+        est = tile_error(out, a, b, mu, tile=32)
+        truth = _truth(out, mu, 32)
+        z.append((est.mean - truth) / np.sqrt(est.variance))
+    z = np.array(z)
+    assert abs(z.mean()) < 0.15  # unbiased: 20 frames x 12 tiles of z-scores average to ~0
+    assert 0.6 < (z * z).mean() < 1.6  # the variance matches the scatter
+
+
+def test_estimate_ranks_a_better_denoiser_below_a_worse_one_in_every_tile():
+    rng = np.random.default_rng(2)
+    mu, sigma = _scene(rng)
+    a, b = _halves(rng, mu, sigma)
+    good = (mu * 1.02).astype(np.float32)
+    bad = (mu * 1.25).astype(np.float32)
+    assert (tile_error(good, a, b, mu).mean < tile_error(bad, a, b, mu).mean).all()
+
+
+def test_tiles_cover_ragged_borders_and_the_pixel_estimate_is_per_pixel():
+    values = np.arange(70 * 45, dtype=np.float64).reshape(70, 45)
+    sums, counts = tile_sums(values, 32)
+    assert sums.shape == counts.shape == (3, 2)
+    assert counts.tolist() == [[32 * 32, 32 * 13], [32 * 32, 32 * 13], [6 * 32, 6 * 13]]
+    assert sums.sum() == pytest.approx(values.sum())
+    one = np.ones((5, 7, 3), np.float32)
+    assert pixel_error(one, one, one, one).shape == (5, 7)
+    assert np.all(pixel_error(one, one, one, one) == 0.0)
+    with pytest.raises(ValueError, match="tile must be >= 1"):
+        tile_error(one, one, one, one, tile=0)
