@@ -18,6 +18,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", type=Path)
     args = parser.parse_args(argv)
     from export.rae import export_checkpoint  # torch: imported once the arguments are good
+    from service.process import configure
+
+    configure()  # an entry point that reaches the service's kernels (service/process.py)
 
     path = export_checkpoint(args.checkpoint, args.out)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")

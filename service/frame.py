@@ -56,6 +56,8 @@ LAYERS: dict[str, LayerSpec] = {
         LayerSpec("bcM2", _RGB, "central second moment of the transformed samples (sum / n)"),
         LayerSpec("bcM3", _RGB, "central third moment of the transformed samples (sum / n)"),
         LayerSpec("emission", _RGB, "noise-free directly visible emitted radiance, linear", limit=RADIANCE_LIMIT),
+        LayerSpec("error", ("Y",), "output only: estimated per-pixel relative squared error of `color`, smoothed "
+                  "over a tile (pipelines that estimate it: auto)"),
         LayerSpec("reference", _RGB, "converged radiance of the same frame (evaluation only)", limit=RADIANCE_LIMIT),
     )
 }
@@ -216,3 +218,9 @@ def from_two_renders(first: Frame, second: Frame) -> Frame:
     counts.update({half: frame.nonfinite["color"] for half, frame in (("colorA", first), ("colorB", second))
                    if "color" in frame.nonfinite})
     return Frame(joined.buffers, counts)
+
+
+# Layers only a denoiser writes (never read from an input), and what a denoised frame carries to a file or an
+# HTTP answer: the result and those of them the pipeline makes
+DIAGNOSTICS = ("error",)
+OUTPUT_LAYERS = ("color", *DIAGNOSTICS)

@@ -10,7 +10,7 @@ from typing import Any
 
 from service.dialects import ChannelMap
 from service.exr import paired_sequence, read_frame, read_header, read_layers, write_frame, write_with_input
-from service.frame import Frame, FrameError, from_two_renders
+from service.frame import OUTPUT_LAYERS, Frame, FrameError, from_two_renders
 from service.metrics import TRIM_FRACTION, rel_l2
 from service.pipelines import Pipeline
 from service.preview import write_preview
@@ -66,7 +66,7 @@ def denoise_folder(
             if keep_layers:
                 write_with_input(out_dir / path.name, path, out["color"], header.mapping)
             else:
-                write_frame(out_dir / path.name, {"color": out["color"]})
+                write_frame(out_dir / path.name, {k: out[k] for k in OUTPUT_LAYERS if k in out})
             if png:
                 write_preview(out_dir / f"{path.stem}.png", out["color"])
             reference = frame.get("reference")

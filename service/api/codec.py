@@ -15,7 +15,7 @@ from service.api.core.config import Settings
 from service.api.core.errors import ApiError, InvalidExrError
 from service.dialects import ChannelMap, DialectError
 from service.exr import ExrHeader, encode_frame, read_header, read_layers
-from service.frame import Frame, FrameError
+from service.frame import OUTPUT_LAYERS, Frame, FrameError
 from service.preview import encode_png, tonemap
 
 EXR = "image/x-exr"
@@ -113,11 +113,12 @@ def decode(body: bytes, settings: Settings, layers: Iterable[str], channel_map: 
 
 
 def encode(frame: Frame, output: Output) -> bytes:
-    """Response bytes: EXR with the `color` layer (float32) or a PNG preview of it.
+    """Response bytes: EXR with the `color` layer and, from a pipeline that estimates it, `error` (float32),
+    or a PNG preview of `color`.
 
     frame: denoised Frame whose `color` is (H, W, 3) float32 linear radiance.
     """
     color = frame["color"]
     if output.media_type == PNG:
         return encode_png(tonemap(color, output.exposure))
-    return encode_frame({"color": color})  # encode_frame writes float32 channels
+    return encode_frame({k: frame[k] for k in OUTPUT_LAYERS if k in frame})  # encode_frame writes float32

@@ -37,6 +37,7 @@ class Denoised:
     frame_index: int  # index of this frame in its sequence (0 for a stateless frame)
     step_ms: float  # wall time of pipeline.step, milliseconds
     nonfinite: int  # NaN/Inf input values repaired
+    error_mean: float | None = None  # mean of the pipeline's `error` estimate (auto), when it makes one
 
 
 def _step(
@@ -58,7 +59,9 @@ def _step(
     except (ArithmeticError, ValueError) as err:  # numerics the frame's values broke (FloatingPointError, ...)
         raise _unprocessable(pipeline, frame, err) from err
     step_ms = 1e3 * (time.perf_counter() - start)
-    return Denoised(codec.encode(out, output), output.media_type, index, step_ms, frame.nonfinite_total), state
+    error = float(out["error"].mean()) if "error" in out else None
+    return Denoised(codec.encode(out, output), output.media_type, index, step_ms, frame.nonfinite_total,
+                    error), state
 
 
 def _unprocessable(pipeline: Pipeline, frame: Frame, err: Exception) -> FrameError:

@@ -60,8 +60,8 @@ def parse_options(items: Sequence[str]) -> dict[str, Any]:
 
 def resolve_pipeline(name: str, in_dir: Path, mapping: ChannelMap | None = None, view_layer: str | None = None,
                      split: bool = False) -> str:
-    """`name`, or for 'auto' the preferred pipeline whose required layers the sequence's first frame has
-    (read from its header, in its dialect; with `split`, the halves of two renders too); says which on stdout."""
+    """`name`; for 'auto' it says on stdout what `auto` does with the sequence's first frame's layers (read
+    from its header, in its dialect; with `split`, the halves of two renders too)."""
     from service import pipelines
     from service.exr import list_sequence, read_header
 
@@ -69,6 +69,8 @@ def resolve_pipeline(name: str, in_dir: Path, mapping: ChannelMap | None = None,
         return name
     first = list_sequence(in_dir)[0]
     layers = read_header(first, mapping, view_layer).layers | ({"colorA", "colorB"} if split else set())
-    name = pipelines.auto(layers)
-    print(f"pipeline: {name} (auto: the preferred pipeline whose layers {first.name} has)")
+    if {"colorA", "colorB"} <= layers:
+        print(f"pipeline: auto (per tile among the candidates that {first.name}'s layers feed)")
+    else:
+        print(f"pipeline: auto -> {pipelines.auto(layers)} ({first.name} has no half buffers)")
     return name

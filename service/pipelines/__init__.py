@@ -16,7 +16,7 @@ _REGISTRY: dict[str, type[Pipeline]] = {}
 # Used when an API caller names no pipeline: the lowest error of our pipelines in the benchmark (relL2
 # 1.89x OIDN-high's, geometric mean over the benchmark sequences), with good temporal stability.
 DEFAULT = "crossregression"
-AUTO = "auto"  # CLI name: the first pipeline of _PREFERENCE that the sequence's frames can feed
+AUTO = "auto"  # the per-tile choice (service/pipelines/tiled.py); the CLI's default
 # Preference of `auto`, best first by the benchmark's relL2 against OIDN-high at moderate cost; `bilateral`
 # needs only `color` and so is the fallback for any frame.
 _PREFERENCE = ("crossregression", "flr", "svgf", "crossreg", "bmfr", "statistical", "bilateral")
@@ -56,10 +56,11 @@ def describe() -> list[dict[str, Any]]:
 
 
 def auto(layers: set[str] | frozenset[str]) -> str:
-    """Name of the preferred registered pipeline whose required layers are all in `layers`."""
+    """Name of the preferred registered pipeline (not `auto` itself) whose required layers are all in `layers`:
+    what `auto` runs on frames without the half buffers."""
     for name in (*_PREFERENCE, *names()):
         cls = _REGISTRY.get(name)
-        if cls is not None and set(cls.requires) <= set(layers):
+        if cls is not None and name != AUTO and set(cls.requires) <= set(layers):
             return name
     raise UnknownPipelineError(f"no pipeline can denoise a frame with layers {sorted(layers)}")
 

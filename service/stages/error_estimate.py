@@ -14,6 +14,12 @@ estimates the tile's relL2. Single pixels are very noisy (d can be negative); a 
 variance of a tile's estimate is the sample variance of its pixels' d over their count (pixels taken as
 independent, which a denoiser's output is not quite: a lower bound).
 
+Fireflies make d useless where they are: a sample of 1e3 in B where f(A) says 0.1 adds 1e8 (relative) to
+one pixel, and it ranks the candidates by which is brighter there. With `cap`, both halves are first
+clipped at cap times the scale's level (plus cap x sqrt(REL_L2_EPS), so that dark pixels are left alone):
+the same clipped target for every candidate, so the ranking stays fair, at the price of an estimate biased
+low in tiles with fireflies.
+
 It estimates the error of f on half the samples, not on the full frame: the ranking of candidates is what
 it is for (bench/error_estimate.py measures how well it ranks them against the true error of f on the
 full frame).
@@ -51,22 +57,26 @@ def tile_sums(values: np.ndarray, tile: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def pixel_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray,
-                eps: float = REL_L2_EPS) -> np.ndarray:
+                eps: float = REL_L2_EPS, cap: float | None = None) -> np.ndarray:
     """(H, W) float64 per-pixel estimate d of out_a's relative squared error (module docstring), the mean over
     channels. out_a: (H, W, 3) a denoiser's output from half A alone; color_a, color_b: (H, W, 3) the halves;
-    scale: (H, W, 3) the image whose channel mean normalises (module docstring); all linear radiance."""
+    scale: (H, W, 3) the image whose channel mean normalises (module docstring); all linear radiance. cap:
+    clip the halves at cap x (that mean + sqrt(eps)) first (fireflies, module docstring); None: unbiased."""
     fa, a, b = (x.astype(np.float64) for x in (out_a, color_a, color_b))
     m = scale.astype(np.float64).mean(axis=-1, keepdims=True)
+    if cap is not None:
+        limit = cap * (np.abs(m) + np.sqrt(eps))
+        a, b = np.minimum(a, limit), np.minimum(b, limit)
     d = ((fa - b) ** 2 - 0.5 * (a - b) ** 2) / (m * m + eps)
     return d.mean(axis=-1)
 
 
 def tile_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray, tile: int = TILE,
-               eps: float = REL_L2_EPS) -> TileError:
+               eps: float = REL_L2_EPS, cap: float | None = None) -> TileError:
     """Per-tile estimated relL2 of `out_a` and the variance of each estimate (arguments as `pixel_error`)."""
     if tile < 1:
         raise ValueError(f"tile must be >= 1, got {tile}")
-    d = pixel_error(out_a, color_a, color_b, scale, eps)
+    d = pixel_error(out_a, color_a, color_b, scale, eps, cap)
     sums, counts = tile_sums(d, tile)
     squares, _ = tile_sums(d * d, tile)
     mean = sums / counts

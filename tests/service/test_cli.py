@@ -62,11 +62,13 @@ def test_inspect_reports_types_stats_and_nans(tmp_path, capsys):
 def test_auto_picks_the_preferred_pipeline_the_frames_can_feed(tiny_sequence_dir, tmp_path, capsys):
     assert main(["denoise", str(tiny_sequence_dir), str(tmp_path / "o")]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("pipeline: crossregression (auto") and "crossregression: 3 frames" in out
+    assert out.startswith("pipeline: auto (per tile") and "auto: 3 frames" in out
+    written = read_frame(tmp_path / "o" / "frame_0000.exr")
+    assert set(written.buffers) == {"color", "error"} and (written["error"] >= 0).all()
     only_color = tmp_path / "c"
     write_frame(only_color / "frame_0000.exr", {"color": np.ones((4, 4, 3), np.float32)})
     assert main(["denoise", str(only_color), str(tmp_path / "o2")]) == 0
-    assert capsys.readouterr().out.startswith("pipeline: bilateral (auto")
+    assert capsys.readouterr().out.startswith("pipeline: auto -> bilateral (")
 
 
 def test_the_parser_knows_auto_without_importing_the_pipelines():

@@ -171,7 +171,7 @@ def test_cli_channel_map_inspect_and_denoise(tmp_path, capsys):
     assert main(["inspect", str(folder / "frame_0000.exr"), "--channel-map", str(map_file)]) == 0
     assert "dialect: map" in capsys.readouterr().out
     assert main(["denoise", str(folder), str(tmp_path / "out"), "--channel-map", str(map_file)]) == 0
-    assert "pipeline: bilateral" in capsys.readouterr().out
+    assert "pipeline: auto -> bilateral" in capsys.readouterr().out
     map_file.write_text("{")
     assert main(["denoise", str(folder), str(tmp_path / "out"), "--channel-map", str(map_file)]) == 2
     assert "channel map" in capsys.readouterr().err
@@ -189,7 +189,7 @@ def test_a_blender_sequence_denoises_through_the_cli(tmp_path, capsys):
     """Every pipeline whose layers one Blender render feeds, below half the noisy relL2 (BLENDER_GAPS:
     those that are not yet)."""
     assert main(["denoise", str(BLENDER / "noisy"), str(tmp_path / "auto")]) == 0
-    assert "pipeline: flr" in capsys.readouterr().out
+    assert "pipeline: auto -> flr" in capsys.readouterr().out
     references = [f["color"] for f in _frames(BLENDER / "reference")]
     noisy = _frames(BLENDER / "noisy")
     noisy_error = _mean_error([f["color"] for f in noisy], references)
@@ -206,7 +206,7 @@ def test_two_blender_renders_feed_the_split_buffer_pipelines(tmp_path, capsys, n
     second = ["--second-half", str(BLENDER / "second")]
     if name == "crossregression":
         assert main(["denoise", str(BLENDER / "noisy"), str(tmp_path / "auto"), *second]) == 0
-        assert "pipeline: crossregression" in capsys.readouterr().out
+        assert "pipeline: auto (per tile" in capsys.readouterr().out
     assert main(["denoise", "--pipeline", name, str(BLENDER / "noisy"), str(tmp_path / name), *second]) == 0
     references = [f["color"] for f in _frames(BLENDER / "reference")]
     split = [from_two_renders(a, b) for a, b in zip(_frames(BLENDER / "noisy"), _frames(BLENDER / "second"),

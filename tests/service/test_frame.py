@@ -84,5 +84,5 @@ def test_require_names_missing_layer():
 
 def test_every_layer_has_channels_and_meaning():
     assert {"color", "colorA", "colorB", "albedo", "normal", "depth", "motion", "motionDual", "roughness",
-            "ao", "sampleCount", "bcMean", "bcM2", "bcM3", "emission", "reference"} == set(LAYERS)
+            "ao", "sampleCount", "bcMean", "bcM2", "bcM3", "emission", "error", "reference"} == set(LAYERS)
     assert all(spec.channels and spec.meaning for spec in LAYERS.values())

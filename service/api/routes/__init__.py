@@ -14,6 +14,7 @@ FRAME_HEADERS = {
     "X-Frame-Index": "index of the frame in its sequence (0 for a stateless frame)",
     "X-Step-Ms": "time in the pipeline step, milliseconds",
     "X-Nonfinite-Repaired": "NaN/Inf input values that were repaired",
+    "X-Error-Mean": "the frame's mean estimated relative squared error (pipelines with an `error` layer: auto)",
 }
 # OpenAPI description of a route that takes one EXR frame and answers one frame.
 FRAME_OPENAPI: dict[str, Any] = {
@@ -25,7 +26,8 @@ FRAME_OPENAPI: dict[str, Any] = {
 }
 FRAME_RESPONSES: dict[int | str, dict[str, Any]] = {
     200: {
-        "description": "the denoised frame: EXR with layer `color`, or a PNG preview with Accept: image/png",
+        "description": "the denoised frame: EXR with layer `color` (and `error` from auto), or a PNG preview "
+                       "with Accept: image/png",
         "content": {codec.EXR: {"schema": {"type": "string", "format": "binary"}},
                     codec.PNG: {"schema": {"type": "string", "format": "binary"}}},
         "headers": {name: {"description": text, "schema": {"type": "string"}} for name, text in FRAME_HEADERS.items()},
@@ -45,12 +47,11 @@ FRAME_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 
 def frame_response(result: Denoised) -> Response:
-    return Response(
-        result.body,
-        media_type=result.media_type,
-        headers={
-            "X-Frame-Index": str(result.frame_index),
-            "X-Step-Ms": f"{result.step_ms:.3f}",
-            "X-Nonfinite-Repaired": str(result.nonfinite),
-        },
-    )
+    headers = {
+        "X-Frame-Index": str(result.frame_index),
+        "X-Step-Ms": f"{result.step_ms:.3f}",
+        "X-Nonfinite-Repaired": str(result.nonfinite),
+    }
+    if result.error_mean is not None:
+        headers["X-Error-Mean"] = f"{result.error_mean:.6g}"
+    return Response(result.body, media_type=result.media_type, headers=headers)

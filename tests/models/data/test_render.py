@@ -22,7 +22,7 @@ from models.data.motion import DEPTH_MISS, silhouette  # noqa: E402
 from models.data.render import RenderOptions, previous_of, render_frame  # noqa: E402
 from models.data.variant import load_mitsuba  # noqa: E402
 from service.exr import list_sequence, read_frame  # noqa: E402
-from service.frame import LAYERS  # noqa: E402
+from service.frame import DIAGNOSTICS, LAYERS  # noqa: E402
 from service.metrics import rel_l2_map  # noqa: E402
 from service.stages.reprojection import reproject  # noqa: E402
 from tests.models.data import probe_scenes  # noqa: E402
@@ -48,7 +48,7 @@ def test_cli_writes_every_layer_and_metadata(tiny_sequence):
     files = list_sequence(tiny_sequence)
     assert [f.name for f in files] == ["frame_0000.exr", "frame_0001.exr"]
     frame = read_frame(files[1])
-    assert set(frame.buffers) == set(LAYERS)
+    assert set(frame.buffers) == set(LAYERS) - set(DIAGNOSTICS)
     assert (frame.height, frame.width) == (24, 32)
     assert frame.nonfinite_total == 0
     meta = json.loads((tiny_sequence / "sequence.json").read_text())

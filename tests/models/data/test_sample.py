@@ -11,7 +11,7 @@ import pytest
 from models.data import SAMPLE_DIRS
 from models.data.evaluate import sequence_report
 from service.exr import list_sequence, read_frame, read_metadata
-from service.frame import LAYERS
+from service.frame import DIAGNOSTICS, LAYERS
 
 SAMPLE_BUDGET_BYTES = 5_000_000  # issue 7: at most 5 MB of bundled sample data in all
 
@@ -29,7 +29,7 @@ def test_sample_frames_carry_every_layer(folder):
     assert len(files) == len(meta["frames"]) == 8
     for path in files:
         frame = read_frame(path)
-        assert set(frame.buffers) == set(LAYERS) and frame.nonfinite_total == 0
+        assert set(frame.buffers) == set(LAYERS) - set(DIAGNOSTICS) and frame.nonfinite_total == 0
         assert (frame.width, frame.height) == tuple(meta["size"]) and min(meta["size"]) >= 96
         assert np.all(frame["sampleCount"] == meta["spp"])
 

@@ -32,7 +32,7 @@ def test_values_from_the_environment():
     ({"MCDENOISE_WORKER_THREADS": "4", "MCDENOISE_MAX_INFLIGHT": "2"},
      "MCDENOISE_MAX_INFLIGHT (2) must be at least MCDENOISE_WORKER_THREADS (4)"),
     ({"MCDENOISE_MAX_BODY_MB": "5000"}, "MCDENOISE_MAX_BODY_MB must be at most 4096, got 5000"),
-    ({"MCDENOISE_WARMUP": "flr, nope"}, "MCDENOISE_WARMUP: unknown pipeline 'nope'; available: bilateral"),
+    ({"MCDENOISE_WARMUP": "flr, nope"}, "MCDENOISE_WARMUP: unknown pipeline 'nope'; available: auto, bilateral"),
 ])
 def test_unsafe_values_are_refused(env, message):
     with pytest.raises(SettingsError) as caught:

@@ -63,3 +63,17 @@ def test_tiles_cover_ragged_borders_and_the_pixel_estimate_is_per_pixel():
     assert np.all(pixel_error(one, one, one, one) == 0.0)
     with pytest.raises(ValueError, match="tile must be >= 1"):
         tile_error(one, one, one, one, tile=0)
+
+
+def test_with_a_cap_fireflies_in_one_half_do_not_decide_the_ranking():
+    rng = np.random.default_rng(3)
+    mu, sigma = _scene(rng, 32, 32)
+    a, b = _halves(rng, mu, 0.05 * mu)
+    b[5, 7] = 1e3  # a firefly in half B
+    good = mu.copy()
+    brighter = (mu * 1.3).astype(np.float32)
+    brighter[5, 7] = 50.0  # the worse candidate also spreads the firefly a little
+    plain = [tile_error(x, a, b, mu, tile=32).mean[0, 0] for x in (good, brighter)]
+    capped = [tile_error(x, a, b, mu, tile=32, cap=4.0).mean[0, 0] for x in (good, brighter)]
+    assert plain[0] > plain[1]  # without the cap the firefly makes the worse candidate look better
+    assert capped[0] < capped[1]

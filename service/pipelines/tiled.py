@@ -1,0 +1,165 @@
+"""`auto`: per tile, the cheapest of several denoisers whose error, estimated without a reference, is within
+a tolerance of the best one's.
+
+Every `every` frames (and at the first), each candidate (CANDIDATES whose layers the frame has) denoises
+half A alone from a fresh state; `service.stages.error_estimate` gives its per-tile relL2 estimate from
+the halves (normalised by the median of the candidates' outputs, the same for all; halves clipped at
+FIREFLY_CAP times that level, so that fireflies do not decide), averaged with the previous evaluation's
+where there is one (on a steady view that halves the estimate's variance). Per tile the cheapest candidate
+(CANDIDATES is in order of cost) whose estimate is within `tolerance` of the tile's lowest is chosen. Every frame,
+the chosen candidates denoise the frame from their own states (a temporal one keeps its history while it
+stays chosen, and starts afresh when chosen again) and their outputs are blended with per-candidate
+weights interpolated between tile centres, so that tiles meet without seams.
+
+Outputs: `color`, and `error` (H, W, 1): the chosen tiles' estimates interpolated the same way, the
+estimated relL2 of the blend's candidates at half the samples (FRAME_FORMAT.md's `error`; a renderer may
+send more samples where it is high). Without `colorA`/`colorB`, or with no candidate the frame can feed,
+the sequence goes to `service.pipelines.auto(layers)`'s choice whole, as the CLI did before this pipeline,
+and there is no `error` layer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service import pipelines
+from service.frame import LAYERS, Frame
+from service.pipelines import register
+from service.pipelines.base import Pipeline, SequenceState, Split
+from service.pipelines.options import option
+from service.stages.error_estimate import TILE, tile_error
+
+# Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest at
+# 1280x720 first (README): flr, bmfr, svgf
+CANDIDATES = ("flr", "bmfr", "svgf")
+HALVES = ("colorA", "colorB")
+FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (error_estimate `cap`)
+
+
+@dataclass(frozen=True)
+class AutoOptions:
+    tile: int = option(TILE, low=8, high=256)  # side of the tiles chosen for, pixels
+    every: int = option(8, low=1, high=1000)  # frames between two evaluations of the candidates
+    # a candidate is eligible in a tile when its estimate is at most (1 + tolerance) x the tile's best
+    tolerance: float = option(0.05, low=0.0, high=10.0)
+
+
+@dataclass
+class AutoState(SequenceState):
+    """The candidates' pipelines and states, and the last evaluation."""
+
+    fallback: Pipeline | None = None  # the whole-sequence choice when the frames have no halves
+    fallback_state: SequenceState | None = None
+    candidates: dict[str, Pipeline] = field(default_factory=dict)  # name -> pipeline, in CANDIDATES order
+    states: dict[str, SequenceState] = field(default_factory=dict)  # the chosen candidates' states
+    estimate: np.ndarray | None = None  # (K, th, tw) float64 running per-tile relL2 estimates
+    choice: np.ndarray | None = None  # (th, tw) int64 index into `candidates`
+
+    def close(self) -> None:
+        for state in (*self.states.values(), self.fallback_state):
+            if state is not None:
+                state.close()
+
+
+@register
+class AutoPipeline(Pipeline):
+    name = pipelines.AUTO
+    summary = ("per tile, the cheapest of flr, bmfr and svgf within a tolerance of the lowest error estimated "
+               "from the half buffers; also outputs that estimate (`error`)")
+    requires = ("color",)
+    optional = tuple(k for k in LAYERS if k not in ("color", "reference", "error"))  # any candidate or fallback reads
+    temporal = True
+    guards = False  # each candidate's own step runs the guards
+    Options = AutoOptions
+
+    def new_state(self, height: int, width: int) -> AutoState:
+        return AutoState(height, width)
+
+    def denoise_split(self, frame: Frame, state: SequenceState) -> Split:
+        """The candidates take the frame whole (each splits off its emission itself)."""
+        buffers, state = self.denoise(frame, state)
+        return buffers, {"color", "error"} & set(buffers), state
+
+    def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        assert isinstance(state, AutoState)
+        if state.frame_index == 0:
+            self._setup(frame, state)
+        if state.fallback is not None:
+            out, state.fallback_state = state.fallback.step(frame, state.fallback_state)
+            return {"color": out["color"]}, state
+        if state.frame_index % self.options.every == 0:
+            self._evaluate(frame, state)
+        names = list(state.candidates)
+        chosen = sorted(set(state.choice.ravel().tolist()))
+        for index, name in enumerate(names):  # a candidate that left the choice loses its history
+            if index not in chosen and name in state.states:
+                state.states.pop(name).close()
+        weights = tile_weights(state.choice, len(names), self.options.tile, frame.height, frame.width)
+        color = np.zeros((frame.height, frame.width, 3), np.float32)
+        for index in chosen:
+            name = names[index]
+            pipeline = state.candidates[name]
+            sub = state.states.get(name) or pipeline.start(frame.height, frame.width)
+            out, state.states[name] = pipeline.step(frame, sub)
+            color += weights[index][..., None] * out["color"]
+        chosen_estimate = np.take_along_axis(state.estimate, state.choice[None], axis=0)[0]
+        error = np.maximum(interpolate_tiles(chosen_estimate, self.options.tile, frame.height, frame.width), 0.0)
+        return {"color": color, "error": error[..., None].astype(np.float32)}, state
+
+    def _setup(self, frame: Frame, state: AutoState) -> None:
+        layers = set(frame.buffers)
+        names = [n for n in CANDIDATES if set(pipelines.pipeline_class(n).requires) <= layers]
+        if not names or not set(HALVES) <= layers:
+            state.fallback = pipelines.get(pipelines.auto(layers))
+            state.fallback_state = state.fallback.start(frame.height, frame.width)
+            return
+        state.candidates = {n: pipelines.get(n) for n in names}
+
+    def _evaluate(self, frame: Frame, state: AutoState) -> None:
+        """Estimate every candidate's per-tile error on half A (fresh states) and choose per tile."""
+        half = Frame({**{k: v for k, v in frame.buffers.items() if k not in HALVES}, "color": frame["colorA"]},
+                     dict(frame.nonfinite))
+        outputs = []
+        for pipeline in state.candidates.values():
+            out, sub = pipeline.step(half, pipeline.start(frame.height, frame.width))
+            sub.close()
+            outputs.append(out["color"])
+        scale = np.median(outputs, axis=0)  # robust to one candidate blowing up (a sky through a window)
+        estimate = np.stack([tile_error(out, frame["colorA"], frame["colorB"], scale, self.options.tile,
+                                        cap=FIREFLY_CAP).mean for out in outputs])
+        if state.estimate is not None:
+            estimate = 0.5 * (state.estimate + estimate)
+        state.estimate = estimate
+        state.choice = choose(estimate, self.options.tolerance)
+
+
+def choose(estimate: np.ndarray, tolerance: float) -> np.ndarray:
+    """Per tile, the index of the first (cheapest: candidates come cheapest first) candidate whose estimate is
+    at most the tile's lowest plus `tolerance` times its magnitude. estimate: (K, th, tw). Returns (th, tw)
+    int64."""
+    best = estimate.min(axis=0)
+    eligible = estimate <= best + tolerance * np.abs(best)
+    return eligible.argmax(axis=0)
+
+
+def interpolation_matrix(size: int, tile: int) -> np.ndarray:
+    """(size, ceil(size / tile)) float64 linear interpolation from the tiles' centres to every pixel (clamped
+    beyond the first and last centre; rows sum to 1)."""
+    starts = np.arange(0, size, tile)
+    centres = (starts + np.minimum(starts + tile, size) - 1) / 2.0
+    pixels = np.arange(size, dtype=np.float64)
+    return np.stack([np.interp(pixels, centres, np.eye(len(starts))[i]) for i in range(len(starts))], axis=1)
+
+
+def interpolate_tiles(values: np.ndarray, tile: int, height: int, width: int) -> np.ndarray:
+    """(th, tw) per-tile values -> (H, W) float64 interpolated between tile centres."""
+    return interpolation_matrix(height, tile) @ values @ interpolation_matrix(width, tile).T
+
+
+def tile_weights(choice: np.ndarray, count: int, tile: int, height: int, width: int) -> np.ndarray:
+    """(count, H, W) float32 blend weights of the candidates from the per-tile `choice` (th, tw): each
+    candidate's tile indicator interpolated between tile centres; they sum to 1 at every pixel."""
+    rows, cols = interpolation_matrix(height, tile), interpolation_matrix(width, tile)
+    return np.stack([rows @ (choice == k).astype(np.float64) @ cols.T for k in range(count)]).astype(np.float32)

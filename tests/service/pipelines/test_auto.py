@@ -1,0 +1,79 @@
+"""`auto`: the per-tile choice by the reference-free error estimate, its blend, its fallback and its error layer."""
+
+import numpy as np
+import pytest
+
+from bench.synthetic import synthetic_sequence
+from service import pipelines
+from service.frame import Frame
+from service.pipelines import tiled
+from service.pipelines.tiled import CANDIDATES, choose, interpolate_tiles, tile_weights
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return [Frame.from_buffers(x) for x in synthetic_sequence(40, 72, 5, spp=8, seed=11)]
+
+
+def _run(pipeline, frames):
+    state = pipeline.start(frames[0].height, frames[0].width)
+    outs = []
+    for frame in frames:
+        out, state = pipeline.step(frame, state)
+        outs.append(out)
+    return outs, state
+
+
+def test_choice_is_the_cheapest_candidate_within_the_tolerance_of_the_best():
+    estimate = np.array([[[1.04, 2.0]], [[1.00, 1.0]], [[1.50, 1.2]]])  # (K=3, 1, 2), cheapest first
+    np.testing.assert_array_equal(choose(estimate, 0.05), [[0, 1]])  # 1.04 is within 5% of 1.00
+    np.testing.assert_array_equal(choose(estimate, 0.0), [[1, 1]])
+    np.testing.assert_array_equal(choose(estimate, 0.5), [[0, 1]])
+    np.testing.assert_array_equal(choose(estimate, 1.0), [[0, 0]])
+    negative = np.array([[[0.02]], [[-0.01]]])  # a noisy estimate below zero: only the best is eligible
+    np.testing.assert_array_equal(choose(negative, 0.05), [[1]])
+
+
+def test_blend_weights_sum_to_one_without_seams_and_are_pure_inside_uniform_regions():
+    choice = np.array([[0, 0, 1, 1], [0, 0, 1, 1], [2, 2, 2, 2]])
+    weights = tile_weights(choice, 3, 8, 21, 30)  # ragged last row and column of tiles
+    assert weights.shape == (3, 21, 30) and (weights >= 0).all()
+    np.testing.assert_allclose(weights.sum(axis=0), 1.0, atol=1e-6)
+    assert weights[0, 0, 0] == 1.0 and weights[1, 0, 29] == 1.0 and weights[2, 20, 15] == 1.0
+    assert np.abs(np.diff(weights, axis=2)).max() <= 1.0 / 8 + 1e-6  # at most one tile-width ramp: no seam
+    np.testing.assert_allclose(interpolate_tiles(np.full((3, 4), 2.5), 8, 21, 30), 2.5)
+
+
+def test_without_halves_it_is_the_layers_choice_exactly(frames):
+    plain = [Frame({k: v for k, v in f.buffers.items() if k not in ("colorA", "colorB")}) for f in frames]
+    outs, state = _run(pipelines.get("auto"), plain)
+    name = pipelines.auto(set(plain[0].buffers))
+    expected, _ = _run(pipelines.get(name), plain)
+    assert state.fallback is not None and state.fallback.name == name
+    for out, ref in zip(outs, expected, strict=True):
+        np.testing.assert_array_equal(out["color"], ref["color"])
+        assert "error" not in out
+
+
+def test_with_halves_it_chooses_per_tile_reevaluates_every_k_frames_and_outputs_its_estimate(frames, monkeypatch):
+    calls = []
+    evaluate = tiled.AutoPipeline._evaluate
+    monkeypatch.setattr(tiled.AutoPipeline, "_evaluate", lambda self, f, s: (calls.append(s.frame_index),
+                                                                                evaluate(self, f, s)))
+    outs, state = _run(pipelines.get("auto", tile=16, every=2), frames)
+    assert calls == [0, 2, 4]
+    assert list(state.candidates) == list(CANDIDATES) and state.choice.shape == (3, 5)
+    for out in outs:
+        assert out["color"].shape == (40, 72, 3) and np.isfinite(out["color"]).all()
+        assert out["error"].shape == (40, 72, 1) and (out["error"] >= 0).all() and np.isfinite(out["error"]).all()
+    # each frame is the weighted blend of the chosen candidates, each stepped on the frame from its own state
+    chosen = sorted(set(state.choice.ravel().tolist()))
+    assert set(state.states) == {CANDIDATES[i] for i in chosen}
+
+
+def test_a_candidate_alone_is_served_exactly_when_every_tile_chooses_it(frames, monkeypatch):
+    monkeypatch.setattr(tiled, "choose", lambda estimate, tolerance: np.zeros(estimate.shape[1:], np.int64))
+    outs, _ = _run(pipelines.get("auto"), frames)
+    expected, _ = _run(pipelines.get(CANDIDATES[0]), frames)
+    for out, ref in zip(outs, expected, strict=True):
+        np.testing.assert_allclose(out["color"], ref["color"], rtol=1e-6, atol=1e-7)
