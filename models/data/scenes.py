@@ -355,7 +355,7 @@ SCENES: dict[str, SceneSpec] = {
         SceneSpec("disocclusion", "a fast box near the camera uncovers textured background every frame",
                   _disocclusion, period=8.0),  # the box crosses the view in about 8 frames
         SceneSpec("fireflies", "glossy metal/plastic under a tiny very bright light: fireflies and caustics",
-                  _fireflies, max_depth=8),
+                  _fireflies, max_depth=8, period=16.0),  # the orbit leaves the room after about 30 frames
         SceneSpec("indirect", "only indirect light reaches visible surfaces (the lit ceiling is out of view)",
                   _indirect, max_depth=8),
         SceneSpec("textures", "high-frequency noise, stripe and checker textures with minification", _textures,
