@@ -3,8 +3,8 @@ reference-free error estimate (service/stages/error_estimate.py) ranks denoisers
 
 Per sequence, every candidate runs twice through its own state: on the frames as they are, giving f(C),
 and on frames whose `color` is half A alone (the halves removed), giving f(A). Per frame and tile:
-- the estimate: `tile_error(f(A), colorA, colorB, scale)`, scale the mean of the candidates' f(C) (smooth,
-  shared by all candidates);
+- the estimate as `auto` makes it (service/pipelines/tiled.py): `tile_error(f(A), colorA, colorB, scale,
+  cap=FIREFLY_CAP)`, scale the median of the candidates' f(A);
 - the truth: the tile's relL2 of f(C) against the reference (what a per-tile choice would serve), and of
   f(A) (what the estimate estimates).
 Printed per sequence: Spearman's rank correlation between estimate and truth over the (frame, tile) pairs
@@ -25,10 +25,11 @@ import numpy as np
 from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import rel_l2, rel_l2_map
+from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP
 from service.process import configure
 from service.stages.error_estimate import TILE, tile_error, tile_sums
 
-DEFAULT_CANDIDATES = ("flr", "bmfr", "svgf", "bilateral", "rae")
+DEFAULT_CANDIDATES = CANDIDATES
 HALVES = ("colorA", "colorB")
 
 
@@ -78,8 +79,9 @@ def evaluate(folder: Path, names: list[str], tile: int = TILE) -> SequenceReport
     est, truth, truth_half, chosen, oracle, single = [], [], [], [], [], {n: [] for n in names}
     for i, frame in enumerate(frames):
         outs = np.stack([full[n][i] for n in names])
-        scale = outs.mean(axis=0)
-        e = np.stack([tile_error(half[n][i], frame["colorA"], frame["colorB"], scale, tile).mean for n in names])
+        scale = np.median([half[n][i] for n in names], axis=0)
+        e = np.stack([tile_error(half[n][i], frame["colorA"], frame["colorB"], scale, tile, cap=FIREFLY_CAP).mean
+                      for n in names])
         t = np.stack([_tiles(rel_l2_map(full[n][i], frame["reference"]), tile) for n in names])
         th = np.stack([_tiles(rel_l2_map(half[n][i], frame["reference"]), tile) for n in names])
         est.append(e)

@@ -13,8 +13,8 @@ __all__ = ["Pipeline", "SequenceState", "register", "get", "names", "describe", 
 
 _REGISTRY: dict[str, type[Pipeline]] = {}
 
-# Used when an API caller names no pipeline: the lowest error of our pipelines in the benchmark (relL2
-# 1.89x OIDN-high's, geometric mean over the benchmark sequences), with good temporal stability.
+# Used when an API caller names no pipeline: relL2 1.88x OIDN-high's at 108 ms/MP in `make bench` (2026-11-26).
+# `auto` has the lower error there (1.68x) but takes about 6x the time per frame; the CLI defaults to it.
 DEFAULT = "crossregression"
 AUTO = "auto"  # the per-tile choice (service/pipelines/tiled.py); the CLI's default
 # Preference of `auto`, best first by the benchmark's relL2 against OIDN-high at moderate cost; `bilateral`
