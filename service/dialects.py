@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 
-from service.frame import LAYERS, FrameError
+from service.frame import DIAGNOSTICS, LAYERS, FrameError
 
 
 class DialectError(FrameError):
@@ -206,7 +206,7 @@ def native(names: Iterable[str]) -> ChannelMap:
         layer, _, chan = full.rpartition(".")
         if not layer and bare and full in ("R", "G", "B"):
             layer = "color"
-        if layer in LAYERS and chan != "A":
+        if layer in LAYERS and layer not in DIAGNOSTICS and chan != "A":  # our outputs are never read
             by_layer.setdefault(layer, []).append(full)
     layers = {}
     for layer, fulls in by_layer.items():

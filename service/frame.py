@@ -56,8 +56,8 @@ LAYERS: dict[str, LayerSpec] = {
         LayerSpec("bcM2", _RGB, "central second moment of the transformed samples (sum / n)"),
         LayerSpec("bcM3", _RGB, "central third moment of the transformed samples (sum / n)"),
         LayerSpec("emission", _RGB, "noise-free directly visible emitted radiance, linear", limit=RADIANCE_LIMIT),
-        LayerSpec("error", ("Y",), "output only: estimated per-pixel relative squared error of `color`, smoothed "
-                  "over a tile (pipelines that estimate it: auto)"),
+        LayerSpec("error", ("Y",), "output only: estimated relative squared error, per tile and interpolated, of "
+                  "the denoisers auto chose run on half the samples (a scale for adaptive sampling)"),
         LayerSpec("reference", _RGB, "converged radiance of the same frame (evaluation only)", limit=RADIANCE_LIMIT),
     )
 }

@@ -125,6 +125,7 @@ class OnlineTrainer:
         self._pending: tuple[int, dict[str, np.ndarray]] | None = None
         self._last_dropped = False
         self._trained_index = -1  # frame index of the worker's latest "trained" message
+        self._behind = False  # a lockstep wait timed out: later submits do not wait
         self._closed = False
         self._process = ctx.Process(
             target=_child_main,
@@ -163,8 +164,9 @@ class OnlineTrainer:
         busy or gone). With wait 0 it never blocks: cropping and one non-blocking put. With wait > 0 (seconds;
         lockstep, Choi 2024's one step per frame) it waits for room in the inbox, then until the worker has
         trained on this frame and sent any weights due after it (`poll` returns them); a timeout or a dead
-        worker counts as a drop."""
+        worker counts as a drop, and after one timeout later calls no longer wait (the worker is behind)."""
         self.frames_submitted += 1
+        wait = 0.0 if self._behind else wait
         if self._closed or not self.alive():
             return self._dropped()
         crop = random_crop(sample, self.config.crop, self.config.alignment, self._rng)
@@ -177,6 +179,7 @@ class OnlineTrainer:
         except queue.Full:
             return self._dropped()
         if wait > 0 and not self._await_trained(frame_index, deadline):
+            self._behind = True
             return self._dropped()
         self._last_dropped = False
         return True

@@ -32,7 +32,7 @@ from service.online.trainer import OnlineConfig, OnlineTrainer, require_torch
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
 from service.pipelines.networks import registered_model
-from service.pipelines.options import MAX_THREADS, option
+from service.pipelines.options import MAX_THREADS, OptionError, option
 from service.runtime import OnnxModel, WeightError, default_init, weight_names
 from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
 from service.stages.reprojection import ReprojectionParams, reproject
@@ -44,8 +44,9 @@ NETWORK = "crossreg_unet"  # the network a `weights` file must hold (its ONNX me
 DEFAULT_WEIGHTS = "crossreg_unet"  # shipped warm start: models/weights/crossreg_unet.onnx (and .json manifest)
 # Depth and normal consistency, success mask eroded 3x3 (Choi 2024 authors' code: reproject + erosion2d).
 REPROJECTION = ReprojectionParams(erode=True)
-# lockstep: longest wait for the worker on one frame, seconds (its first frame includes importing torch)
-LOCKSTEP_TIMEOUT_S = 300.0
+# lockstep: longest wait for the worker on one frame, seconds (its first frame includes importing torch); below
+# the HTTP frame deadline (MCDENOISE_FRAME_TIMEOUT_S, 120 s by default). After one timeout the session stops waiting.
+LOCKSTEP_TIMEOUT_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -214,6 +215,8 @@ class CrossregPipeline(Pipeline):
     def __init__(self, **options: Any):
         super().__init__(**options)
         opt = self.options
+        if opt.lockstep and not opt.online:
+            raise OptionError("pipeline 'crossreg': option 'lockstep' needs online=true", "lockstep")
         if opt.online:
             require_torch()
         self._online_config = OnlineConfig(

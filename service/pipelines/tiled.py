@@ -5,17 +5,20 @@ Every `every` frames (and at the first), each candidate (CANDIDATES whose layers
 half A alone from a fresh state; `service.stages.error_estimate` gives its per-tile relL2 estimate from
 the halves (normalised by the median of the candidates' outputs, the same for all; halves clipped at
 FIREFLY_CAP times that level, so that fireflies do not decide), averaged with the previous evaluation's
-where there is one (on a steady view that halves the estimate's variance). Per tile the cheapest candidate
-(CANDIDATES is in order of cost) whose estimate is within `tolerance` of the tile's lowest is chosen. Every frame,
-the chosen candidates denoise the frame from their own states (a temporal one keeps its history while it
-stays chosen, and starts afresh when chosen again) and their outputs are blended with per-candidate
-weights interpolated between tile centres, so that tiles meet without seams.
+where there is one (steadier, but older; a temporal candidate is judged without its history). Per tile
+the cheapest candidate (CANDIDATES is in order of cost) whose estimate is within `tolerance` of the
+tile's lowest is chosen. Every frame, the chosen candidates denoise the frame from their own states (a
+temporal one keeps its history while it stays chosen, and starts afresh when chosen again) and their
+outputs are blended with per-candidate weights interpolated between tile centres, so that tiles meet
+without seams.
 
-Outputs: `color`, and `error` (H, W, 1): the chosen tiles' estimates interpolated the same way, the
-estimated relL2 of the blend's candidates at half the samples (FRAME_FORMAT.md's `error`; a renderer may
-send more samples where it is high). Without `colorA`/`colorB`, or with no candidate the frame can feed,
-the sequence goes to `service.pipelines.auto(layers)`'s choice whole, as the CLI did before this pipeline,
-and there is no `error` layer.
+Outputs: `color`, and `error` (H, W, 1): the chosen tiles' estimates from the last evaluation (up to
+`every` - 1 frames old, at fixed tile positions) interpolated the same way: the estimated relL2 of the
+chosen candidates run on half the samples from a fresh state without the guards (FRAME_FORMAT.md's
+`error`: a relative scale to send more samples by, not the error of `color` itself). Without
+`colorA`/`colorB`, or with no candidate the frame can feed, the sequence goes to
+`service.pipelines.auto(layers)`'s choice whole, as the CLI did before this pipeline, and there is no
+`error` layer.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from service import pipelines
-from service.frame import LAYERS, Frame
+from service.frame import LAYERS, Frame, FrameError
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState, Split
 from service.pipelines.options import option
@@ -56,6 +59,8 @@ class AutoState(SequenceState):
     states: dict[str, SequenceState] = field(default_factory=dict)  # the chosen candidates' states
     estimate: np.ndarray | None = None  # (K, th, tw) float64 running per-tile relL2 estimates
     choice: np.ndarray | None = None  # (th, tw) int64 index into `candidates`
+    weights: np.ndarray | None = None  # (K, H, W) float32 blend weights of `choice`
+    error: np.ndarray | None = None  # (H, W, 1) float32 the chosen tiles' estimates, interpolated
 
     def close(self) -> None:
         for state in (*self.states.values(), self.fallback_state):
@@ -77,6 +82,15 @@ class AutoPipeline(Pipeline):
     def new_state(self, height: int, width: int) -> AutoState:
         return AutoState(height, width)
 
+    def check(self, frame: Frame, state: SequenceState) -> None:
+        """Also: once the first frame's halves started the per-tile choice, every frame must have them."""
+        super().check(frame, state)
+        if isinstance(state, AutoState) and state.candidates:
+            for name in HALVES:
+                if name not in frame:
+                    raise FrameError(f"pipeline 'auto' chooses per tile from the half buffers since the sequence's "
+                                     f"first frame; this frame has no layer '{name}'", name)
+
     def denoise_split(self, frame: Frame, state: SequenceState) -> Split:
         """The candidates take the frame whole (each splits off its emission itself)."""
         buffers, state = self.denoise(frame, state)
@@ -96,7 +110,7 @@ class AutoPipeline(Pipeline):
         for index, name in enumerate(names):  # a candidate that left the choice loses its history
             if index not in chosen and name in state.states:
                 state.states.pop(name).close()
-        weights = tile_weights(state.choice, len(names), self.options.tile, frame.height, frame.width)
+        weights = state.weights
         color = np.zeros((frame.height, frame.width, 3), np.float32)
         for index in chosen:
             name = names[index]
@@ -104,11 +118,12 @@ class AutoPipeline(Pipeline):
             sub = state.states.get(name) or pipeline.start(frame.height, frame.width)
             out, state.states[name] = pipeline.step(frame, sub)
             color += weights[index][..., None] * out["color"]
-        chosen_estimate = np.take_along_axis(state.estimate, state.choice[None], axis=0)[0]
-        error = np.maximum(interpolate_tiles(chosen_estimate, self.options.tile, frame.height, frame.width), 0.0)
-        return {"color": color, "error": error[..., None].astype(np.float32)}, state
+        return {"color": color, "error": state.error.copy()}, state
 
     def _setup(self, frame: Frame, state: AutoState) -> None:
+        state.close()  # a first frame that failed may have set some of it
+        state.fallback = state.fallback_state = state.estimate = state.choice = None
+        state.candidates, state.states = {}, {}
         layers = set(frame.buffers)
         names = [n for n in CANDIDATES if set(pipelines.pipeline_class(n).requires) <= layers]
         if not names or not set(HALVES) <= layers:
@@ -133,6 +148,10 @@ class AutoPipeline(Pipeline):
             estimate = 0.5 * (state.estimate + estimate)
         state.estimate = estimate
         state.choice = choose(estimate, self.options.tolerance)
+        tile, height, width = self.options.tile, frame.height, frame.width
+        state.weights = tile_weights(state.choice, len(outputs), tile, height, width)
+        chosen = np.take_along_axis(estimate, state.choice[None], axis=0)[0]
+        state.error = np.maximum(interpolate_tiles(chosen, tile, height, width), 0.0)[..., None].astype(np.float32)
 
 
 def choose(estimate: np.ndarray, tolerance: float) -> np.ndarray:

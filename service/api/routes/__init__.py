@@ -14,7 +14,8 @@ FRAME_HEADERS = {
     "X-Frame-Index": "index of the frame in its sequence (0 for a stateless frame)",
     "X-Step-Ms": "time in the pipeline step, milliseconds",
     "X-Nonfinite-Repaired": "NaN/Inf input values that were repaired",
-    "X-Error-Mean": "the frame's mean estimated relative squared error (pipelines with an `error` layer: auto)",
+    "X-Error-Mean": "mean of the frame's `error` layer (auto: the estimated relative squared error of its "
+                    "chosen denoisers at half the samples)",
 }
 # OpenAPI description of a route that takes one EXR frame and answers one frame.
 FRAME_OPENAPI: dict[str, Any] = {

@@ -77,3 +77,30 @@ def test_a_candidate_alone_is_served_exactly_when_every_tile_chooses_it(frames, 
     expected, _ = _run(pipelines.get(CANDIDATES[0]), frames)
     for out, ref in zip(outs, expected, strict=True):
         np.testing.assert_allclose(out["color"], ref["color"], rtol=1e-6, atol=1e-7)
+
+
+def test_a_frame_without_halves_after_the_choice_started_is_refused_naming_the_layer(frames):
+    from service.frame import FrameError
+
+    pipeline = pipelines.get("auto", every=2)
+    state = pipeline.start(40, 72)
+    _, state = pipeline.step(frames[0], state)
+    plain = Frame({k: v for k, v in frames[1].buffers.items() if k != "colorB"})
+    with pytest.raises(FrameError, match="pipeline 'auto' .* no layer 'colorB'"):
+        pipeline.step(plain, state)
+    out, state = pipeline.step(frames[1], state)  # the session goes on with the next good frame
+    assert state.frame_index == 2 and np.isfinite(out["color"]).all()
+
+
+def test_an_error_pass_in_an_input_file_is_ignored(tmp_path, frames):
+    from service.exr import read_frame, write_frame
+
+    path = tmp_path / "f.exr"
+    write_frame(path, {"color": frames[0]["color"]})
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as exr:
+        channels = dict(exr.channels())
+    channels["error"] = OpenEXR.Channel(np.ones((40, 72, 3), np.float32))  # a renderer's own RGB 'error' AOV
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels).write(str(path))
+    assert set(read_frame(path).buffers) == {"color"}

@@ -253,3 +253,8 @@ def test_cli_online_flag(tiny_sequence_dir, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "crossreg: 3 frames" in out
     assert re.search(r"online training: (starting|running|lagging), \d+ frames trained, \d+ dropped", out)
+
+
+def test_lockstep_without_online_is_refused_naming_the_option():
+    with pytest.raises(ValueError, match="option 'lockstep' needs online=true"):
+        pipelines.get("crossreg", lockstep=True)
