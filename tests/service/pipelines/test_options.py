@@ -77,7 +77,7 @@ def _extremes(name: str) -> list[dict]:
     """One options dict per declared bound of each option (the others at their defaults)."""
     out = []
     for option, spec in pipelines.pipeline_class(name).describe()["option_specs"].items():
-        if option in ("online", "worker_threads", "publish_every", "crop", "steps_per_frame"):
+        if option in ("online", "lockstep", "worker_threads", "publish_every", "crop", "steps_per_frame"):
             continue  # the online worker needs torch; its options are checked by OnlineConfig's tests
         if spec["type"] == "boolean":
             out += [{option: True}, {option: False}]
