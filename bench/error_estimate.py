@@ -25,21 +25,11 @@ import numpy as np
 from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import rel_l2, rel_l2_map
-from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP
+from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP, half_a
 from service.process import configure
-from service.stages.error_estimate import TILE, tile_error, tile_sums
+from service.stages.error_estimate import TILE, tile_error, tile_means
 
 DEFAULT_CANDIDATES = CANDIDATES
-HALVES = ("colorA", "colorB")
-
-
-def half_a(frame: Frame) -> Frame:
-    """`frame` with half A as its `color` and the halves removed (what f(A) is computed from)."""
-    buffers = {k: v for k, v in frame.buffers.items() if k not in HALVES}
-    buffers["color"] = frame["colorA"]
-    return Frame(buffers, dict(frame.nonfinite))
-
-
 def spearman(x: np.ndarray, y: np.ndarray) -> float:
     """Spearman's rank correlation of two 1-D arrays (ties broken by position: float errors rarely tie)."""
     rx, ry = (np.argsort(np.argsort(v)).astype(np.float64) for v in (x, y))
@@ -82,8 +72,8 @@ def evaluate(folder: Path, names: list[str], tile: int = TILE) -> SequenceReport
         scale = np.median([half[n][i] for n in names], axis=0)
         e = np.stack([tile_error(half[n][i], frame["colorA"], frame["colorB"], scale, tile, cap=FIREFLY_CAP).mean
                       for n in names])
-        t = np.stack([_tiles(rel_l2_map(full[n][i], frame["reference"]), tile) for n in names])
-        th = np.stack([_tiles(rel_l2_map(half[n][i], frame["reference"]), tile) for n in names])
+        t = np.stack([tile_means(rel_l2_map(full[n][i], frame["reference"]), tile) for n in names])
+        th = np.stack([tile_means(rel_l2_map(half[n][i], frame["reference"]), tile) for n in names])
         est.append(e)
         truth.append(t)
         truth_half.append(th)
@@ -101,11 +91,6 @@ def evaluate(folder: Path, names: list[str], tile: int = TILE) -> SequenceReport
         float((est.argmin(axis=0) == truth.argmin(axis=0)).mean()),
         float(np.mean(chosen)), (best, means[best]), float(np.mean(oracle)),
     )
-
-
-def _tiles(errors: np.ndarray, tile: int) -> np.ndarray:
-    sums, counts = tile_sums(errors, tile)
-    return sums / counts
 
 
 def _run(pipeline, frames: list[Frame]) -> list[np.ndarray]:

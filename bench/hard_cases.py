@@ -33,7 +33,7 @@ from service.frame import Frame
 from service.metrics import rel_l2_map
 from service.pipelines.base import Pipeline
 from service.process import configure
-from service.stages.error_estimate import tile_sums
+from service.stages.error_estimate import tile_means as stage_tile_means
 from service.stages.exact import exact_mask
 
 HARD_DIR = Path(__file__).resolve().parents[1] / "models" / "data" / "samples" / "hard"
@@ -130,10 +130,8 @@ class FrameScore:
 
 
 def tile_means(errors: np.ndarray, tile: int = TILE) -> np.ndarray:
-    """Mean of `errors` ((H, W) float64) over each tile x tile tile; the last row and column of tiles
-    take what is left of the frame. Returns (ceil(H / tile), ceil(W / tile)) float64."""
-    sums, counts = tile_sums(errors, tile)
-    return sums / counts
+    """Mean of `errors` ((H, W) float64) over each tile x tile tile (the stage's, at the criterion's tile)."""
+    return stage_tile_means(errors, tile)
 
 
 def score(out: np.ndarray, frame: Frame) -> FrameScore:

@@ -134,8 +134,7 @@ class AutoPipeline(Pipeline):
 
     def _evaluate(self, frame: Frame, state: AutoState) -> None:
         """Estimate every candidate's per-tile error on half A (fresh states) and choose per tile."""
-        half = Frame({**{k: v for k, v in frame.buffers.items() if k not in HALVES}, "color": frame["colorA"]},
-                     dict(frame.nonfinite))
+        half = half_a(frame)
         outputs = []
         for pipeline in state.candidates.values():
             out, sub = pipeline.step(half, pipeline.start(frame.height, frame.width))
@@ -152,6 +151,12 @@ class AutoPipeline(Pipeline):
         state.weights = tile_weights(state.choice, len(outputs), tile, height, width)
         chosen = np.take_along_axis(estimate, state.choice[None], axis=0)[0]
         state.error = np.maximum(interpolate_tiles(chosen, tile, height, width), 0.0)[..., None].astype(np.float32)
+
+
+def half_a(frame: Frame) -> Frame:
+    """`frame` with half A as its `color` and the halves removed: what a candidate's f(A) is computed from."""
+    buffers = {k: v for k, v in frame.buffers.items() if k not in HALVES}
+    return Frame({**buffers, "color": frame["colorA"]}, dict(frame.nonfinite))
 
 
 def choose(estimate: np.ndarray, tolerance: float) -> np.ndarray:

@@ -56,6 +56,12 @@ def tile_sums(values: np.ndarray, tile: int) -> tuple[np.ndarray, np.ndarray]:
     return sums, counts
 
 
+def tile_means(values: np.ndarray, tile: int) -> np.ndarray:
+    """Mean of (H, W) float64 `values` over each tile x tile tile: (ceil(H / tile), ceil(W / tile)) float64."""
+    sums, counts = tile_sums(values, tile)
+    return sums / counts
+
+
 def pixel_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray,
                 eps: float = REL_L2_EPS, cap: float | None = None) -> np.ndarray:
     """(H, W) float64 per-pixel estimate d of out_a's relative squared error (module docstring), the mean over

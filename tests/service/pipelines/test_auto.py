@@ -65,7 +65,10 @@ def test_with_halves_it_chooses_per_tile_reevaluates_every_k_frames_and_outputs_
     assert list(state.candidates) == list(CANDIDATES) and state.choice.shape == (3, 5)
     for out in outs:
         assert out["color"].shape == (40, 72, 3) and np.isfinite(out["color"]).all()
-        assert out["error"].shape == (40, 72, 1) and (out["error"] >= 0).all() and np.isfinite(out["error"]).all()
+        assert out["error"].shape == (40, 72, 1) and out["error"].dtype == np.float32
+    np.testing.assert_array_equal(outs[-1]["error"], state.error)  # the last evaluation's, not a fresh one
+    chosen = np.take_along_axis(state.estimate, state.choice[None], axis=0)[0]
+    np.testing.assert_allclose(outs[-1]["error"][0, 0, 0], max(chosen[0, 0], 0.0), rtol=1e-6)  # before the 1st centre
     # each frame is the weighted blend of the chosen candidates, each stepped on the frame from its own state
     chosen = sorted(set(state.choice.ravel().tolist()))
     assert set(state.states) == {CANDIDATES[i] for i in chosen}
