@@ -17,8 +17,11 @@ it. `detect` picks one for a file from its channel names:
   - `normal`: `Normal`, world space, when present; else `Denoising Normal`, which is in camera space
     (x right, y up, z into the screen). The EXR holds no camera, so it is taken as it is: a filter sees
     the same edges; a temporal pipeline's normal test across frames sees the camera's turn.
-  - `depth`: `Depth` (channel `Z`): planar depth, not the distance along the ray, 1e10 where nothing was
-    hit (a large finite value, as the format asks).
+  - `depth`: `Denoising Depth` (channel `Z`) when present: the distance along the ray (against `Depth`
+    it grows as 1/cos of the angle off the view axis), averaged over the samples, 0 where nothing was hit
+    (read as 1e10, a large finite value as the format asks). Else `Depth`: planar depth, 1e10 for misses,
+    and written by sample 0 alone: a render that skips sample 0 (the halves recipe below) has 1e10 in
+    every pixel of it, which the reader notes.
   - `motion`: `Vector` X and -Y. X, Y is the offset to the previous frame in pixels with y up (Z, W: the
     negated offset to the next frame, unused). Warping the previous frame's reference by it lowers the
     error against the current one; any other sign or axis raises it.
@@ -278,8 +281,11 @@ def blender(names: Iterable[str], view_layer: str | None = None) -> ChannelMap:
     elif normal := take("Denoising Normal", "XYZ"):
         layers["normal"] = LayerSource(normal)
         notes.append("normal: Denoising Normal, camera space (no Normal pass)")
-    if depth := take("Depth", "Z"):
+    if depth := take("Denoising Depth", "Z"):
+        layers["depth"] = LayerSource(depth, replace_zero=MISS_DEPTH)
+    elif depth := take("Depth", "Z"):
         layers["depth"] = LayerSource(depth)
+        notes.append("depth: Depth, planar, from sample 0 only (no Denoising Depth pass)")
     if vector := take("Vector", "XY"):
         layers["motion"] = LayerSource(vector, scale=(1.0, -1.0))
     emit = take("Emit", "RGB") or take("Emission", "RGB")

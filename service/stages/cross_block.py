@@ -28,7 +28,7 @@ ridge of `solve_ridge`). It is that computation reorganised for the CPU:
   window row is added), and the strip into the numerator and denominator planes once per chunk. Centre
   rows whose windows overlap are never run at the same time.
 
-One module of about 600 lines, not split: the packed layout's constants (PLANES, MOMENTS, the scratch
+One module of more than 600 lines: the packed layout's constants (PLANES, MOMENTS, the scratch
 rows) and the passes that read them change together.
 """
 

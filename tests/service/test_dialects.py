@@ -54,6 +54,26 @@ def test_blender_normal_is_world_space_and_misses_are_far():
     assert np.all(depth[sky & (frame["emission"].sum(-1) == frame["color"].sum(-1))] == np.float32(MISS_DEPTH))
 
 
+def test_blender_depth_is_the_ray_distance_and_survives_a_skipped_first_sample():
+    """Depth.Z is written by sample 0 alone: the halves recipe (sample 0 skipped) leaves it 1e10 everywhere.
+    Denoising Depth, which the reader takes, is the distance along the ray: against the planar Depth.Z of
+    a full render it grows as 1/cos of the angle off the view axis (50 mm lens: ~1.06 at the frame's side)."""
+    channels, _ = read_channels(BLENDER / "noisy" / "frame_0001.exr")
+    assert np.all(channels["ViewLayer.Depth.Z"] == np.float32(MISS_DEPTH))
+    frame = read_frame(BLENDER / "noisy" / "frame_0001.exr")
+    hit = np.abs(frame["normal"]).sum(-1) > 0
+    assert hit.mean() > 0.5 and np.median(frame["depth"][hit]) < 100
+    reference = read_frame(BLENDER / "reference" / "frame_0001.exr")
+    planar = read_channels(BLENDER / "reference" / "frame_0001.exr")[0]["ViewLayer.Depth.Z"]
+    both = (planar < 1e9) & (reference["depth"][..., 0] < 1e9)
+    ratio = reference["depth"][..., 0] / planar
+    height, width = planar.shape
+    y, x = np.mgrid[:height, :width]
+    radius = np.hypot(x - width / 2 + 0.5, y - height / 2 + 0.5)
+    centre, side = np.median(ratio[both & (radius < 8)]), np.median(ratio[both & (radius > 28)])
+    assert abs(centre - 1) < 0.02 and 1.03 < side < 1.09
+
+
 def _warp_error(previous: np.ndarray, current: np.ndarray, motion: np.ndarray, mask: np.ndarray) -> float:
     warped, valid = reproject(previous, motion)
     keep = mask & valid
