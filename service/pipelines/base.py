@@ -8,7 +8,8 @@
 and the sequence size (before any work), find the exact pixels when the frame has halves but no
 `emission` layer (`service.stages.exact`: they become its emission), split off `emission` from the
 radiance layers, call the denoiser's `denoise`, add emission back, keep the result within the noise the
-halves show (`service.stages.noise_clamp`), and make sure nothing non-finite leaves. The split is
+halves show (`service.stages.noise_clamp`), blend it per tile with the input by the weight the halves
+say is best (`service.stages.noise_blend`), and make sure nothing non-finite leaves. The split is
 `Pipeline.denoise_split`, which a denoiser able to do it inside its own passes overrides.
 """
 
@@ -26,6 +27,7 @@ from service.pipelines.options import build as build_options
 from service.pipelines.options import describe as describe_options
 from service.stages.emission import add_emission, subtract_emission
 from service.stages.exact import exact_emission
+from service.stages.noise_blend import noise_blend
 from service.stages.noise_clamp import noise_clamp
 
 
@@ -59,7 +61,7 @@ class Pipeline(ABC):
     optional: ClassVar[tuple[str, ...]] = ()  # layers used when present
     temporal: ClassVar[bool] = False  # whether the output depends on earlier frames
     Options: ClassVar[type] = NoOptions  # frozen dataclass of algorithm options
-    # True: the step's hard-case guards run (exact pixels as emission, the noise clamp); the benchmark's
+    # True: the step's hard-case guards run (exact pixels as emission, the noise clamp and blend); the benchmark's
     # anchors turn them off, so that OIDN is measured as its users call it
     guards: ClassVar[bool] = True
 
@@ -115,8 +117,8 @@ class Pipeline(ABC):
         if self.guards and "colorA" in given and "colorB" in given:  # within the noise the halves show
             halves = given["colorA"], given["colorB"]  # (finite in, finite out: the band is finite or +inf)
             exact = "emission" in frame  # the renderer's, or the exact pixels `with_exact_emission` found
-            buffers["color"] = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"),
-                                           exact=exact)
+            clamped = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"), exact=exact)
+            buffers["color"] = noise_blend(clamped, given["color"], *halves, frame.buffers.get("emission"))
         state.frame_index += 1
         return Frame(buffers, dict(frame.nonfinite)), state
 

@@ -32,7 +32,7 @@ from service.frame import LAYERS, Frame, FrameError
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState, Split
 from service.pipelines.options import option
-from service.stages.error_estimate import TILE, tile_error
+from service.stages.error_estimate import TILE, interpolate_tiles, interpolation_matrix, tile_error
 
 # Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest at
 # 1280x720 first (README): flr, bmfr, svgf
@@ -166,20 +166,6 @@ def choose(estimate: np.ndarray, tolerance: float) -> np.ndarray:
     best = estimate.min(axis=0)
     eligible = estimate <= best + tolerance * np.abs(best)
     return eligible.argmax(axis=0)
-
-
-def interpolation_matrix(size: int, tile: int) -> np.ndarray:
-    """(size, ceil(size / tile)) float64 linear interpolation from the tiles' centres to every pixel (clamped
-    beyond the first and last centre; rows sum to 1)."""
-    starts = np.arange(0, size, tile)
-    centres = (starts + np.minimum(starts + tile, size) - 1) / 2.0
-    pixels = np.arange(size, dtype=np.float64)
-    return np.stack([np.interp(pixels, centres, np.eye(len(starts))[i]) for i in range(len(starts))], axis=1)
-
-
-def interpolate_tiles(values: np.ndarray, tile: int, height: int, width: int) -> np.ndarray:
-    """(th, tw) per-tile values -> (H, W) float64 interpolated between tile centres."""
-    return interpolation_matrix(height, tile) @ values @ interpolation_matrix(width, tile).T
 
 
 def tile_weights(choice: np.ndarray, count: int, tile: int, height: int, width: int) -> np.ndarray:

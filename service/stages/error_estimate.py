@@ -62,6 +62,20 @@ def tile_means(values: np.ndarray, tile: int) -> np.ndarray:
     return sums / counts
 
 
+def interpolation_matrix(size: int, tile: int) -> np.ndarray:
+    """(size, ceil(size / tile)) float64 linear interpolation from the tiles' centres to every pixel (clamped
+    beyond the first and last centre; rows sum to 1)."""
+    starts = np.arange(0, size, tile)
+    centres = (starts + np.minimum(starts + tile, size) - 1) / 2.0
+    pixels = np.arange(size, dtype=np.float64)
+    return np.stack([np.interp(pixels, centres, np.eye(len(starts))[i]) for i in range(len(starts))], axis=1)
+
+
+def interpolate_tiles(values: np.ndarray, tile: int, height: int, width: int) -> np.ndarray:
+    """(th, tw) per-tile values -> (H, W) float64 interpolated between tile centres."""
+    return interpolation_matrix(height, tile) @ values @ interpolation_matrix(width, tile).T
+
+
 def pixel_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray,
                 eps: float = REL_L2_EPS, cap: float | None = None) -> np.ndarray:
     """(H, W) float64 per-pixel estimate d of out_a's relative squared error (module docstring), the mean over

@@ -7,7 +7,8 @@ from bench.synthetic import synthetic_sequence
 from service import pipelines
 from service.frame import Frame
 from service.pipelines import tiled
-from service.pipelines.tiled import CANDIDATES, choose, interpolate_tiles, tile_weights
+from service.pipelines.tiled import CANDIDATES, choose, tile_weights
+from service.stages.error_estimate import interpolate_tiles
 
 
 @pytest.fixture(scope="module")

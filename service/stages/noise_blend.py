@@ -1,0 +1,230 @@
+"""Per tile, a denoiser's output blended with the noisy input by the weight that the two halves say is best.
+
+A pixel estimate c = (A + B) / 2 has variance v = E[(A - B)^2] / 4 (the halves are independent estimates
+of the same mean mu). A denoiser's output o at that pixel averages many pixels, so it depends little on
+c's own noise, and per pixel and channel
+
+    e = (o - c)^2 - v          estimates o's squared error, E[(o - mu)^2]
+    y = c + t (o - c)          the blend, whose squared error is about  v - 2 t v + t^2 (e + v),
+
+least at t = v / (e + v): a tile where the denoiser is much better than its input keeps it (t ~ 1), one
+where it is worse than the input (a bright ring blurred into a black shadow, a mirror's glint smeared over
+the void it reflects) goes back toward the input, and the blend is never worse than either in
+expectation. The sums run over TILE x TILE tiles, weighted like relL2 (service.metrics.rel_l2_map) by
+1 / (p^2 + REL_L2_EPS) with p, a stand-in for the unknown reference, the smaller of o's and the 5x5 box
+mean of c's channel means: where o lifts a region whose samples say dark, its error weighs as the
+reference's darkness makes it weigh. With Eo and Ec the tile's weighted sums of e and v,
+
+    t = Ec / (max(Eo, 0) + Ec)    (1 where both are 0),
+
+interpolated between tile centres (no seams). The result is c' + t (o - c'), with c' the input with its
+fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in one half only,
+while a light seen directly is in both): the part of the input the blend takes back should not bring them
+with it. A value the denoiser left as it came (an exact pixel, a background passed through) stays so; a
+frame whose halves agree everywhere comes back as its input. Interpolation lets a tile's neighbours lend
+it their t at its border, so a region the halves reject keeps some of the output within ~half a tile of
+its edge.
+
+What it costs and gains on ordinary frames is measured by `make bench` (docs/benchmarks.md, "Noise
+blend"). numba kernels; `noise_blend_reference` is the numpy twin.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numba
+import numpy as np
+
+from service.kernels.fill import filled
+from service.metrics import REL_L2_EPS
+from service.stages.error_estimate import interpolate_tiles, interpolation_matrix, tile_sums
+from service.stages.outliers import FIREFLY_K, clamp_fireflies_reference
+from service.stages.svgf import box_mean
+
+TILE = 16  # tile side, pixels: the hard-case criterion's tile (bench/hard_cases.py)
+LEVEL_RADIUS = 2  # the box mean of c that stands in for the reference's level: 5x5 pixels
+
+
+def blend_weights(error_out: np.ndarray, error_in: np.ndarray) -> np.ndarray:
+    """Per tile t = Ec / (max(Eo, 0) + Ec), 1 where both are 0. error_out, error_in: (th, tw) float64 weighted
+    sums Eo and Ec. Returns (th, tw) float64 in [0, 1]."""
+    total = np.maximum(error_out, 0.0) + error_in
+    return np.where(total > 0, error_in / np.where(total > 0, total, 1.0), 1.0)
+
+
+def _check(arrays: list[np.ndarray], tile: int) -> None:
+    if tile < 1:
+        raise ValueError(f"noise blend tile must be >= 1, got {tile}")
+    shapes = {x.shape for x in arrays}
+    if len(shapes) != 1 or arrays[0].ndim != 3:
+        raise ValueError(f"noise blend: out, color and the halves must share one (H, W, C) shape: {shapes}")
+
+
+def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
+                emission: np.ndarray | None = None, tile: int = TILE) -> np.ndarray:
+    """`out` blended per tile with `color` (module docstring). out: (H, W, C) float32 denoised radiance;
+    color, color_a, color_b: (H, W, C) float32 noisy radiance and its two halves; emission: (H, W, C)
+    float32 or None, the emission in all four (a light's value is no level for its neighbours' weights
+    nor for their firefly clip: the blend runs on the radiance less it, and adds it back); all linear,
+    finite. Returns a new (H, W, C) float32 array."""
+    arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (out, color, color_a, color_b)]
+    if emission is not None:
+        arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
+    _check(arrays, tile)
+    e = arrays[4] if emission is not None else arrays[1]  # not read without emission
+    height, width = arrays[0].shape[:2]
+    level = np.empty((height, width), np.float32)
+    _level_kernel(arrays[1], e, emission is not None, LEVEL_RADIUS, level)
+    rows, cols = -(-height // tile), -(-width // tile)
+    sums = np.zeros((2, rows, cols), np.float64)
+    _tile_kernel(*arrays[:4], e, emission is not None, level, tile, REL_L2_EPS, sums)
+    t = blend_weights(sums[0], sums[1]).astype(np.float32)
+    result = np.empty_like(arrays[0])
+    _blend_kernel(*arrays[:4], e, emission is not None, t, np.float32(FIREFLY_K), *_interpolation(height, tile),
+                  *_interpolation(width, tile), result)
+    return result
+
+
+@functools.cache
+def _interpolation(size: int, tile: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel along one axis, the two tiles and the weight of the second that
+    `error_estimate.interpolation_matrix` uses: (size,) int64, (size,) int64, (size,) float32."""
+    matrix = interpolation_matrix(size, tile)
+    first = np.argmax(matrix > 0, axis=1)
+    second = np.minimum(first + 1, matrix.shape[1] - 1)
+    weight = np.where(second > first, matrix[np.arange(size), second], 0.0)
+    return first, second, weight.astype(np.float32)
+
+
+def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
+                          emission: np.ndarray | None = None, tile: int = TILE) -> np.ndarray:
+    """Plain-numpy twin of `noise_blend`."""
+    given = [out, color, color_a, color_b] + ([] if emission is None else [emission])
+    _check(given, tile)
+    e = np.zeros(out.shape, np.float64) if emission is None else emission.astype(np.float64)
+    o, c, a, b = (x.astype(np.float64) - e for x in (out, color, color_a, color_b))
+    height, width = o.shape[:2]
+    level = box_mean(c.astype(np.float32).mean(axis=-1, keepdims=True), LEVEL_RADIUS)[..., 0]
+    proxy = np.maximum(np.minimum(o.mean(axis=-1), level), 0.0)
+    weight = 1.0 / (proxy * proxy + REL_L2_EPS)
+    variance = ((a - b) * 0.5) ** 2
+    error_out, _ = tile_sums(weight * ((o - c) ** 2 - variance).mean(axis=-1), tile)
+    error_in, _ = tile_sums(weight * variance.mean(axis=-1), tile)
+    t = interpolate_tiles(blend_weights(error_out, error_in), tile, height, width)[..., None]
+    planes = np.ascontiguousarray(c.astype(np.float32).transpose(2, 0, 1))
+    clipped = np.where(color_a != color_b, clamp_fireflies_reference(planes).transpose(1, 2, 0), c)
+    blended = (e + clipped + t * (o - clipped)).astype(np.float32)
+    return np.where(out == color, color, blended).astype(np.float32)
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _level_kernel(color, e, has_emission, radius, level):  # pragma: no cover - jitted
+    """level (H, W): the mean over the in-frame (2 radius + 1)^2 window of the channel means of color (less e
+    with `has_emission`). A task per row for the channel sums, then per row the window's column sums and a
+    running sum (float64) across them."""
+    height, width, channels = color.shape
+    sums = np.empty((height, width), np.float64)  # float64: sums of radiance up to float32's largest
+    for y in numba.prange(height):
+        for x in range(width):
+            s = 0.0
+            for c in range(channels):
+                s += np.float64(color[y, x, c]) - e[y, x, c] if has_emission else color[y, x, c]
+            sums[y, x] = s
+    for y in numba.prange(height):
+        y0, y1 = max(y - radius, 0), min(y + radius + 1, height)
+        column = sums[y0].copy()
+        for yy in range(y0 + 1, y1):
+            column += sums[yy]
+        scale = 1.0 / (channels * (y1 - y0))
+        running = 0.0
+        for x in range(min(radius, width)):
+            running += column[x]
+        for x in range(width):
+            if x + radius < width:
+                running += column[x + radius]
+            if x - radius - 1 >= 0:
+                running -= column[x - radius - 1]
+            level[y, x] = np.float32(running * scale / (min(x + radius + 1, width) - max(x - radius, 0)))
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _tile_kernel(out, color, a, b, e, has_emission, level, tile, eps, sums):  # pragma: no cover - jitted
+    """sums (2, th, tw): per tile the weighted sums of e and v (module docstring), in float64, the proxy from
+    out less the emission e (with `has_emission`). A task per row of tiles."""
+    height, width, channels = out.shape
+    for ty in numba.prange(sums.shape[1]):
+        for y in range(ty * tile, min((ty + 1) * tile, height)):
+            for x in range(width):
+                mean_out = 0.0  # float64 throughout: radiance up to float32's largest squares
+                err = 0.0
+                var = 0.0
+                for c in range(channels):
+                    o, col = np.float64(out[y, x, c]), np.float64(color[y, x, c])
+                    h = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
+                    mean_out += o - e[y, x, c] if has_emission else o
+                    err += (o - col) * (o - col) - h * h
+                    var += h * h
+                proxy = max(min(mean_out / channels, np.float64(level[y, x])), 0.0)
+                w = 1.0 / ((proxy * proxy + eps) * channels)
+                sums[0, ty, x // tile] += w * err
+                sums[1, ty, x // tile] += w * var
+
+
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _radiance_row(color, e, has_emission, y):  # pragma: no cover - jitted
+    """Row y of color, less e with `has_emission`, as a new (W * C,) float32 array."""
+    row = color[y].reshape(color.shape[1] * color.shape[2])
+    return row - e[y].reshape(row.size) if has_emission else row.copy()
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _blend_kernel(out, color, a, b, e, has_emission, t, k, row0, row1, row_w, col0, col1, col_w,
+                  result):  # pragma: no cover - jitted
+    """result = c' + w (out - c'), w bilinear in t between tile centres (the `_interpolation` tables), c' the
+    colour clipped like `outliers.clamp_fireflies` (k) where the halves differ, on the colour less the
+    emission e (with `has_emission`), which is added back. A task per row: the 3x3 neighbour range of
+    every value of the interleaved (W * C) row as shifts by C, then the blend."""
+    height, width, channels = out.shape
+    n = width * channels
+    for y in numba.prange(height):
+        own = _radiance_row(color, e, has_emission, y)
+        other_lo = filled(n, np.inf, np.float32)  # over the rows above and below
+        other_hi = filled(n, -np.inf, np.float32)
+        for yy in (y - 1, y + 1):
+            if 0 <= yy < height:
+                src = _radiance_row(color, e, has_emission, yy)
+                for i in range(n):  # contiguous, vectorises
+                    other_lo[i] = min(other_lo[i], src[i])
+                    other_hi[i] = max(other_hi[i], src[i])
+        all_lo, all_hi = np.empty(n, np.float32), np.empty(n, np.float32)  # over the three rows
+        for i in range(n):
+            all_lo[i] = min(other_lo[i], own[i])
+            all_hi[i] = max(other_hi[i], own[i])
+        lo, hi = other_lo.copy(), other_hi.copy()  # the 8 neighbours: the columns left and right too
+        for i in range(channels, n):
+            lo[i] = min(lo[i], all_lo[i - channels])
+            hi[i] = max(hi[i], all_hi[i - channels])
+        for i in range(n - channels):
+            lo[i] = min(lo[i], all_lo[i + channels])
+            hi[i] = max(hi[i], all_hi[i + channels])
+        if height * width == 1:  # no neighbour: nothing to clip against
+            lo[:], hi[:] = own, own
+        fy = row_w[y]
+        weights = np.empty(n, np.float32)
+        for x in range(width):
+            fx = col_w[x]
+            top = t[row0[y], col0[x]] + fx * (t[row0[y], col1[x]] - t[row0[y], col0[x]])
+            bottom = t[row1[y], col0[x]] + fx * (t[row1[y], col1[x]] - t[row1[y], col0[x]])
+            for c in range(channels):
+                weights[x * channels + c] = top + fy * (bottom - top)
+        ro, rc, rr = out[y].reshape(n), color[y].reshape(n), result[y].reshape(n)
+        ra, rb = a[y].reshape(n), b[y].reshape(n)
+        base = e[y].reshape(n) if has_emission else np.zeros(n, np.float32)
+        for i in range(n):  # branch-free: vectorises
+            v = rc[i] - base[i]
+            spread = k * (hi[i] - lo[i])
+            v = min(max(v, lo[i] - spread), hi[i] + spread) if ra[i] != rb[i] else v
+            w = weights[i]
+            mixed = (np.float32(1) - w) * (base[i] + v) + w * ro[i]  # a convex combination: finite
+            rr[i] = rc[i] if ro[i] == rc[i] else mixed  # left as it came (exact, background): stays so

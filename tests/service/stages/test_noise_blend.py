@@ -1,0 +1,144 @@
+"""The noise blend (service/stages/noise_blend.py): parity with the numpy twin, the weight it derives
+(analytic cases), invariants, and that the blend beats both its inputs where the halves can tell."""
+
+import numpy as np
+import pytest
+
+from service.metrics import rel_l2_map
+from service.stages.error_estimate import interpolation_matrix
+from service.stages.noise_blend import TILE, _interpolation, blend_weights, noise_blend, noise_blend_reference
+
+
+def _halves(rng, truth, sd):
+    a = (truth + rng.normal(0, sd, truth.shape)).astype(np.float32)
+    b = (truth + rng.normal(0, sd, truth.shape)).astype(np.float32)
+    return a, b, ((a + b) / 2).astype(np.float32)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (3, 2, 3), (16, 16, 3), (17, 33, 3), (41, 29, 3), (70, 9, 3)])
+def test_matches_the_numpy_twin(shape):
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.0, 2.0, shape).astype(np.float32)
+    a, b, color = _halves(rng, truth, 0.3)
+    a[0, 0] *= 1e3  # a firefly
+    color = ((a + b) / 2).astype(np.float32)
+    out = (truth + rng.normal(0, 0.05, shape)).astype(np.float32)
+    out[: shape[0] // 2, : shape[1] // 2] += 2.0  # a region the denoiser got wrong
+    emission = np.where(rng.random(shape[:2])[..., None] < 0.2, np.float32(30.0), np.zeros(shape, np.float32))
+    for given in (None, emission):
+        shift = 0 if given is None else given
+        arrays = [x + shift for x in (out, color, a, b)]
+        np.testing.assert_allclose(noise_blend(*arrays, given), noise_blend_reference(*arrays, given),
+                                   rtol=1e-4, atol=1e-4)
+
+
+def test_emission_is_left_out_and_added_back():
+    """The blend of radiance + emission, told the emission, is the blend of the radiance plus the emission:
+    a light is no level for its neighbours' weights."""
+    rng = np.random.default_rng(6)
+    truth = rng.uniform(0.2, 1.0, (40, 40, 3)).astype(np.float32)
+    a, b, color = _halves(rng, truth, 0.3)
+    out = (truth * 0.8).astype(np.float32)
+    emission = np.zeros_like(truth)
+    emission[10:14, 20:30] = 500.0
+    plain = noise_blend(out, color, a, b)
+    lit = noise_blend(out + emission, color + emission, a + emission, b + emission, emission)
+    np.testing.assert_allclose(lit, plain + emission, rtol=1e-5, atol=1e-4)
+
+
+def test_weight_is_the_estimated_optimum():
+    assert blend_weights(np.array([[0.0, 1.0, 3.0, -2.0, 0.0]]), np.array([[1.0, 1.0, 1.0, 1.0, 0.0]])).tolist() == \
+        [[1.0, 0.5, 0.25, 1.0, 1.0]]  # Eo <= 0: keep the output; both 0: keep it
+    assert blend_weights(np.array([[2.0]]), np.array([[0.0]])).tolist() == [[0.0]]  # no noise: the input is right
+
+
+def test_one_tile_takes_the_analytic_weight():
+    """One tile, a constant truth of 1: v = 1/4 everywhere (halves 1 -+ 1/2... a mean of 1), o = c + 1, so per
+    pixel e = 1 - v: t = v / (1 - v + v) = 1/4."""
+    shape = (TILE, TILE, 3)
+    a, b = np.full(shape, 0.5, np.float32), np.full(shape, 1.5, np.float32)
+    color = np.ones(shape, np.float32)
+    out = color + 1.0
+    np.testing.assert_allclose(noise_blend(out, color, a, b), 1.25, rtol=1e-6)
+
+
+def test_constant_and_noise_free_frames_are_unchanged():
+    shape = (40, 50, 3)
+    constant = np.full(shape, 0.7, np.float32)
+    np.testing.assert_array_equal(noise_blend(constant, constant, constant, constant), constant)
+    # halves that agree: the renderer resolved every pixel, and a denoiser that moved them is undone
+    rng = np.random.default_rng(2)
+    exact = rng.uniform(0, 5, shape).astype(np.float32)
+    moved = exact + np.float32(0.3)
+    np.testing.assert_array_equal(noise_blend(moved, exact, exact, exact), exact)
+
+
+def test_interpolation_tables_match_the_matrix():
+    for size, tile in ((1, 16), (15, 16), (16, 16), (40, 16), (100, 7)):
+        first, second, weight = _interpolation(size, tile)
+        matrix = np.zeros((size, -(-size // tile)))
+        np.add.at(matrix, (np.arange(size), first), 1 - weight)
+        np.add.at(matrix, (np.arange(size), second), weight)
+        np.testing.assert_allclose(matrix, interpolation_matrix(size, tile), atol=1e-7)
+
+
+def _tile_errors(image, truth):
+    errors = rel_l2_map(image, truth)
+    h, w = (s // TILE * TILE for s in errors.shape)
+    return errors[:h, :w].reshape(h // TILE, TILE, w // TILE, TILE).mean(axis=(1, 3))
+
+
+def test_a_ring_goes_back_to_the_input_and_a_good_output_stays():
+    """A dark region (truth 0.02) that the denoiser lifted to 1 (a shadow blurred with its lit surround) goes
+    back to the input where the interpolation does not reach across its edge (its centre tile); the tiles
+    it got right keep the output, and every tile ends far better than the denoiser left it."""
+    rng = np.random.default_rng(3)
+    truth = np.ones((96, 96, 3), np.float32)
+    truth[16:64, 16:64] = 0.02
+    a, b, color = _halves(rng, truth, 0.3 * truth + 0.01)
+    out = (truth + rng.normal(0, 0.02, truth.shape) * truth).astype(np.float32)
+    out[16:64, 16:64] = 1.0
+    blended = noise_blend(out, color, a, b)
+    before, noisy, after = (_tile_errors(x, truth) for x in (out, color, blended))
+    assert before[2, 2] > 100 * noisy[2, 2]  # the denoiser's ring
+    assert after[2, 2] < 1.1 * noisy[2, 2]
+    assert (after[1:4, 1:4] < 0.5 * before[1:4, 1:4]).all()
+    assert (after[5, :] < 0.5 * noisy[5, :]).all()  # tiles far from it keep the denoised output
+
+
+def test_fireflies_are_not_taken_back_and_lights_stay_exact():
+    """Where the blend takes part of the input back, a firefly (one half) is clipped to its neighbours; a
+    light seen directly (both halves agree) comes out exactly as it went in."""
+    truth = np.full((32, 32, 3), 0.5, np.float32)
+    rng = np.random.default_rng(5)
+    a, b, color = _halves(rng, truth, 0.2)
+    a[8, 8] += 1000.0  # a firefly in half A
+    a[20, 20] = b[20, 20] = 1000.0  # a light: exact
+    color = ((a + b) / 2).astype(np.float32)
+    out = np.full_like(truth, 0.8)  # biased: the blend takes a good part of the input back
+    out[20, 20] = color[20, 20]  # the step's noise clamp leaves exact pixels exact
+    blended = noise_blend(out, color, a, b)
+    assert blended[8, 8].max() < 2.0
+    np.testing.assert_array_equal(blended[20, 20], color[20, 20])
+
+
+def test_the_blend_beats_both_where_the_denoiser_is_biased():
+    """A denoiser that is too smooth (a uniform 10% bias) on a noisy frame: the blend's relL2 is below both."""
+    rng = np.random.default_rng(4)
+    y, x = np.mgrid[:96, :96]
+    truth = (0.2 + (np.sin(x / 5.0) * np.cos(y / 7.0)) ** 2)[..., None].repeat(3, -1).astype(np.float32)
+    a, b, color = _halves(rng, truth, 0.15)
+    out = (truth * 0.9).astype(np.float32)
+    blended = noise_blend(out, color, a, b)
+    err = {name: float(rel_l2_map(v, truth).mean()) for name, v in (("out", out), ("in", color), ("blend", blended))}
+    assert err["blend"] < min(err["out"], err["in"]), err
+
+
+def test_shapes_must_agree():
+    x = np.zeros((4, 4, 3), np.float32)
+    with pytest.raises(ValueError, match="share one"):
+        noise_blend(x, x, x, np.zeros((4, 5, 3), np.float32))
+    with pytest.raises(ValueError, match="tile must be >= 1"):
+        noise_blend(x, x, x, x, tile=0)
+    with pytest.raises(ValueError, match="share one"):
+        noise_blend(x, x, x, x, np.zeros((4, 4, 1), np.float32))
