@@ -52,7 +52,7 @@ class _OidnAnchor(Pipeline):
     requires = ("color",)
     optional = ("albedo", "normal", "emission")
     quality: ClassVar[str]
-    guards = False  # OIDN as its users call it: no exact-pixel emission, no noise clamp
+    guards = False  # OIDN as its users call it: no exact-pixel emission, no noise clamp or blend
     # Our albedo and normal are first-hit buffers without render noise. With clean_aux OIDN 2 runs its
     # clean-auxiliary models (at quality high a larger network: about 2.3x the time of the default call at
     # 1280x720 here) and keeps texture detail the default blurs.

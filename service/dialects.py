@@ -19,7 +19,9 @@ it. `detect` picks one for a file from its channel names:
     the same edges; a temporal pipeline's normal test across frames sees the camera's turn.
   - `depth`: `Denoising Depth` (channel `Z`) when present: the distance along the ray (against `Depth`
     it grows as 1/cos of the angle off the view axis), averaged over the samples, 0 where nothing was hit
-    (read as 1e10, a large finite value as the format asks). Else `Depth`: planar depth, 1e10 for misses,
+    (read as 1e10, a large finite value as the format asks). A silhouette pixel averages its misses as
+    0: it reads nearer than its surface (down to ~0.005 on the fixture), which a depth weight treats as an
+    edge. Else `Depth`: planar depth, 1e10 for misses,
     and written by sample 0 alone: a render that skips sample 0 (the halves recipe below) has 1e10 in
     every pixel of it, which the reader notes.
   - `motion`: `Vector` X and -Y. X, Y is the offset to the previous frame in pixels with y up (Z, W: the

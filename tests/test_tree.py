@@ -11,7 +11,7 @@ import service
 ROOT = Path(service.__file__).parent
 MAX_LINES = 600
 # The sentence a longer module's docstring must carry, followed by its reason.
-LONG_MODULE_MARK = "One module of more than 600 lines:"
+LONG_MODULE_MARK = f"One module of more than {MAX_LINES} lines:"
 
 
 def _module_name(path: Path) -> str:
@@ -67,8 +67,9 @@ def test_service_has_no_import_cycle() -> None:
     modules = _modules()
     known = set(modules)
     graph = {name: _top_level_imports(name, path, known) for name, path in modules.items()}
-    # a package's __init__ may import its own submodules (a registry); a submodule importing its package
-    # back is then the cycle this test looks for.
+    # Only static imports are edges: service.pipelines' registry imports its pipeline modules through
+    # importlib at its end, after `register` exists, and they import `register` back; that cycle is the
+    # registry's design and this test does not see it.
     assert _find_cycle(graph) is None, " -> ".join(_find_cycle(graph) or [])
 
 

@@ -9,8 +9,9 @@ c's own noise, and per pixel and channel
 
 least at t = v / (e + v): a tile where the denoiser is much better than its input keeps it (t ~ 1), one
 where it is worse than the input (a bright ring blurred into a black shadow, a mirror's glint smeared over
-the void it reflects) goes back toward the input, and the blend is never worse than either in
-expectation. The sums run over TILE x TILE tiles, weighted like relL2 (service.metrics.rel_l2_map) by
+the void it reflects) goes back toward the input, and with the per-pixel optimum the blend would be no
+worse than either in expectation (per tile, with an estimated t and the clipped input below, it is close).
+The sums run over TILE x TILE tiles, weighted like relL2 (service.metrics.rel_l2_map) by
 1 / (p^2 + REL_L2_EPS) with p, a stand-in for the unknown reference, the smaller of o's and the 5x5 box
 mean of c's channel means: where o lifts a region whose samples say dark, its error weighs as the
 reference's darkness makes it weigh. With Eo and Ec the tile's weighted sums of e and v,
@@ -40,9 +41,9 @@ from service.kernels.fill import filled
 from service.metrics import REL_L2_EPS
 from service.stages.error_estimate import interpolate_tiles, interpolation_matrix, tile_sums
 from service.stages.outliers import FIREFLY_K, clamp_fireflies_reference
-from service.stages.svgf import box_mean
 
 TILE = 16  # tile side, pixels: the hard-case criterion's tile (bench/hard_cases.py)
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # a blend of values near it stays finite
 LEVEL_RADIUS = 2  # the box mean of c that stands in for the reference's level: 5x5 pixels
 
 
@@ -66,8 +67,10 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     """`out` blended per tile with `color` (module docstring). out: (H, W, C) float32 denoised radiance;
     color, color_a, color_b: (H, W, C) float32 noisy radiance and its two halves; emission: (H, W, C)
     float32 or None, the emission in all four (a light's value is no level for its neighbours' weights
-    nor for their firefly clip: the blend runs on the radiance less it, and adds it back); all linear,
-    finite. Returns a new (H, W, C) float32 array."""
+    nor for their firefly clip: the blend runs on the radiance less it, and adds it back; a pixel with
+    emission keeps `out`, as `noise_clamp` leaves it: there the halves' disagreement is the emitter's
+    coverage, not noise the output should take back); all linear, finite. Returns a new (H, W, C)
+    float32 array."""
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (out, color, color_a, color_b)]
     if emission is not None:
         arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
@@ -86,7 +89,7 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     return result
 
 
-@functools.cache
+@functools.lru_cache(maxsize=32)
 def _interpolation(size: int, tile: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per pixel along one axis, the two tiles and the weight of the second that
     `error_estimate.interpolation_matrix` uses: (size,) int64, (size,) int64, (size,) float32."""
@@ -97,6 +100,20 @@ def _interpolation(size: int, tile: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return first, second, weight.astype(np.float32)
 
 
+def _box_mean64(values: np.ndarray, radius: int) -> np.ndarray:
+    """Mean of (H, W) float64 `values` over the in-frame part of each pixel's (2 radius + 1)^2 window, summed
+    window by window (no prefix sums: those cancel a 1e20 against its neighbours)."""
+    height, width = values.shape
+    padded = np.pad(values, radius)
+    counts = np.pad(np.ones_like(values), radius)
+    total, count = np.zeros_like(values), np.zeros_like(values)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            total += padded[dy:dy + height, dx:dx + width]
+            count += counts[dy:dy + height, dx:dx + width]
+    return total / count
+
+
 def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
                           emission: np.ndarray | None = None, tile: int = TILE) -> np.ndarray:
     """Plain-numpy twin of `noise_blend`."""
@@ -105,24 +122,27 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     e = np.zeros(out.shape, np.float64) if emission is None else emission.astype(np.float64)
     o, c, a, b = (x.astype(np.float64) - e for x in (out, color, color_a, color_b))
     height, width = o.shape[:2]
-    level = box_mean(c.astype(np.float32).mean(axis=-1, keepdims=True), LEVEL_RADIUS)[..., 0]
+    level = np.minimum(_box_mean64(c.mean(axis=-1), LEVEL_RADIUS), FLOAT32_MAX)
     proxy = np.maximum(np.minimum(o.mean(axis=-1), level), 0.0)
     weight = 1.0 / (proxy * proxy + REL_L2_EPS)
     variance = ((a - b) * 0.5) ** 2
     error_out, _ = tile_sums(weight * ((o - c) ** 2 - variance).mean(axis=-1), tile)
     error_in, _ = tile_sums(weight * variance.mean(axis=-1), tile)
     t = interpolate_tiles(blend_weights(error_out, error_in), tile, height, width)[..., None]
+    t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
     planes = np.ascontiguousarray(c.astype(np.float32).transpose(2, 0, 1))
-    clipped = np.where(color_a != color_b, clamp_fireflies_reference(planes).transpose(1, 2, 0), c)
-    blended = (e + clipped + t * (o - clipped)).astype(np.float32)
+    clipped = clamp_fireflies_reference(planes).transpose(1, 2, 0)
+    moved = (color_a != color_b) & (clipped != c.astype(np.float32))
+    taken = np.where(moved, e + clipped, color.astype(np.float64))
+    blended = np.clip((1.0 - t) * taken + t * out.astype(np.float64), -FLOAT32_MAX, FLOAT32_MAX)
     return np.where(out == color, color, blended).astype(np.float32)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _level_kernel(color, e, has_emission, radius, level):  # pragma: no cover - jitted
     """level (H, W): the mean over the in-frame (2 radius + 1)^2 window of the channel means of color (less e
-    with `has_emission`). A task per row for the channel sums, then per row the window's column sums and a
-    running sum (float64) across them."""
+    with `has_emission`), at most float32's largest. A task per row for the channel sums, then per row the
+    window's column sums and their sums across it (float64)."""
     height, width, channels = color.shape
     sums = np.empty((height, width), np.float64)  # float64: sums of radiance up to float32's largest
     for y in numba.prange(height):
@@ -137,15 +157,12 @@ def _level_kernel(color, e, has_emission, radius, level):  # pragma: no cover - 
         for yy in range(y0 + 1, y1):
             column += sums[yy]
         scale = 1.0 / (channels * (y1 - y0))
-        running = 0.0
-        for x in range(min(radius, width)):
-            running += column[x]
         for x in range(width):
-            if x + radius < width:
-                running += column[x + radius]
-            if x - radius - 1 >= 0:
-                running -= column[x - radius - 1]
-            level[y, x] = np.float32(running * scale / (min(x + radius + 1, width) - max(x - radius, 0)))
+            x0, x1 = max(x - radius, 0), min(x + radius + 1, width)
+            total = 0.0  # summed afresh at each x: a running sum would carry a 1e20's rounding along the row
+            for xx in range(x0, x1):
+                total += column[xx]
+            level[y, x] = np.float32(min(total * scale / (x1 - x0), FLOAT32_MAX))
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -183,8 +200,9 @@ def _blend_kernel(out, color, a, b, e, has_emission, t, k, row0, row1, row_w, co
                   result):  # pragma: no cover - jitted
     """result = c' + w (out - c'), w bilinear in t between tile centres (the `_interpolation` tables), c' the
     colour clipped like `outliers.clamp_fireflies` (k) where the halves differ, on the colour less the
-    emission e (with `has_emission`), which is added back. A task per row: the 3x3 neighbour range of
-    every value of the interleaved (W * C) row as shifts by C, then the blend."""
+    emission e (with `has_emission`), which is added back. t: (th, tw) float32 tile weights; row0, row1,
+    row_w (H,) and col0, col1, col_w (W,): `_interpolation`'s tables. A task per row: the 3x3 neighbour
+    range of every value of the interleaved (W * C) row, then the blend (float64, within float32's range)."""
     height, width, channels = out.shape
     n = width * channels
     for y in numba.prange(height):
@@ -216,15 +234,22 @@ def _blend_kernel(out, color, a, b, e, has_emission, t, k, row0, row1, row_w, co
             fx = col_w[x]
             top = t[row0[y], col0[x]] + fx * (t[row0[y], col1[x]] - t[row0[y], col0[x]])
             bottom = t[row1[y], col0[x]] + fx * (t[row1[y], col1[x]] - t[row1[y], col0[x]])
+            w = top + fy * (bottom - top)
+            if has_emission:  # a pixel with emission keeps the output, as the noise clamp leaves it
+                for c in range(channels):
+                    if e[y, x, c] != 0:
+                        w = np.float32(1)
             for c in range(channels):
-                weights[x * channels + c] = top + fy * (bottom - top)
+                weights[x * channels + c] = w
         ro, rc, rr = out[y].reshape(n), color[y].reshape(n), result[y].reshape(n)
         ra, rb = a[y].reshape(n), b[y].reshape(n)
         base = e[y].reshape(n) if has_emission else np.zeros(n, np.float32)
         for i in range(n):  # branch-free: vectorises
             v = rc[i] - base[i]
             spread = k * (hi[i] - lo[i])
-            v = min(max(v, lo[i] - spread), hi[i] + spread) if ra[i] != rb[i] else v
-            w = weights[i]
-            mixed = (np.float32(1) - w) * (base[i] + v) + w * ro[i]  # a convex combination: finite
-            rr[i] = rc[i] if ro[i] == rc[i] else mixed  # left as it came (exact, background): stays so
+            clipped = min(max(v, lo[i] - spread), hi[i] + spread)
+            taken = np.float64(base[i]) + clipped if (ra[i] != rb[i]) & (clipped != v) else np.float64(rc[i])
+            w = np.float64(weights[i])
+            mixed = (1.0 - w) * taken + w * ro[i]  # float64, then within float32's range
+            mixed = min(max(mixed, -FLOAT32_MAX), FLOAT32_MAX)
+            rr[i] = rc[i] if ro[i] == rc[i] else np.float32(mixed)  # left as it came (exact, background)

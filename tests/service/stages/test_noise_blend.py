@@ -6,7 +6,16 @@ import pytest
 
 from service.metrics import rel_l2_map
 from service.stages.error_estimate import interpolation_matrix
-from service.stages.noise_blend import TILE, _interpolation, blend_weights, noise_blend, noise_blend_reference
+from service.stages.noise_blend import (
+    LEVEL_RADIUS,
+    TILE,
+    _box_mean64,
+    _interpolation,
+    _level_kernel,
+    blend_weights,
+    noise_blend,
+    noise_blend_reference,
+)
 
 
 def _halves(rng, truth, sd):
@@ -15,8 +24,10 @@ def _halves(rng, truth, sd):
     return a, b, ((a + b) / 2).astype(np.float32)
 
 
-@pytest.mark.parametrize("shape", [(1, 1, 3), (3, 2, 3), (16, 16, 3), (17, 33, 3), (41, 29, 3), (70, 9, 3)])
-def test_matches_the_numpy_twin(shape):
+@pytest.mark.parametrize("tile", [16, 7])
+@pytest.mark.parametrize("shape", [(1, 1, 3), (1, 37, 3), (37, 1, 3), (3, 2, 3), (16, 16, 3), (17, 33, 3),
+                                   (41, 29, 3), (70, 9, 3)])
+def test_matches_the_numpy_twin(shape, tile):
     rng = np.random.default_rng(0)
     truth = rng.uniform(0.0, 2.0, shape).astype(np.float32)
     a, b, color = _halves(rng, truth, 0.3)
@@ -28,13 +39,52 @@ def test_matches_the_numpy_twin(shape):
     for given in (None, emission):
         shift = 0 if given is None else given
         arrays = [x + shift for x in (out, color, a, b)]
-        np.testing.assert_allclose(noise_blend(*arrays, given), noise_blend_reference(*arrays, given),
+        np.testing.assert_allclose(noise_blend(*arrays, given, tile), noise_blend_reference(*arrays, given, tile),
                                    rtol=1e-4, atol=1e-4)
 
 
+def test_radiance_up_to_float32s_largest_stays_finite():
+    """Values near 3.4e38 (finite float32): every sum runs in float64 and the blend stays in range; a 1e20
+    at a row's start does not spoil the level of the rest of the row."""
+    rng = np.random.default_rng(7)
+    shape = (20, 24, 3)
+    huge = np.float32(3.3e38)
+    a = rng.uniform(0, 1, shape).astype(np.float32)
+    b = rng.uniform(0, 1, shape).astype(np.float32)
+    a[3, 4], b[3, 5], a[0, 0] = huge, -huge, 1e20
+    color = ((a.astype(np.float64) + b) / 2).astype(np.float32)
+    out = np.full(shape, 0.5, np.float32)
+    out[3, 5] = huge
+    emission = np.zeros(shape, np.float32)
+    emission[10, 10] = huge
+    for given in (None, emission):  # (the tile sums cancel at 1e38: finite, but no twin to match there)
+        assert np.isfinite(noise_blend(out, color, a, b, given)).all()
+        with np.errstate(over="ignore"):  # the twin's float32 firefly clip overflows to +-inf bounds: no clip
+            assert np.isfinite(noise_blend_reference(out, color, a, b, given)).all()
+    level = np.empty(shape[:2], np.float32)
+    _level_kernel(color, color, False, LEVEL_RADIUS, level)
+    expected = _box_mean64(color.astype(np.float64).mean(axis=-1), LEVEL_RADIUS)
+    np.testing.assert_allclose(level[6:, :], expected[6:, :], rtol=1e-5)  # rows the huge values do not reach
+    np.testing.assert_allclose(level[0, 3:], expected[0, 3:], rtol=1e-5)  # the 1e20 at (0, 0) stays local
+
+
+def test_an_emitter_keeps_the_output():
+    """A 1-pixel light (emission 100) on a brighter noisy wall: the blend neither clips it nor takes any of
+    the input back there, as the noise clamp leaves pixels with emission."""
+    rng = np.random.default_rng(8)
+    wall = np.full((16, 16, 3), 10.0, np.float32)
+    a, b, color = _halves(rng, wall, 2.0)
+    emission = np.zeros_like(wall)
+    emission[8, 8] = 100.0
+    a, b, color = a + emission, b + emission, color + emission
+    out = wall + emission + np.float32(0.2)
+    blended = noise_blend(out, color, a, b, emission)
+    np.testing.assert_array_equal(blended[8, 8], out[8, 8])
+
+
 def test_emission_is_left_out_and_added_back():
-    """The blend of radiance + emission, told the emission, is the blend of the radiance plus the emission:
-    a light is no level for its neighbours' weights."""
+    """The blend of radiance + emission, told the emission, is the blend of the radiance plus the emission
+    (a light is no level for its neighbours' weights); the emitter's own pixels keep the output."""
     rng = np.random.default_rng(6)
     truth = rng.uniform(0.2, 1.0, (40, 40, 3)).astype(np.float32)
     a, b, color = _halves(rng, truth, 0.3)
@@ -43,7 +93,9 @@ def test_emission_is_left_out_and_added_back():
     emission[10:14, 20:30] = 500.0
     plain = noise_blend(out, color, a, b)
     lit = noise_blend(out + emission, color + emission, a + emission, b + emission, emission)
-    np.testing.assert_allclose(lit, plain + emission, rtol=1e-5, atol=1e-4)
+    emitted = (emission != 0).any(axis=-1)
+    np.testing.assert_allclose(lit[~emitted], plain[~emitted] + emission[~emitted], rtol=1e-5, atol=1e-4)
+    np.testing.assert_array_equal(lit[emitted], (out + emission)[emitted])  # the emitter keeps the output
 
 
 def test_weight_is_the_estimated_optimum():
@@ -65,7 +117,8 @@ def test_one_tile_takes_the_analytic_weight():
 def test_constant_and_noise_free_frames_are_unchanged():
     shape = (40, 50, 3)
     constant = np.full(shape, 0.7, np.float32)
-    np.testing.assert_array_equal(noise_blend(constant, constant, constant, constant), constant)
+    halves = constant - np.float32(0.1), constant + np.float32(0.1)  # noisy halves, a denoiser that is right
+    np.testing.assert_allclose(noise_blend(constant + np.float32(1e-3), constant, *halves), 0.7 + 1e-3, rtol=1e-6)
     # halves that agree: the renderer resolved every pixel, and a denoiser that moved them is undone
     rng = np.random.default_rng(2)
     exact = rng.uniform(0, 5, shape).astype(np.float32)
