@@ -21,9 +21,8 @@ it. `detect` picks one for a file from its channel names:
     it grows as 1/cos of the angle off the view axis), averaged over the samples, 0 where nothing was hit
     (read as 1e10, a large finite value as the format asks). A silhouette pixel averages its misses as
     0: it reads nearer than its surface (down to ~0.005 on the fixture), which a depth weight treats as an
-    edge. Else `Depth`: planar depth, 1e10 for misses,
-    and written by sample 0 alone: a render that skips sample 0 (the halves recipe below) has 1e10 in
-    every pixel of it, which the reader notes.
+    edge. Else `Depth`: planar depth, 1e10 for misses, and written by sample 0 alone: a render that
+    skips sample 0 (the halves recipe below) has 1e10 in every pixel of it, which the reader notes.
   - `motion`: `Vector` X and -Y. X, Y is the offset to the previous frame in pixels with y up (Z, W: the
     negated offset to the next frame, unused). Warping the previous frame's reference by it lowers the
     error against the current one; any other sign or axis raises it.
