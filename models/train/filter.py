@@ -87,11 +87,13 @@ def spatiotemporal_filter(
     previous: torch.Tensor | None = None,
     valid: torch.Tensor | None = None,
     radius: int = FILTER_RADIUS,
+    min_alpha: float = 0.0,
 ) -> FilterResult:
     """Eqs. 8-10 in torch; see service.stages.spatiotemporal_filter.spatiotemporal_filter.
 
     params: (N, 6, H, W), network output (5 precisions, alpha). previous: (N, 3, H, W) log1p or None;
-    valid: (N, 1, H, W) bool/float, 1 where `previous` is usable, or None (nowhere).
+    valid: (N, 1, H, W) bool/float, 1 where `previous` is usable, or None (nowhere). min_alpha: the floor
+    of alpha (no gradient below it), as the numpy filter applies it.
     """
     sum_a, w_a, sum_b, w_b = cross_bilateral_sums(pilot_a, pilot_b, albedo, normal, params[:, :N_PRECISIONS], radius)
     spatial_a = sum_a / w_a
@@ -100,7 +102,7 @@ def spatiotemporal_filter(
         color_a, color_b = spatial_a, spatial_b
     else:
         valid = valid.to(params.dtype)
-        alpha = valid * params[:, N_PRECISIONS:] + (1.0 - valid)
+        alpha = valid * params[:, N_PRECISIONS:].clamp_min(min_alpha) + (1.0 - valid)
         history = (1.0 - alpha) * previous
         color_a = alpha * spatial_a + history
         color_b = alpha * spatial_b + history

@@ -53,7 +53,7 @@ def run(
             frame_index, sample = item
             batch = samples_to_tensor(sample)
             for _ in range(int(config["steps_per_frame"])):
-                loss = train_step(net, optimizer, batch)
+                loss = train_step(net, optimizer, batch, float(config["min_alpha"]))
             frames += 1
             outbox.put(("trained", {"frame_index": int(frame_index), "frames": frames, "loss": loss}))
             if frames % int(config["publish_every"]) == 0:

@@ -31,13 +31,14 @@ def samples_to_tensor(samples: list[np.ndarray] | np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(arr.transpose(0, 3, 1, 2), dtype=np.float32))
 
 
-def forward(net: CrossRegUNet, batch: torch.Tensor) -> tuple[torch.Tensor, FilterResult]:
-    """(loss, filter result) for batch (N, 22, H, W) in CROSSREG_SAMPLE order."""
+def forward(net: CrossRegUNet, batch: torch.Tensor, min_alpha: float = 0.0) -> tuple[torch.Tensor, FilterResult]:
+    """(loss, filter result) for batch (N, 22, H, W) in CROSSREG_SAMPLE order; min_alpha: the served
+    filter's floor of alpha (crossreg's option)."""
     s = SLICES
     params = net(batch[:, :N_INPUTS])
     result = spatiotemporal_filter(
         batch[:, s["pilotA"]], batch[:, s["pilotB"]], batch[:, s["albedo"]], batch[:, s["normal"]],
-        params, batch[:, s["previous"]], batch[:, s["valid"]],
+        params, batch[:, s["previous"]], batch[:, s["valid"]], min_alpha=min_alpha,
     )  # fmt: skip
     loss = crossreg_loss(
         result.color_a, result.color_b, batch[:, s["pilotA"]], batch[:, s["pilotB"]],
@@ -46,11 +47,13 @@ def forward(net: CrossRegUNet, batch: torch.Tensor) -> tuple[torch.Tensor, Filte
     return loss, result
 
 
-def train_step(net: CrossRegUNet, optimizer: torch.optim.Optimizer, batch: torch.Tensor) -> float:
-    """One gradient step on `batch`; returns the loss before the step."""
+def train_step(net: CrossRegUNet, optimizer: torch.optim.Optimizer, batch: torch.Tensor,
+               min_alpha: float = 0.0) -> float:
+    """One gradient step on `batch` (through the filter with the floor `min_alpha`); returns the loss
+    before the step."""
     net.train()
     optimizer.zero_grad(set_to_none=True)
-    loss, _ = forward(net, batch)
+    loss, _ = forward(net, batch, min_alpha)
     loss.backward()
     optimizer.step()
     return float(loss.detach())

@@ -53,6 +53,7 @@ class OnlineConfig:
     worker_threads: int = 1  # torch threads of the worker (leaves the other cores to inference)
     seed: int = 0  # crop positions
     alignment: int = 4  # crops are multiples of it (the network's, from the ONNX metadata)
+    min_alpha: float = 0.0  # the served filter's floor of alpha, which training goes through too
 
     def __post_init__(self) -> None:
         for name in ("publish_every", "steps_per_frame", "inbox_frames", "worker_threads", "alignment"):
@@ -60,6 +61,8 @@ class OnlineConfig:
                 raise ValueError(f"online option {name} must be >= 1, got {getattr(self, name)}")
         if self.crop < 0:
             raise ValueError(f"online option crop must be >= 0 (0: whole frame), got {self.crop}")
+        if not 0 <= self.min_alpha <= 1:
+            raise ValueError(f"online option min_alpha must be in [0, 1], got {self.min_alpha}")
         if not self.learning_rate > 0:
             raise ValueError(f"online option learning_rate must be > 0, got {self.learning_rate}")
 

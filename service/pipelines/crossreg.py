@@ -36,7 +36,7 @@ from service.pipelines.options import MAX_THREADS, OptionError, option
 from service.runtime import OnnxModel, WeightError, default_init, weight_names
 from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
 from service.stages.reprojection import ReprojectionParams, reproject
-from service.stages.spatiotemporal_filter import N_PRECISIONS, FilterOutput, screen_history, spatiotemporal_filter
+from service.stages.spatiotemporal_filter import FilterOutput, screen_history, spatiotemporal_filter
 
 log = logging.getLogger(__name__)
 
@@ -151,11 +151,13 @@ def prepare_frame(
     return Prepared(planes, masks[_SCREENED.index("previous")], screened[_PILOTS])
 
 
-def filter_frame(prepared: Prepared, params: np.ndarray) -> FilterOutput:
-    """Stage 4: eqs. 8-10 with the network's output params (6, H, W), in log1p space, on the input planes."""
+def filter_frame(prepared: Prepared, params: np.ndarray, min_alpha: float = 0.0) -> FilterOutput:
+    """Stage 4: eqs. 8-10 with the network's output params (6, H, W), in log1p space, on the input planes,
+    alpha floored at min_alpha."""
     p = prepared.plane_group
     return spatiotemporal_filter(
-        p("pilotA"), p("pilotB"), p("albedo"), p("normal"), params, p("previous"), prepared.valid
+        p("pilotA"), p("pilotB"), p("albedo"), p("normal"), params, p("previous"), prepared.valid,
+        min_alpha=min_alpha,
     )
 
 
@@ -221,7 +223,7 @@ class CrossregPipeline(Pipeline):
             require_torch()
         self._online_config = OnlineConfig(
             publish_every=opt.publish_every, crop=opt.crop, steps_per_frame=opt.steps_per_frame,
-            worker_threads=opt.worker_threads, seed=opt.seed,
+            worker_threads=opt.worker_threads, seed=opt.seed, min_alpha=opt.min_alpha,
         )  # fmt: skip
         self._model: OnnxModel | None = None  # loaded on first use, shared by states that never swap
 
@@ -257,9 +259,7 @@ class CrossregPipeline(Pipeline):
             self._take_published_weights(state)
         prepared = prepare_frame(frame, state.history, screen=self.options.screen)
         params = state.model.run_planes(prepared.planes)
-        if self.options.min_alpha > 0:
-            np.maximum(params[N_PRECISIONS], np.float32(self.options.min_alpha), out=params[N_PRECISIONS])
-        output = filter_frame(prepared, params)
+        output = filter_frame(prepared, params, self.options.min_alpha)
         if state.trainer is not None:
             state.trainer.submit(prepared.sample(), state.frame_index,
                                  wait=LOCKSTEP_TIMEOUT_S if self.options.lockstep else 0.0)

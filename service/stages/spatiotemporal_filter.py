@@ -272,6 +272,7 @@ def spatiotemporal_filter(
     valid: np.ndarray | None = None,
     radius: int = FILTER_RADIUS,
     *,
+    min_alpha: float = 0.0,
     reference: bool = False,
 ) -> FilterOutput:
     """Eqs. 8-10: cross-bilateral spatial means of both pilots, temporal blend, A/B combination.
@@ -283,12 +284,16 @@ def spatiotemporal_filter(
     previous: (3, H, W) float32, the previous output reprojected to this frame, log1p radiance, finite;
         None on the first frame. valid: (H, W) bool, where `previous` is usable; None means nowhere.
     radius: window half-size in pixels, 0 to MAX_RADIUS.
+    min_alpha: floor of alpha in [0, 1] (crossreg's option of that name; the torch twin takes it too, so
+        that online training learns the filter that is served); 0 leaves alpha as the network gave it.
     reference: run the plain-numpy twin instead of numba (slow; for tests).
     Returns FilterOutput (log1p space, planes). Contiguous float32 inputs (views into the network's input
     planes, say) are used without a copy.
     """
     if not 0 <= radius <= MAX_RADIUS:
         raise ValueError(f"filter radius must be in [0, {MAX_RADIUS}], got {radius}")
+    if not 0 <= min_alpha <= 1:
+        raise ValueError(f"min_alpha must be in [0, 1], got {min_alpha}")
     _, height, width = pilot_a.shape
     if previous is None or valid is None:
         previous, valid = np.zeros((3, height, width), np.float32), np.zeros((height, width), bool)
@@ -296,6 +301,9 @@ def spatiotemporal_filter(
     if shapes != [(3, height, width)] * 5 + [(N_PRECISIONS + 1, height, width), (height, width)]:
         raise ValueError(f"spatiotemporal_filter: inconsistent input shapes {shapes}")  # the kernel does not check
     inputs = [np.ascontiguousarray(a, np.float32) for a in (pilot_a, pilot_b, albedo, normal, params, previous)]
+    if min_alpha > 0:
+        inputs[4] = inputs[4].copy()  # the caller's params stay as the network gave them
+        np.maximum(inputs[4][N_PRECISIONS], np.float32(min_alpha), out=inputs[4][N_PRECISIONS])
     out = FilterOutput(
         *(np.empty((3, height, width), np.float32) for _ in range(3)),
         *(np.empty((height, width), np.float32) for _ in range(2)),

@@ -42,6 +42,23 @@ def test_numpy_and_torch_filters_agree(size):
     np.testing.assert_allclose(out.weight_b[0, 0].numpy(), ref.weight_b, rtol=1e-5)
 
 
+@pytest.mark.parametrize("min_alpha", [0.3, 1.0])
+def test_both_filters_floor_alpha_alike(min_alpha):
+    """The floor the served filter applies (crossreg's min_alpha) is the floor online training goes
+    through: numpy with min_alpha = numpy on floored params = torch with min_alpha."""
+    pa, pb, albedo, normal, params, previous, valid = _case(11, 9, seed=3)
+    floored = params.copy()
+    floored[-1] = np.maximum(floored[-1], np.float32(min_alpha))
+    ref = filter_numpy(pa, pb, albedo, normal, floored, previous, valid)
+    got = filter_numpy(pa, pb, albedo, normal, params, previous, valid, min_alpha=min_alpha)
+    np.testing.assert_array_equal(got.color, ref.color)
+    assert (params[-1] < min_alpha).any()  # the floor had work to do (and params were left as they were)
+    assert not np.array_equal(ref.color, filter_numpy(pa, pb, albedo, normal, params, previous, valid).color)
+    out = filter_torch(_t(pa), _t(pb), _t(albedo), _t(normal), _t(params), _t(previous), _t(valid),
+                       min_alpha=min_alpha)
+    np.testing.assert_allclose(out.color[0].numpy(), ref.color, atol=PARITY_ATOL)
+
+
 def test_without_history_torch_matches_numpy():
     pa, pb, albedo, normal, params, _, _ = _case(7, 9, seed=5)
     ref = filter_numpy(pa, pb, albedo, normal, params)

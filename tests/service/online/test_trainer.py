@@ -13,6 +13,7 @@ pytest.importorskip("onnx")
 
 from export.crossreg_unet import export_bytes  # noqa: E402
 from models.nets.crossreg_unet import make_unet  # noqa: E402
+from service import pipelines  # noqa: E402
 from service.layout import CROSSREG_SAMPLE, total_channels  # noqa: E402
 from service.online import trainer as trainer_module  # noqa: E402
 from service.online.trainer import OnlineConfig, OnlineTrainer, OnlineUnavailableError, random_crop  # noqa: E402
@@ -117,3 +118,10 @@ def test_bad_online_options_are_refused():
         OnlineConfig(publish_every=0)
     with pytest.raises(ValueError, match="crop must be >= 0"):
         OnlineConfig(crop=-1)
+    with pytest.raises(ValueError, match=r"min_alpha must be in \[0, 1\]"):
+        OnlineConfig(min_alpha=1.5)
+
+
+def test_the_pipeline_hands_its_floor_to_the_worker():
+    pipeline = pipelines.get("crossreg", min_alpha=0.6)
+    assert pipeline._online_config.min_alpha == 0.6  # the worker trains through the filter that is served
