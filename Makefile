@@ -70,7 +70,7 @@ bench: $(STAMP) bench-data
 
 # Long sequences (docs/benchmarks.md, "Long sequences"): crossreg from its warm start with and without online
 # training, beside its pilots (crossregression), svgf and OIDN-high, over 64 frames of four scenes; the
-# report adds relL2 against the frame index (per_frame.png). One timed pass: the online worker's timing
+# report adds relL2 against the frame index (curves-NAME.png). One timed pass: the online worker's timing
 # varies from run to run anyway.
 BENCH_LONG_DATA ?= out/bench-long-data
 BENCH_LONG_OUT ?= out/bench-long/report

@@ -3,8 +3,10 @@ reference-free error estimate (service/stages/error_estimate.py) ranks denoisers
 
 Per sequence, every candidate runs twice through its own state: on the frames as they are, giving f(C),
 and on frames whose `color` is half A alone (the halves removed), giving f(A). Per frame and tile:
-- the estimate as `auto` makes it (service/pipelines/tiled.py): `tile_error(f(A), colorA, colorB, scale,
-  cap=FIREFLY_CAP)`, scale the median of the candidates' f(A);
+- the estimate auto's is made of (service/pipelines/tiled.py): `tile_error(f(A), colorA, colorB, scale,
+  cap=FIREFLY_CAP)`, scale the median of the candidates' f(A). Not auto's exact estimate: here f(A) runs
+  every frame through its own state (a temporal candidate with its history), while auto runs it from a
+  fresh state every `every` frames and averages with the previous evaluation;
 - the truth: the tile's relL2 of f(C) against the reference (what a per-tile choice would serve), and of
   f(A) (what the estimate estimates).
 Printed per sequence: Spearman's rank correlation between estimate and truth over the (frame, tile) pairs

@@ -289,7 +289,7 @@ def html_report(results: dict[str, Any], runs: list[SequenceRun]) -> str:
             f"(the window with the most detail in the reference), exposure {exposure:.3g}.</p>",
             '<div class="crops">' + "".join(figures) + "</div>",
             _table_html(sequence_table(seq)),
-            f'<img src="{_png_uri(_curves_png(seq))}" alt="per-frame errors" style="max-width:1000px">',
+            f'<img src="curves-{html.escape(seq["name"])}.png" alt="per-frame errors" style="max-width:1000px">',
         ]
     style = (
         "body{font-family:sans-serif;margin:1.5em;max-width:1400px}"

@@ -51,6 +51,7 @@ def test_benchmark_writes_all_four_outputs(tiny_sequence_dir: Path, tmp_path: Pa
     assert paths["pareto.png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert paths[f"curves-{tiny_sequence_dir.name}.png"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert f"(curves-{tiny_sequence_dir.name}.png)" in md
+    assert f'src="curves-{tiny_sequence_dir.name}.png"' in page  # rendered once, beside the report
 
 
 def test_sequence_without_reference_is_refused(tmp_path: Path) -> None:

@@ -67,7 +67,7 @@ def test_with_halves_it_chooses_per_tile_reevaluates_every_k_frames_and_outputs_
     for out in outs:
         assert out["color"].shape == (40, 72, 3) and np.isfinite(out["color"]).all()
         assert out["error"].shape == (40, 72, 1) and out["error"].dtype == np.float32
-    np.testing.assert_array_equal(outs[-1]["error"], state.error)  # the last evaluation's, not a fresh one
+    np.testing.assert_array_equal(outs[3]["error"], outs[2]["error"])  # frame 3 keeps frame 2's evaluation
     chosen = np.take_along_axis(state.estimate, state.choice[None], axis=0)[0]
     np.testing.assert_allclose(outs[-1]["error"][0, 0, 0], max(chosen[0, 0], 0.0), rtol=1e-6)  # before the 1st centre
     # each frame is the weighted blend of the chosen candidates, each stepped on the frame from its own state
@@ -108,3 +108,39 @@ def test_an_error_pass_in_an_input_file_is_ignored(tmp_path, frames):
     channels["error"] = OpenEXR.Channel(np.ones((40, 72, 3), np.float32))  # a renderer's own RGB 'error' AOV
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels).write(str(path))
     assert set(read_frame(path).buffers) == {"color"}
+
+
+def test_two_chosen_candidates_are_blended_by_their_tile_weights(frames, monkeypatch):
+    """Left tiles to the first candidate, the rest to the second: every frame is their outputs (each run
+    alone from the sequence's start) weighted by `tile_weights`."""
+
+    def split(estimate, tolerance):
+        choice = np.ones(estimate.shape[1:], np.int64)
+        choice[:, :2] = 0
+        return choice
+
+    monkeypatch.setattr(tiled, "choose", split)
+    outs, state = _run(pipelines.get("auto", tile=16), frames)
+    weights = tile_weights(state.choice, len(CANDIDATES), 16, 40, 72)
+    alone = [_run(pipelines.get(name), frames)[0] for name in CANDIDATES[:2]]
+    for index, out in enumerate(outs):
+        expected = sum(weights[k][..., None] * alone[k][index]["color"] for k in range(2))
+        np.testing.assert_allclose(out["color"], expected, rtol=1e-5, atol=1e-6)
+
+
+def test_each_evaluation_averages_with_the_previous_estimate(frames, monkeypatch):
+    from service.stages.error_estimate import TileError
+
+    calls = []
+
+    def fake(out, color_a, color_b, scale, tile, cap=None):
+        calls.append(len(calls))
+        value = np.full((3, 5), float(len(calls)))  # 1, 2, 3, ... per candidate call
+        return TileError(value, np.zeros_like(value), tile)
+
+    monkeypatch.setattr(tiled, "tile_error", fake)
+    _, state = _run(pipelines.get("auto", tile=16, every=2), frames[:3])  # evaluations at frames 0 and 2
+    k = len(CANDIDATES)
+    first = np.arange(1, k + 1, dtype=float)
+    second = np.arange(k + 1, 2 * k + 1, dtype=float)
+    np.testing.assert_allclose(state.estimate[:, 0, 0], 0.5 * (first + second))
