@@ -168,10 +168,10 @@ def _accumulate(scratch, acc, i0, i1, centre, neighbour, precisions, pos):  # pr
 
 @numba.njit(inline="always", fastmath=True, cache=True)
 def _finish(
-    acc, params, previous, valid, y, t0, count, color, color_a, color_b, weight_a, weight_b
+    acc, params, min_alpha, previous, valid, y, t0, count, color, color_a, color_b, weight_a, weight_b
 ):  # pragma: no cover - jitted
     """Eqs. 8 and 10 for the tile's centres (t0 + i, i < count) of row y, from the sums in acc (row views
-    and unsigned indices, so the loops vectorize)."""
+    and unsigned indices, so the loops vectorize); alpha at least min_alpha."""
     alpha_row, valid_row = params[N_PRECISIONS, y, t0:], valid[y, t0:]
     sums_wa, sums_wb = acc[3 * _STRIDE :], acc[7 * _STRIDE :]
     for c in range(3):
@@ -180,7 +180,7 @@ def _finish(
         for i in range(count):
             i = _U(i)
             wa, wb = sums_wa[i], sums_wb[i]
-            alpha = alpha_row[i] if valid_row[i] else _F32(1.0)
+            alpha = max(alpha_row[i], min_alpha) if valid_row[i] else _F32(1.0)
             kept = (_F32(1.0) - alpha) * history[i]
             a = alpha * (sums_a[i] / wa) + kept
             b = alpha * (sums_b[i] / wb) + kept
@@ -192,7 +192,8 @@ def _finish(
 
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
 def _filter_kernel(
-    pilot_a, pilot_b, albedo, normal, params, previous, valid, radius, color, color_a, color_b, weight_a, weight_b
+    pilot_a, pilot_b, albedo, normal, params, min_alpha, previous, valid, radius, color, color_a, color_b, weight_a,
+    weight_b,
 ):  # pragma: no cover - jitted
     """Bands of rows in parallel, each in tiles of columns; arguments as `_filter_reference`."""
     _, height, width = pilot_a.shape
@@ -224,11 +225,13 @@ def _filter_kernel(
                         i0, i1 = max(0, -dx - t0), min(count, width - dx - t0)
                         centre, neighbour = (y % slots) * slot + pad, (yy % slots) * slot + pad + dx
                         _accumulate(scratch, acc, i0, i1, centre, neighbour, precisions, pos)
-                _finish(acc, params, previous, valid, y, t0, count, color, color_a, color_b, weight_a, weight_b)
+                _finish(acc, params, min_alpha, previous, valid, y, t0, count, color, color_a, color_b, weight_a,
+                        weight_b)
 
 
 def _filter_reference(
-    pilot_a, pilot_b, albedo, normal, params, previous, valid, radius, color, color_a, color_b, weight_a, weight_b
+    pilot_a, pilot_b, albedo, normal, params, min_alpha, previous, valid, radius, color, color_a, color_b, weight_a,
+    weight_b,
 ) -> None:
     """Plain-numpy twin of `_filter_kernel`: whole-plane shifts over the window and np.exp.
 
@@ -255,7 +258,7 @@ def _filter_reference(
             sums[(slice(first, first + 3), *centre)] += weight * pilot[(slice(None), *neighbour)]
             sums[(first + 3, *centre)] += weight
     weight_a[:], weight_b[:] = sums[3], sums[7]
-    alpha = np.where(valid, params[N_PRECISIONS], np.float32(1.0))
+    alpha = np.where(valid, np.maximum(params[N_PRECISIONS], min_alpha), np.float32(1.0))
     history = (np.float32(1.0) - alpha) * previous
     color_a[:] = alpha * (sums[0:3] / weight_a) + history
     color_b[:] = alpha * (sums[4:7] / weight_b) + history
@@ -301,16 +304,13 @@ def spatiotemporal_filter(
     if shapes != [(3, height, width)] * 5 + [(N_PRECISIONS + 1, height, width), (height, width)]:
         raise ValueError(f"spatiotemporal_filter: inconsistent input shapes {shapes}")  # the kernel does not check
     inputs = [np.ascontiguousarray(a, np.float32) for a in (pilot_a, pilot_b, albedo, normal, params, previous)]
-    if min_alpha > 0:
-        inputs[4] = inputs[4].copy()  # the caller's params stay as the network gave them
-        np.maximum(inputs[4][N_PRECISIONS], np.float32(min_alpha), out=inputs[4][N_PRECISIONS])
     out = FilterOutput(
         *(np.empty((3, height, width), np.float32) for _ in range(3)),
         *(np.empty((height, width), np.float32) for _ in range(2)),
     )
     run = _filter_reference if reference else _filter_kernel
-    run(*inputs, np.ascontiguousarray(valid, bool), int(radius), out.color, out.color_a, out.color_b,
-        out.weight_a, out.weight_b)  # fmt: skip
+    run(*inputs[:5], np.float32(min_alpha), inputs[5], np.ascontiguousarray(valid, bool), int(radius),
+        out.color, out.color_a, out.color_b, out.weight_a, out.weight_b)  # fmt: skip
     return out
 
 
