@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from service.api.core.config import Settings, usable_cpus
     from service.cli.serve import warn_if_open
     from service.cluster import replicas
-    from service.cluster.haproxy import ProxyOptions, render
+    from service.cluster.haproxy import ProxyOptions, Replica, render
 
     settings = Settings.from_env()  # refuse bad settings before starting anything (exit 2)
     if not 1 <= args.replicas <= MAX_REPLICAS:
@@ -61,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
             path.write_text(config)
             proxy = subprocess.Popen([haproxy, "-f", str(path), "-db"])
             processes.insert(0, proxy)
+            front = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
+            replicas.wait_ready([replicas.Running(Replica("haproxy", f"{front}:{args.port}"), proxy)],
+                                args.start_timeout)  # /readyz through HAProxy: it listens and routes
             for r in running:
                 print(f"replica {r.replica.name}: pid {r.process.pid}, http://{r.replica.address}", flush=True)
             print(f"cluster: {args.replicas} replicas behind http://{args.host}:{args.port}"
