@@ -34,7 +34,7 @@ demo: $(STAMP)
 lint: $(STAMP)
 	$(PY) -m ruff check service models export bench tests
 
-test: $(STAMP) lint
+test: $(STAMP) lint haproxy
 	$(PY) -m pytest
 
 clean:
@@ -91,7 +91,7 @@ bench-long: $(STAMP) bench-long-data
 DATA_OUT ?= data
 DATA_ARGS ?= --sequences-per-scene 4 --frames 8 --size 128x128 --spp 2 4 8 --ref-spp 1024
 
-.PHONY: data llvm
+.PHONY: data llvm haproxy
 
 data: $(STAMP) llvm
 	$(PY) -m models.data dataset --out $(DATA_OUT)/train $(DATA_ARGS)
@@ -106,3 +106,13 @@ llvm:
 		(apt-get update -qq && apt-get install -y -qq libllvm19) \
 			|| echo "llvm: apt-get install libllvm19 failed; rendering falls back to scalar_rgb"; \
 	else echo "llvm: LLVM 19 not found and not installable here (needs apt and root); rendering uses scalar_rgb"; fi
+
+# `python -m service cluster` puts HAProxy (Debian: haproxy) in front of its replicas. Best effort, like llvm:
+# installed with apt when missing and running as root; otherwise the cluster test is skipped, saying why.
+haproxy:
+	@if command -v haproxy >/dev/null 2>&1; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+		echo "haproxy: installing the haproxy package for python -m service cluster"; \
+		(apt-get update -qq && apt-get install -y -qq haproxy) \
+			|| echo "haproxy: apt-get install haproxy failed; python -m service cluster and its test need it"; \
+	else echo "haproxy: not found and not installable here (needs apt and root); python -m service cluster needs it"; fi

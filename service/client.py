@@ -8,6 +8,10 @@
 Uses only the standard library for HTTP (one keep-alive connection) and `websockets` (installed with
 uvicorn[standard]) for the stream. Errors from the service raise `ServiceError` (REST) or are
 yielded/returned in a frame's place (stream), carrying the service's code, message and layer.
+
+Behind `python -m service cluster` a session dies with its replica (`410 session_lost`). With
+`reopen_lost=True` a session opens a new one with the same request and resends the frame instead of
+raising; the history of a temporal pipeline and any online-training state start afresh (`reopens` counts).
 """
 
 from __future__ import annotations
@@ -141,13 +145,13 @@ class Client:
 
     def session(self, pipeline: str, width: int, height: int, *, options: dict[str, Any] | None = None,
                 online: bool = False, channel_map: dict[str, Any] | None = None,
-                view_layer: str | None = None) -> Session:
+                view_layer: str | None = None, reopen_lost: bool = False) -> Session:
         """Open a session for one sequence of `width` x `height` frames; `channel_map` (its JSON object) and
-        `view_layer` say how the server reads the frames' channels (service/dialects.py)."""
-        info = self.json("POST", "/v1/sessions", {"pipeline": pipeline, "width": width, "height": height,
-                                                 "options": options or {}, "online": online,
-                                                 "channel_map": channel_map, "view_layer": view_layer})
-        return Session(self, info)
+        `view_layer` say how the server reads the frames' channels (service/dialects.py). `reopen_lost`: replace
+        a session lost with its replica by a new one (its history restarts) instead of raising."""
+        request = {"pipeline": pipeline, "width": width, "height": height, "options": options or {},
+                   "online": online, "channel_map": channel_map, "view_layer": view_layer}
+        return Session(self, self.json("POST", "/v1/sessions", request), request, reopen_lost=reopen_lost)
 
 
 @dataclass(frozen=True)
@@ -159,11 +163,33 @@ class StreamResult:
 class Session:
     """One sequence on the service; frames go in order through REST (`denoise`) or a WebSocket (`stream`)."""
 
-    def __init__(self, client: Client, info: dict[str, Any]):
+    def __init__(self, client: Client, info: dict[str, Any], request: dict[str, Any], *, reopen_lost: bool = False):
         self.client = client
+        self.request = request  # the POST /v1/sessions body that opened it
+        self.reopen_lost = reopen_lost
+        self.reopens = 0  # sessions opened again after `session_lost`
+        self._use(info)
+
+    def _use(self, info: dict[str, Any]) -> None:
         self.id: str = info["id"]
         self.info = info
         self._path = f"/v1/sessions/{quote(self.id, safe='')}"
+
+    def _reopen_after(self, error: ServiceError) -> bool:
+        """Whether `error` lost the session and a new one is open now (only with `reopen_lost`). A 502 (the
+        replica failed mid-request) is a loss when the session's status answers `session_lost`."""
+        if not self.reopen_lost or error.code not in ("session_lost", "replica_failed"):
+            return False
+        if error.code == "replica_failed":
+            try:
+                self.status()
+                return False
+            except ServiceError as again:
+                if again.code != "session_lost":
+                    return False
+        self._use(self.client.json("POST", "/v1/sessions", self.request))
+        self.reopens += 1
+        return True
 
     def __enter__(self) -> Session:
         return self
@@ -184,22 +210,25 @@ class Session:
         return self.client.json("DELETE", self._path)
 
     def denoise(self, frame: FrameSource) -> bytes:
-        """The next frame over REST: denoised EXR bytes (raises ServiceError; the session goes on)."""
-        return self.client.request("POST", f"{self._path}/frames", _read(frame), {"Content-Type": EXR})[2]
+        """The next frame over REST: denoised EXR bytes (raises ServiceError; the session goes on). With
+        `reopen_lost`, a lost session is opened again and the frame sent to the new one."""
+        data = _read(frame)
+        try:
+            return self.client.request("POST", f"{self._path}/frames", data, {"Content-Type": EXR})[2]
+        except ServiceError as error:
+            if not self._reopen_after(error):
+                raise
+            return self.client.request("POST", f"{self._path}/frames", data, {"Content-Type": EXR})[2]
 
     def stream(self, frames: Iterable[FrameSource], *, window: int = 4) -> Iterator[bytes | ServiceError]:
         """Send `frames` over the WebSocket, at most `window` ahead of the answers; yields, in order, the
-        denoised EXR bytes of each frame or the ServiceError that took its place."""
-        from websockets.sync.client import connect  # lazily: REST use needs no websockets
-
-        parts = self.client._parts
-        scheme = "wss" if parts.scheme == "https" else "ws"
-        url = f"{scheme}://{parts.netloc}{self._path}/stream"
+        denoised EXR bytes of each frame or the ServiceError that took its place. With `reopen_lost`, a lost
+        session refused at the handshake is opened again; a stream cut by its replica's death raises
+        websockets' ConnectionClosed: stream the frames not answered again, and the session reopens then."""
         pending = 0
         source = iter(frames)
         exhausted = False
-        with connect(url, additional_headers=self.client.headers(), max_size=None, compression=None,
-                     open_timeout=self.client.timeout, close_timeout=5) as ws:
+        with self._connect() as ws:
             while True:
                 while not exhausted and pending < max(1, window):
                     frame = next(source, None)
@@ -213,6 +242,26 @@ class Session:
                 message = ws.recv(timeout=self.client.timeout)
                 pending -= 1
                 yield message if isinstance(message, bytes) else ServiceError.from_body(0, message)
+
+    def _connect(self):
+        """The session's WebSocket, open (a lost session reopened first, with `reopen_lost`)."""
+        from websockets.exceptions import InvalidStatus
+        from websockets.sync.client import connect  # lazily: REST use needs no websockets
+
+        parts = self.client._parts
+        scheme = "wss" if parts.scheme == "https" else "ws"
+
+        def open_stream():
+            return connect(f"{scheme}://{parts.netloc}{self._path}/stream", additional_headers=self.client.headers(),
+                           max_size=None, compression=None, open_timeout=self.client.timeout, close_timeout=5)
+
+        try:
+            return open_stream()
+        except InvalidStatus as refused:
+            answer = refused.response
+            if not self._reopen_after(ServiceError.from_body(answer.status_code, answer.body or b"")):
+                raise
+        return open_stream()
 
     def stream_folder(self, in_dir: str | Path, out_dir: str | Path, *, window: int = 4,
                       second_half: str | Path | None = None) -> list[StreamResult]:

@@ -100,7 +100,7 @@ async def open_session(services: Services, spec: SessionSpec, owner: str | None)
     """Create a session (429 when the store is full; pipeline construction runs in the pool)."""
     codec.check_size(spec.width, spec.height, services.settings.max_width, services.settings.max_height)
     with services.sessions.reserve():
-        session = await services.pool.run(build_session, spec, owner)
+        session = await services.pool.run(build_session, spec, owner, services.sessions.new_id())
         services.sessions.add(session)
     services.metrics.session_started()
     return session

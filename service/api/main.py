@@ -15,6 +15,7 @@ from service.api.core import errors
 from service.api.core.config import Settings
 from service.api.deadline import BodyDeadline
 from service.api.deps import authenticate
+from service.api.replica import ReplicaHeader
 from service.api.routes import denoise, docs, health, metrics, pipelines, sessions, stream
 from service.api.state import Services
 from service.process import configure
@@ -50,6 +51,7 @@ calls it in each worker process), so it applies `service.process.configure()`.""
     )
     errors.install(app)
     app.add_middleware(BodyDeadline, seconds=settings.client_timeout_s)
+    app.add_middleware(ReplicaHeader, replica_id=settings.replica_id)  # outermost: on every answer
     app.include_router(health.router)
     protected = [Depends(authenticate)]
     for module in (pipelines, denoise, sessions, stream, metrics, docs):

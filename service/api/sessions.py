@@ -1,9 +1,13 @@
 """Sessions: one pipeline state per sequence, its ordering lock, statistics, owner and idle expiry.
 
-A session is the only place where the service keeps per-sequence state. Its id is 256 random bits
-(URL-safe base64), so it cannot be guessed; when auth is on it also records a fingerprint of the API
-key that created it and is invisible (404) to any other key. Sessions live in one process: with
-several uvicorn workers a client must reach the same process for all requests of a session.
+A session is the only place where the service keeps per-sequence state. Its id is
+`<replica>.<instance>.<token>`: the replica id (MCDENOISE_REPLICA_ID), 32 random bits drawn when this
+process's store starts, and 256 random bits (URL-safe base64), so it cannot be guessed. A load balancer
+routes a session's requests by the replica part (docs/cluster.md). An id of another replica or of an
+earlier instance of this one names a session this process cannot hold: the replica that held it died
+or restarted, and it answers `410 session_lost`. When auth is on a session also records a fingerprint
+of the API key that created it and is invisible (404) to any other key. Sessions live in one process:
+with several uvicorn workers a client must reach the same process for all requests of a session.
 
 The online-training seam (service/online/, pipeline `crossreg`): a session's `online` flag becomes the
 pipeline option `online`, refused for pipelines that have no such option; the state's
@@ -26,7 +30,8 @@ from typing import Any
 import numpy as np
 
 from service import pipelines
-from service.api.core.errors import ApiError, InvalidOptionsError, UnknownSessionError
+from service.api.core.config import REPLICA_ID
+from service.api.core.errors import ApiError, InvalidOptionsError, SessionLostError, UnknownSessionError
 from service.dialects import ChannelMap
 from service.pipelines import Pipeline, SequenceState
 
@@ -98,7 +103,7 @@ class Session:
         }
 
 
-def build_session(spec: SessionSpec, owner: str | None) -> Session:
+def build_session(spec: SessionSpec, owner: str | None, session_id: str) -> Session:
     """A new session: the pipeline with its options and a fresh state (CPU work: run it in the pool).
 
     Raises UnknownPipelineError, or InvalidOptionsError for options the pipeline refuses or a channel map
@@ -122,7 +127,13 @@ def build_session(spec: SessionSpec, owner: str | None) -> Session:
         state = pipeline.start(spec.height, spec.width)
     except ValueError as err:  # OptionError: a value outside its declared range, or weights that do not load
         raise InvalidOptionsError(str(err).splitlines()[0], getattr(err, "option", None)) from err
-    return Session(secrets.token_urlsafe(32), spec, pipeline, state, owner, mapping)
+    return Session(session_id, spec, pipeline, state, owner, mapping)
+
+
+def replica_of(session_id: str) -> str | None:
+    """The replica id a session id names (its part before the first '.'), or None for an id of another form."""
+    replica, instance, token = (session_id.split(".", 2) + ["", ""])[:3]
+    return replica if REPLICA_ID.fullmatch(replica) and instance and token else None
 
 
 def close_state(session: Session) -> None:
@@ -136,9 +147,11 @@ def close_state(session: Session) -> None:
 class SessionStore:
     """The live sessions of this process, bounded in number, expiring when idle."""
 
-    def __init__(self, max_sessions: int, idle_timeout_s: float):
+    def __init__(self, max_sessions: int, idle_timeout_s: float, replica_id: str):
         self.max_sessions = max_sessions
         self.idle_timeout_s = idle_timeout_s
+        self.replica_id = replica_id
+        self.prefix = f"{replica_id}.{secrets.token_hex(4)}."  # of every id this store makes
         self._sessions: dict[str, Session] = {}
         self._reserved = 0  # sessions being built
         self.rejected = 0  # creations answered 429 since start
@@ -164,12 +177,19 @@ class SessionStore:
         finally:
             self._reserved -= 1
 
+    def new_id(self) -> str:
+        """A fresh session id: this store's prefix and 256 random bits."""
+        return self.prefix + secrets.token_urlsafe(32)
+
     def add(self, session: Session) -> None:
         self._sessions[session.id] = session
 
     def get(self, session_id: str, owner: str | None) -> Session:
-        """The live session `session_id` of `owner`; UnknownSessionError otherwise (also for another owner)."""
+        """The live session `session_id` of `owner`; SessionLostError for an id made by another replica or an
+        earlier instance of this one, UnknownSessionError otherwise (also for another owner)."""
         session = self._sessions.get(session_id)
+        if session is None and not session_id.startswith(self.prefix) and replica_of(session_id):
+            raise SessionLostError(session_id, replica_of(session_id), self.replica_id)
         if session is None or session.ended or session.owner != owner:
             raise UnknownSessionError(session_id)
         session.last_used = time.monotonic()

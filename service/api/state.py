@@ -36,7 +36,7 @@ class Services:
         services = cls(
             settings,
             WorkerPool(settings.worker_threads, settings.max_inflight, settings.retry_after_s),
-            SessionStore(settings.max_sessions, settings.session_idle_s),
+            SessionStore(settings.max_sessions, settings.session_idle_s, settings.replica_id),
         )
         loop = asyncio.get_running_loop()
         services._expiry = loop.create_task(services._expire_forever())

@@ -18,6 +18,7 @@ COMMANDS = (
     ("inspect", "inspect_exr", "layers, channel types, size and value statistics of an EXR file"),
     ("warm", "warm", "compile the numba kernels of pipelines ahead of their first frame (cached per machine)"),
     ("serve", "serve", "serve every pipeline over HTTP: REST frames, sessions, WebSocket streams"),
+    ("cluster", "cluster", "N `serve` replicas behind HAProxy: sticky sessions, stateless frames spread"),
     ("stream", "stream", "stream a sequence folder through a running service, write the results"),
 )
 

@@ -6,6 +6,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from service.api.core.config import Settings
 
 WS_SLACK_BYTES = 1024 * 1024  # a WebSocket message may exceed the body limit by this before uvicorn drops it
 # Where one frame's thread count goes: ONNX Runtime sessions (service.runtime reads MCDENOISE_ORT_THREADS),
@@ -33,10 +37,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--workers must be at least 1, got {args.workers}")
     if args.workers > 1:
         print(f"note: {args.workers} worker processes: sessions live in one process each, so session "
-              "requests must reach the process that created the session", file=sys.stderr)
-    if not settings.api_keys and args.host not in ("127.0.0.1", "localhost", "::1"):
-        print(f"warning: serving on {args.host} without MCDENOISE_API_KEY: anyone who reaches it can use it",
-              file=sys.stderr)
+              "requests must reach the process that created the session (or use `cluster`)", file=sys.stderr)
+    warn_if_open(settings, args.host)
     limit_threads(settings.frame_threads)
     uvicorn.run(
         "service.api.main:create_app",
@@ -52,6 +54,13 @@ def run(args: argparse.Namespace) -> int:
         http=header_deadline_protocol(settings.client_timeout_s),
     )
     return 0
+
+
+def warn_if_open(settings: Settings, host: str) -> None:
+    """Warn on stderr when `host` is not loopback and no API key is set."""
+    if not settings.api_keys and host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"warning: serving on {host} without MCDENOISE_API_KEY: anyone who reaches it can use it",
+              file=sys.stderr)
 
 
 def limit_threads(n: int) -> None:

@@ -9,6 +9,8 @@ variable, before the server starts. Auth is off only when MCDENOISE_API_KEY is n
 from __future__ import annotations
 
 import os
+import re
+import socket
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from functools import cached_property
@@ -20,13 +22,16 @@ from service.runtime import WEIGHTS_DIR_ENV
 
 PREFIX = "MCDENOISE_"
 MIN_KEY_LENGTH = 16  # characters; shorter keys are guessable
+# A replica id: a DNS label without dots (it is the first dot-separated part of a session id), at most 63 characters.
+REPLICA_ID = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9_-]{0,61}[A-Za-z0-9])?")
 
 
 class SettingsError(ValueError):
     """An environment variable with a value the service refuses."""
 
 
-def _cpus() -> int:
+def usable_cpus() -> int:
+    """The CPUs this process may run on."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux
@@ -56,6 +61,9 @@ class Settings:
     # `default` names the API's default pipeline (pipelines.DEFAULT)
     channel_map: str = ""  # a JSON channel map file (service/dialects.py) for frames without one of their session
     view_layer: str = ""  # the Blender view layer to read from files with several, for frames without a session's
+    # this replica's id, named by its session ids and X-Replica answers (docs/cluster.md); "" = the host name's
+    # first label (a StatefulSet pod's name, a container's id)
+    replica_id: str = ""
 
     def __post_init__(self) -> None:
         if self.channel_map:
@@ -92,10 +100,14 @@ class Settings:
                 pipelines.pipeline_class(name)
             except pipelines.UnknownPipelineError as error:
                 raise SettingsError(f"{PREFIX}WARMUP: {error}") from None
+        object.__setattr__(self, "replica_id", self.replica_id.strip() or socket.gethostname().split(".")[0])
+        if not REPLICA_ID.fullmatch(self.replica_id):
+            raise SettingsError(f"{PREFIX}REPLICA_ID must be 1 to 63 letters, digits, '-' or '_' (no '.'), starting "
+                                f"and ending with a letter or digit, got {self.replica_id!r}")
         # Resolve the automatic values once, so every reader sees the same numbers.
-        workers = self.worker_threads or _cpus()
+        workers = self.worker_threads or usable_cpus()
         object.__setattr__(self, "worker_threads", workers)
-        object.__setattr__(self, "frame_threads", self.frame_threads or max(1, _cpus() // workers))
+        object.__setattr__(self, "frame_threads", self.frame_threads or max(1, usable_cpus() // workers))
         object.__setattr__(self, "max_inflight", self.max_inflight or 4 * workers)
         if self.max_inflight < workers:
             raise SettingsError(f"{PREFIX}MAX_INFLIGHT ({self.max_inflight}) must be at least "

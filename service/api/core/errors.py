@@ -72,6 +72,16 @@ class UnknownSessionError(Exception):
         super().__init__(f"unknown session '{shown}' (never created, ended, or expired)")
 
 
+class SessionLostError(Exception):
+    """A session id made by another replica, or by an earlier instance of this one: its state is gone."""
+
+    def __init__(self, session_id: str, holder: str, replica_id: str):
+        shown = session_id if len(session_id) <= 64 else session_id[:64] + "..."
+        where = "an earlier instance of this replica" if holder == replica_id else f"replica '{holder}'"
+        super().__init__(f"session '{shown}' is lost: {where} held it and stopped or restarted (this is replica "
+                         f"'{replica_id}'); open a new session, whose history starts afresh")
+
+
 def to_api_error(exc: Exception) -> ApiError:
     """Map an exception raised while serving a request to the answer it gets (status 500 when unexpected)."""
     if isinstance(exc, ApiError):
@@ -86,6 +96,8 @@ def to_api_error(exc: Exception) -> ApiError:
         return ApiError(400, "invalid_options", str(exc), option=exc.option)
     if isinstance(exc, UnknownSessionError):
         return ApiError(404, "unknown_session", str(exc))
+    if isinstance(exc, SessionLostError):
+        return ApiError(410, "session_lost", str(exc))
     if isinstance(exc, ClientDisconnect):  # nobody reads this answer
         return ApiError(400, "client_disconnected", "the client went away before its request was read")
     return ApiError(500, "internal_error", f"internal error: {type(exc).__name__}",
@@ -142,7 +154,7 @@ def _unparsable(cause: BaseException) -> Exception:
 def install(app: FastAPI) -> None:
     """Register the handlers: domain errors, request validation, plain HTTP errors, anything else (500)."""
     for kind in (ApiError, InvalidExrError, FrameError, UnknownPipelineError, InvalidOptionsError,
-                 UnknownSessionError, ClientDisconnect):
+                 UnknownSessionError, SessionLostError, ClientDisconnect):
         app.add_exception_handler(kind, _domain_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)

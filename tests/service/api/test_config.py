@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import socket
+
 import pytest
 
 from service import pipelines
@@ -13,6 +15,7 @@ def test_defaults_and_automatic_values():
     assert (s.max_body_mb, s.max_width, s.max_height, s.max_sessions, s.session_idle_s) == (256, 4096, 4096, 16, 300.0)
     assert s.worker_threads >= 1 and s.frame_threads >= 1 and s.max_inflight == 4 * s.worker_threads
     assert s.api_keys == () and s.public()["auth"] == "off" and "api_key" not in s.public()
+    assert s.replica_id == socket.gethostname().split(".")[0] and Settings(replica_id=" r7 ").replica_id == "r7"
 
 
 def test_values_from_the_environment():
@@ -32,6 +35,8 @@ def test_values_from_the_environment():
     ({"MCDENOISE_WORKER_THREADS": "4", "MCDENOISE_MAX_INFLIGHT": "2"},
      "MCDENOISE_MAX_INFLIGHT (2) must be at least MCDENOISE_WORKER_THREADS (4)"),
     ({"MCDENOISE_MAX_BODY_MB": "5000"}, "MCDENOISE_MAX_BODY_MB must be at most 4096, got 5000"),
+    ({"MCDENOISE_REPLICA_ID": "r.1"}, "MCDENOISE_REPLICA_ID must be 1 to 63 letters, digits, '-' or '_' (no '.')"),
+    ({"MCDENOISE_REPLICA_ID": "-r1"}, "MCDENOISE_REPLICA_ID must be 1 to 63 letters"),
     ({"MCDENOISE_WARMUP": "flr, nope"}, "MCDENOISE_WARMUP: unknown pipeline 'nope'; available: auto, bilateral"),
 ])
 def test_unsafe_values_are_refused(env, message):
