@@ -83,6 +83,13 @@ RAE_OUTPUTS: tuple[ChannelGroup, ...] = (
     ChannelGroup("radiance", 3, TRANSFORM_LOG1P_DEMODULATED, "denoised radiance without emission, demodulated"),
 )
 
+# Fast local neural regression (Salmi et al.): the guide network reads the recurrent autoencoder's inputs
+# (RAE_INPUTS) and writes the guides of the regression, which standardises them per frame (any units).
+FLNR_GUIDES = 4  # guides, all the regression sees: normal and relative depth as the network transformed them
+FLNR_OUTPUTS: tuple[ChannelGroup, ...] = (
+    ChannelGroup("guides", FLNR_GUIDES, TRANSFORM_NONE, "FLR guides: normal, relative depth, plus what was learned"),
+)
+
 
 def total_channels(groups: Sequence[ChannelGroup]) -> int:
     return sum(g.channels for g in groups)

@@ -1,6 +1,7 @@
 """One module per network (shared ARCHITECTURE.md)."""
 
 from collections.abc import Callable
+from dataclasses import asdict
 from typing import TypeVar
 
 import torch
@@ -22,3 +23,9 @@ def seeded(make: Callable[[], Net], seed: int | None) -> Net:
     with torch.random.fork_rng():
         torch.manual_seed(seed)
         return make()
+
+
+def state_for(net: nn.Module) -> dict:
+    """{'config': constructor args (the network's `config` dataclass), 'state_dict': weights}: what a checkpoint
+    stores of a network."""
+    return {"config": asdict(net.config), "state_dict": net.state_dict()}

@@ -28,7 +28,7 @@ The input and output contract (channel groups, transforms) is service.layout.RAE
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -148,11 +148,6 @@ def make_rae(config: RaeConfig | None = None, *, seed: int | None = None) -> Rec
 
 def config_from_dict(values: dict) -> RaeConfig:
     return RaeConfig(**{**values, "widths": tuple(values["widths"])})
-
-
-def state_for(net: RecurrentAutoencoder) -> dict:
-    """{'config': constructor args, 'state_dict': weights}: what a checkpoint stores of the network."""
-    return {"config": asdict(net.config), "state_dict": net.state_dict()}
 
 
 def load_network(ckpt: dict) -> RecurrentAutoencoder:

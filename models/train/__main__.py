@@ -1,6 +1,6 @@
 """`python -m models.train NET --data DIR --val DIR --out DIR [--steps N] [--resume]`: train an offline network.
 
-NET is one of models.train.train.RECIPES (`rae`). DIR folders hold sequence folders rendered by
+NET is one of models.train.train.RECIPES (`rae`, `flnr`). DIR folders hold sequence folders rendered by
 `python -m models.data dataset`. See models/train/train.py for what the output folder holds.
 """
 

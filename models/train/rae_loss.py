@@ -82,8 +82,14 @@ class LossTerms:
 def rae_loss(pred: torch.Tensor, target: torch.Tensor) -> LossTerms:
     """pred: (N, T, 3, H, W) network output (log1p demodulated radiance); target: (N, T, 3, H, W) linear
     demodulated reference. Returns the loss of the module docstring."""
-    n, t = pred.shape[:2]
-    p = tone(prediction_to_linear(pred))
+    return tone_loss(prediction_to_linear(pred), target)
+
+
+def tone_loss(linear: torch.Tensor, target: torch.Tensor) -> LossTerms:
+    """The loss of the module docstring on a linear prediction: linear, target (N, T, 3, H, W) demodulated
+    radiance, >= 0 (FLNR's regression output, clipped at 0, takes this entry)."""
+    n, t = linear.shape[:2]
+    p = tone(linear)
     q = tone(target)
     spatial = (p - q).abs().mean(dim=(0, 2, 3, 4))  # (T,)
     gradient = (hfen(p.flatten(0, 1)) - hfen(q.flatten(0, 1))).abs().reshape(n, t, -1).mean(dim=(0, 2))
@@ -91,7 +97,7 @@ def rae_loss(pred: torch.Tensor, target: torch.Tensor) -> LossTerms:
     if t > 1:
         change = (p[:, 1:] - p[:, :-1]) - (q[:, 1:] - q[:, :-1])
         temporal = torch.cat([temporal[:1], change.abs().mean(dim=(0, 2, 3, 4))])
-    g = frame_weights(t).to(pred)
+    g = frame_weights(t).to(linear)
     g = g / g.sum()
     terms = [(g * term).sum() for term in (spatial, gradient, temporal)]
     total = sum(w * term for w, term in zip(WEIGHTS, terms, strict=True))

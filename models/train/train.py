@@ -29,12 +29,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from models.nets.rae import state_for
+from models.nets import state_for
 from models.train.dataset import SequenceBank, collate
+from models.train.flnr import FlnrRecipe
 from models.train.rae import RaeRecipe
 from service.metrics import TRIM_FRACTION, rel_l2, temporal_rel_l2
 
-RECIPES = {"rae": RaeRecipe}  # NET name -> how to build, feed and score it (constructed with warp=)
+RECIPES = {"rae": RaeRecipe, "flnr": FlnrRecipe}  # NET name -> how to build, feed and score it (takes warp=)
+Recipe = RaeRecipe | FlnrRecipe
 RESUME_MAY_CHANGE = ("steps", "minutes", "threads", "out", "device")  # options a resumed run may set anew
 CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"
@@ -91,7 +93,7 @@ def learning_rate(step: int, peak: float, warmup: int) -> float:
     return peak * math.sqrt(warmup / max(step, 1))
 
 
-def validate(recipe: RaeRecipe, net: torch.nn.Module, bank: SequenceBank) -> tuple[float, float]:
+def validate(recipe: Recipe, net: torch.nn.Module, bank: SequenceBank) -> tuple[float, float]:
     """(relL2, temporal relL2) of the network over the held-out sequences, each as the benchmark scores a
     sequence (bench/scoring.py: relL2 with the 0.1% trim, mean over frames; temporal error, mean over frames
     1..N-1), then the geometric mean over sequences: the held-out scenes' errors span three decades (a dim
@@ -181,7 +183,7 @@ def update_average(ema: torch.nn.Module, net: torch.nn.Module, decay: float, ste
             average.mul_(d).add_(weight, alpha=1 - d)
 
 
-def _start(opts: TrainOptions, recipe: RaeRecipe, ckpt_path: Path, resume: bool):
+def _start(opts: TrainOptions, recipe: Recipe, ckpt_path: Path, resume: bool):
     """(net, weight average, optimizer, step, best validation relL2, sampling rng, seconds trained so far): from the
     checkpoint with `resume`, else fresh (from `opts.init`'s weights when given) with fixed seeds."""
     if resume:

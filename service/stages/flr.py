@@ -251,13 +251,13 @@ def gaussian_blur(sums: np.ndarray, sigma: float, truncate: float) -> np.ndarray
     """
     sums = np.ascontiguousarray(sums, dtype=np.float32)
     rows, out = np.empty_like(sums), np.empty_like(sums)
-    _blur_kernel(sums, _gaussian_taps(sigma, truncate), rows, out)
+    _blur_kernel(sums, gaussian_taps(sigma, truncate), rows, out)
     return out
 
 
 def gaussian_blur_reference(sums: np.ndarray, sigma: float, truncate: float) -> np.ndarray:
     """Plain-numpy twin of `gaussian_blur`."""
-    taps = _gaussian_taps(sigma, truncate)
+    taps = gaussian_taps(sigma, truncate)
     out = sums.transpose(0, 2, 1)  # (h, w, E): the blur runs over the first two axes
     height, width = out.shape[:2]
     for axis in (0, 1):
@@ -271,7 +271,7 @@ def gaussian_blur_reference(sums: np.ndarray, sigma: float, truncate: float) -> 
     return np.ascontiguousarray(out.transpose(0, 2, 1))
 
 
-def _gaussian_taps(sigma: float, truncate: float) -> np.ndarray:
+def gaussian_taps(sigma: float, truncate: float) -> np.ndarray:
     """Taps 0..R of the Gaussian, R = ceil(truncate sigma), tap 0 = 1. (R+1,) float32."""
     d = np.arange(int(np.ceil(truncate * sigma)) + 1, dtype=np.float64)
     return np.exp(-0.5 * (d / sigma) ** 2).astype(np.float32)
@@ -400,7 +400,7 @@ def _solve_cells_kernel(sums, pick, ridge_relative, ridge_absolute, coefs):
 # ------------------------------------------------------------------------------------------- apply
 
 
-def _bilinear_taps(size: int, cells: int, scale: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def bilinear_taps(size: int, cells: int, scale: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For each of `size` pixels: the two cells to interpolate between and the weight of the second."""
     u = np.clip((np.arange(size, dtype=np.float64) + 0.5) / scale - 0.5, 0.0, cells - 1)
     i0 = np.floor(u).astype(np.int64)
@@ -419,8 +419,8 @@ def apply_coefficients(x: np.ndarray, coefs: np.ndarray, scale: int, albedo: np.
     """
     q, height, width = x.shape
     hs, _, c, ws = coefs.shape
-    ty = _bilinear_taps(height, hs, scale)
-    x0, x1, fx = _bilinear_taps(width, ws, scale)
+    ty = bilinear_taps(height, hs, scale)
+    x0, x1, fx = bilinear_taps(width, ws, scale)
     out = np.empty((height, width, c), np.float32)
     factor = out if albedo is None else np.ascontiguousarray(albedo, dtype=np.float32)
     rows_per_task = rows_per_thread(height)
@@ -437,8 +437,8 @@ def apply_coefficients_reference(
     q, height, width = x.shape
     hs, _, c, ws = coefs.shape
     cells = coefs.transpose(0, 3, 1, 2)  # (h, w, 1 + Q, C)
-    y0, y1, fy = _bilinear_taps(height, hs, scale)
-    x0, x1, fx = _bilinear_taps(width, ws, scale)
+    y0, y1, fy = bilinear_taps(height, hs, scale)
+    x0, x1, fx = bilinear_taps(width, ws, scale)
     rows = cells[y0] * (1 - fy)[:, None, None, None] + cells[y1] * fy[:, None, None, None]  # (H, w, 1+Q, C)
     full = rows[:, x0] * (1 - fx)[None, :, None, None] + rows[:, x1] * fx[None, :, None, None]  # (H, W, 1+Q, C)
     feats = np.concatenate([np.ones((1, height, width), np.float32), x], axis=0)

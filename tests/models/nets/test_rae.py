@@ -5,14 +5,13 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.nets import count_parameters  # noqa: E402
+from models.nets import count_parameters, state_for  # noqa: E402
 from models.nets.rae import (  # noqa: E402
     LEAKY_SLOPE,
     SPACE_TO_DEPTH,
     RaeConfig,
     load_network,
     make_rae,
-    state_for,
 )
 from service.layout import RAE_INPUTS, RAE_OUTPUTS, total_channels  # noqa: E402
 

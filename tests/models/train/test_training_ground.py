@@ -185,12 +185,12 @@ def test_export_writes_the_model_and_a_manifest_of_how_it_was_made(tmp_path):
     pytest.importorskip("onnx")
     import json
 
-    from export.rae import export_checkpoint
+    from export.checkpoint import export_checkpoint
     from service.pipelines.rae import trained_with_warp
     from service.runtime import OnnxModel
 
     train(_opts(tmp_path, 2), progress=False)
-    path = export_checkpoint(tmp_path / "run" / BEST, tmp_path / "weights" / "rae.onnx")
+    path = export_checkpoint("rae", tmp_path / "run" / BEST, tmp_path / "weights" / "rae.onnx")
     info = json.loads(path.with_suffix(".json").read_text())
     assert info["step"] == 2 and info["seed"] == 0 and info["data"] == [SAMPLE.name]
     assert info["commands"][1].startswith("python -m models.train rae --data ")

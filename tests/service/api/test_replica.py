@@ -3,9 +3,14 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
-from fastapi.testclient import TestClient
-from starlette.testclient import WebSocketDenialResponse
+
+with warnings.catch_warnings():  # starlette's test client still runs on httpx, and says it will not forever
+    warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient` is deprecated")
+    from fastapi.testclient import TestClient
+    from starlette.testclient import WebSocketDenialResponse
 
 from service.api.core.config import Settings
 from service.api.main import create_app

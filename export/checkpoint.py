@@ -1,0 +1,91 @@
+"""Exporting a models.train checkpoint (`python -m export NET CHECKPOINT OUT.onnx`): the network's ONNX file
+and its manifest, for every offline-trained network (export/rae.py, export/flnr.py make the ONNX bytes).
+
+The manifest (OUT.json) says what the shipped weights are and how they were made: the network, the training
+run (its options as a command line, preceded by the runs it fine-tuned, oldest first), data, seed, steps,
+losses, validation curve, time and machine, from the checkpoint and the log.csv beside it.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from export import flnr, onnx as onnx_export, rae
+from models.nets import count_parameters
+from models.nets.flnr import load_network as load_flnr
+from models.nets.rae import load_network as load_rae
+from models.train.train import LOG, inference_state
+
+NETWORKS = {"rae": (load_rae, rae.export_bytes), "flnr": (load_flnr, flnr.export_bytes)}  # name -> (load, export)
+
+
+def train_command(opts: dict[str, Any], step: int) -> str:
+    """The `python -m models.train` command line that remakes a run's checkpoint of step `step` from its
+    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps)."""
+    opts = {**opts, "steps": step}
+    opts.setdefault("ema", 0.0)  # runs from before the `ema` option used raw weights
+    flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
+                     if k not in ("net", "warp", "init", "minutes") and v not in ("", None))
+    flags += " --warp" * bool(opts.get("warp")) + (f" --init {opts['init']}" if opts.get("init") else "")
+    return f"python -m models.train {opts.get('net', 'rae')} {flags}"
+
+
+def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_path: Path,
+             network: str) -> dict[str, Any]:
+    """The manifest of the module docstring."""
+    opts = ckpt.get("options") or {}
+    runs, base, init = [train_command(opts, ckpt["step"])], [], opts.get("init")
+    while init and Path(init).is_file():  # the runs this one fine-tuned, oldest first
+        start = torch.load(init, map_location="cpu", weights_only=False)
+        runs.insert(0, train_command(start["options"], start["step"]))
+        base.insert(0, {"checkpoint": init, "step": start.get("step"), "seconds": start.get("seconds"),
+                        "best_val_rel_l2": start.get("best_val_rel_l2")})
+        init = start["options"].get("init")
+    log = checkpoint.parent / LOG
+    rows = list(csv.DictReader(log.open())) if log.is_file() else []
+    train_rows = [r for r in rows if r["kind"] == "train" and int(r["step"]) <= ckpt["step"]]
+    val_rows = [r for r in rows if r["kind"] == "val"]
+    return {
+        "network": network,
+        "file": onnx_path.name,
+        "bytes": onnx_path.stat().st_size,
+        "parameters": count_parameters(net),
+        "config": ckpt["config"],
+        "commands": ["make data", *runs, f"python -m export {network} {checkpoint} {onnx_path}"],
+        "seed": opts.get("seed"),
+        "step": ckpt.get("step"),
+        "data": ckpt.get("data"),
+        "validation": ckpt.get("val"),
+        "best_val_rel_l2": ckpt.get("best_val_rel_l2"),
+        "final_train_loss": {k: float(train_rows[-1][k]) for k in ("loss", "spatial", "gradient", "temporal")}
+        if train_rows else None,  # the last log row at or before the exported step
+        "validation_curve": [{"step": int(r["step"]), "rel_l2": float(r["val_rel_l2"]),
+                              "temporal": float(r["val_temporal"])} for r in val_rows
+                             if int(r["step"]) <= ckpt["step"]],
+        "training_seconds": ckpt.get("seconds"),  # wall time of this run up to the exported checkpoint
+        "fine_tuned_from": base,
+        "machine": ckpt.get("machine"),
+    }
+
+
+def export_checkpoint(network: str, checkpoint: str | Path, out: str | Path) -> Path:
+    """Export a models.train checkpoint of `network` (a NETWORKS key) to `out` (.onnx) and its manifest to `out`
+    with .json. The training options, step and validation score also go into the ONNX metadata under
+    `training`. ValueError if the checkpoint was trained for another network."""
+    checkpoint, out = Path(checkpoint), Path(out)
+    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    trained = (ckpt.get("options") or {}).get("net", "rae")
+    if trained != network:
+        raise ValueError(f"{checkpoint} holds a '{trained}' network, not '{network}'")
+    load, export_bytes = NETWORKS[network]
+    training = {"options": ckpt.get("options"), "step": ckpt.get("step"),
+                "best_val_rel_l2": ckpt.get("best_val_rel_l2"), "machine": ckpt.get("machine")}
+    net = load(inference_state(ckpt))
+    path = onnx_export.write(export_bytes(net, extra={"training": training}), out)
+    path.with_suffix(".json").write_text(json.dumps(manifest(ckpt, net, checkpoint, path, network), indent=1) + "\n")
+    return path
