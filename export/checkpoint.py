@@ -15,7 +15,8 @@ from typing import Any
 
 import torch
 
-from export import flnr, onnx as onnx_export, rae
+from export import flnr, rae
+from export import onnx as onnx_export
 from models.nets import count_parameters
 from models.nets.flnr import load_network as load_flnr
 from models.nets.rae import load_network as load_rae

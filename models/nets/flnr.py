@@ -52,8 +52,9 @@ class FlnrConfig:
     def __post_init__(self):
         if len(self.widths) < 1 or min(self.widths) < 1 or self.space_to_depth < 1:
             raise ValueError(f"widths must be one or more positive counts, got {self}")
-        if self.guides != BASE_GUIDES.stop - BASE_GUIDES.start:
-            raise ValueError(f"guides must be {BASE_GUIDES.stop - BASE_GUIDES.start} (normal, depth), got {self.guides}")
+        base = BASE_GUIDES.stop - BASE_GUIDES.start
+        if self.guides != base:
+            raise ValueError(f"guides must be {base} (normal, depth), got {self.guides}")
 
     @property
     def levels(self) -> int:

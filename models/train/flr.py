@@ -73,7 +73,8 @@ def solve_cells(sums: torch.Tensor, q: int, c: int, ridge_relative: float, ridge
     upper = [(i, j) for i in range(q) for j in range(i, q)]
     index = {pair: 1 + q + c + k for k, pair in enumerate(upper)}
     pick = torch.tensor([[index[(min(i, j), max(i, j))] for j in range(q)] for i in range(q)], dtype=torch.long)
-    cov_xx = s[..., pick.flatten()].reshape(*s.shape[:3], q, q) / s0[..., None] - mean_x[..., :, None] * mean_x[..., None, :]
+    sum_xx = s[..., pick.flatten()].reshape(*s.shape[:3], q, q)
+    cov_xx = sum_xx / s0[..., None] - mean_x[..., :, None] * mean_x[..., None, :]
     first_xy = 1 + q + c + len(upper)
     sum_xy = s[..., first_xy : first_xy + q * c].reshape(*s.shape[:3], q, c)
     cov_xy = sum_xy / s0[..., None] - mean_x[..., :, None] * mean_y[..., None, :]
