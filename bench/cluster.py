@@ -47,7 +47,8 @@ def start_cluster(replicas: int, log: Path) -> tuple[str, subprocess.Popen]:
     deadline = time.monotonic() + START_TIMEOUT_S
     while "cluster: " not in log.read_text():
         if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
+            proc.terminate()  # the cluster stops its replicas and HAProxy (a kill would orphan them)
+            proc.wait(timeout=60)
             raise RuntimeError(f"the cluster did not start:\n{log.read_text()[-2000:]}")
         time.sleep(0.1)
     return f"http://127.0.0.1:{port}", proc

@@ -30,7 +30,7 @@ def test_kubernetes_replicas_name_themselves_and_haproxy_routes_to_them():
     assert {"name": REPLICA_ENV, "valueFrom": {"fieldRef": {"fieldPath": "metadata.name"}}} in container["env"]
     assert replicas["Service"]["spec"]["clusterIP"] == "None" and spec["serviceName"] == "mcdenoise"
     pods = [f"mcdenoise-{i}" for i in range(spec["replicas"])]
-    expected = render([Replica(pod, f"{pod}.mcdenoise:8000") for pod in pods],
+    expected = render([Replica(pod, f"{pod}.mcdenoise.default.svc.cluster.local:8000") for pod in pods],
                       ProxyOptions(bind=":8000", stats="127.0.0.1:8404", resolve=True))
     assert proxy["ConfigMap"]["data"]["haproxy.cfg"] == expected
     assert all(Settings(replica_id=pod).replica_id == pod for pod in pods)

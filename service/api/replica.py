@@ -1,5 +1,7 @@
 """`X-Replica`: every answer names the replica that gave it (MCDENOISE_REPLICA_ID), HTTP and WebSocket
-handshakes alike, errors included, so a client or a load balancer's log can tell the replicas apart."""
+handshakes alike, 4xx and 5xx errors of the service's own included, so a client or a load balancer's log
+can tell the replicas apart. An unexpected exception's 500 is built by Starlette's outermost middleware,
+outside this one, and carries no `X-Replica`."""
 
 from __future__ import annotations
 

@@ -1,8 +1,9 @@
 """Sessions: one pipeline state per sequence, its ordering lock, statistics, owner and idle expiry.
 
 A session is the only place where the service keeps per-sequence state. Its id is
-`<replica>.<instance>.<token>`: the replica id (MCDENOISE_REPLICA_ID), 32 random bits drawn when this
-process's store starts, and 256 random bits (URL-safe base64), so it cannot be guessed. A load balancer
+`<replica>.<instance>.<token>`: the replica id (MCDENOISE_REPLICA_ID), 32 random bits drawn when the
+server starts (`instance_id`: one for all of `serve`'s worker processes), and 256 random bits (URL-safe
+base64), so it cannot be guessed. A load balancer
 routes a session's requests by the replica part (docs/cluster.md). An id of another replica or of an
 earlier instance of this one names a session this process cannot hold: the replica that held it died
 or restarted, and it answers `410 session_lost`. When auth is on a session also records a fingerprint
@@ -21,6 +22,7 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
+import os
 import secrets
 import time
 from collections import deque
@@ -136,6 +138,17 @@ def replica_of(session_id: str) -> str | None:
     return replica if REPLICA_ID.fullmatch(replica) and instance and token else None
 
 
+INSTANCE_ENV = "MCDENOISE_INSTANCE_ID"  # set by `serve` for its worker processes (service/cli/serve.py)
+
+
+def instance_id() -> str:
+    """This server's instance: $MCDENOISE_INSTANCE_ID when it is 8 hex digits (`serve` draws one for all its
+    worker processes, so that a session reaching a sibling worker answers 404, not session_lost), else 32
+    random bits drawn now."""
+    given = os.environ.get(INSTANCE_ENV, "")
+    return given if len(given) == 8 and all(c in "0123456789abcdef" for c in given) else secrets.token_hex(4)
+
+
 def close_state(session: Session) -> None:
     """Let the state release what it holds (an online worker); errors are logged, never raised."""
     try:
@@ -151,7 +164,7 @@ class SessionStore:
         self.max_sessions = max_sessions
         self.idle_timeout_s = idle_timeout_s
         self.replica_id = replica_id
-        self.prefix = f"{replica_id}.{secrets.token_hex(4)}."  # of every id this store makes
+        self.prefix = f"{replica_id}.{instance_id()}."  # of every id this store makes
         self._sessions: dict[str, Session] = {}
         self._reserved = 0  # sessions being built
         self.rejected = 0  # creations answered 429 since start

@@ -7,6 +7,7 @@ HAProxy is the distribution's package (`make haproxy`); without it: exit 2."""
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import shutil
 import signal
@@ -17,6 +18,7 @@ from pathlib import Path
 
 MAX_REPLICAS = 64
 STOP_GRACE_S = 15.0  # a replica finishes its frames in progress within this on SIGTERM, seconds
+SERVER_TIMEOUT_MARGIN_S = 30  # HAProxy waits for a replica's answer this much beyond its frame timeout, s
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
@@ -50,17 +52,20 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("haproxy not found: install it with `make haproxy` (Debian package haproxy)")
     warn_if_open(settings, args.host)
     _stop_on_signals()
-    running = replicas.start(args.replicas, os.environ, usable_cpus(), args.log_level)
-    processes = [r.process for r in running]
+    running: list[replicas.Running] = []
+    proxy: subprocess.Popen | None = None
     try:
+        for replica in replicas.start(args.replicas, os.environ, usable_cpus(), args.log_level):
+            running.append(replica)  # one by one: a signal during start stops those already running
         replicas.wait_ready(running, args.start_timeout)
         stats = f"{replicas.LOOPBACK}:{args.stats_port}" if args.stats_port else None
-        config = render([r.replica for r in running], ProxyOptions(bind=f"{args.host}:{args.port}", stats=stats))
+        options = ProxyOptions(bind=f"{args.host}:{args.port}", stats=stats,
+                               server_timeout_s=math.ceil(settings.frame_timeout_s) + SERVER_TIMEOUT_MARGIN_S)
+        config = render([r.replica for r in running], options)
         with tempfile.TemporaryDirectory(prefix="mcdenoise-cluster-") as folder:
             path = Path(folder) / "haproxy.cfg"
             path.write_text(config)
             proxy = subprocess.Popen([haproxy, "-f", str(path), "-db"])
-            processes.insert(0, proxy)
             front = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
             replicas.wait_ready([replicas.Running(Replica("haproxy", f"{front}:{args.port}"), proxy)],
                                 args.start_timeout)  # /readyz through HAProxy: it listens and routes
@@ -73,8 +78,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {err}" if isinstance(err, RuntimeError) else "stopping", file=sys.stderr)
         status = 1 if isinstance(err, RuntimeError) else 0
     finally:
-        replicas.stop(processes, STOP_GRACE_S)
+        _ignore_signals()  # nothing may cut the stop short
+        if proxy is not None and proxy.poll() is None:
+            proxy.send_signal(signal.SIGUSR1)  # soft stop: no new connections; answers in flight still pass
+        replicas.stop([r.process for r in running], STOP_GRACE_S)  # each finishes its frames in flight
+        if proxy is not None:
+            replicas.stop([proxy], STOP_GRACE_S)
     return status
+
+
+def _ignore_signals() -> None:
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, signal.SIG_IGN)
 
 
 def _stop_on_signals() -> None:
@@ -82,8 +97,7 @@ def _stop_on_signals() -> None:
     that they cannot cut the replicas' graceful stop short."""
 
     def handler(signum: int, frame: object) -> None:
-        for s in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(s, signal.SIG_IGN)
+        _ignore_signals()
         raise KeyboardInterrupt
 
     for signum in (signal.SIGTERM, signal.SIGINT):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import secrets
 import sys
 from typing import TYPE_CHECKING
 
@@ -31,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
 
     from service.api.core.config import Settings
     from service.api.deadline import header_deadline_protocol
+    from service.api.sessions import INSTANCE_ENV
 
     settings = Settings.from_env()  # refuse bad settings before binding (exit 2)
     if args.workers < 1:
@@ -40,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
               "requests must reach the process that created the session (or use `cluster`)", file=sys.stderr)
     warn_if_open(settings, args.host)
     limit_threads(settings.frame_threads)
+    os.environ[INSTANCE_ENV] = secrets.token_hex(4)  # one instance for all worker processes (api/sessions.py)
     uvicorn.run(
         "service.api.main:create_app",
         factory=True,

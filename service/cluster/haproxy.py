@@ -4,9 +4,11 @@ Routing (docs/cluster.md): a session id is `<replica>.<instance>.<token>` (servi
 request under `/v1/sessions/<id>` goes to the server named `<replica>`, by a `use-server` rule per
 replica; nothing depends on a stick table, which a reload would empty. Everything else (session
 creation, `/v1/denoise`, `/v1/pipelines`) goes to the replica with the fewest connections. A replica
-whose `/readyz` fails `FALL` times in a row (dead, warming up or stopping) takes no new work; the
+whose `/readyz` fails `fall` times in a row (dead, warming up or stopping) takes no new work; the
 requests of its sessions then reach another replica, which answers `410 session_lost`. A request that
-cannot connect is retried on another replica at once (`option redispatch`), never left waiting.
+cannot connect (a dead replica refuses at once) is retried on another replica at once (`option
+redispatch`), never left waiting. Connections a replica still serves are not cut when it is marked down:
+a stopping replica finishes its frames.
 """
 
 from __future__ import annotations
@@ -37,15 +39,18 @@ class Replica:
 class ProxyOptions:
     bind: str = "127.0.0.1:8000"  # address:port HAProxy serves clients on
     stats: str | None = None  # address:port of HAProxy's stats page (/stats); None: no stats page
-    check_interval_ms: int = 500  # /readyz of each replica every this, milliseconds
-    fall: int = 2  # failed checks in a row before a replica is out: out within fall x interval
+    check_interval_ms: int = 1000  # /readyz of each replica every this, milliseconds
+    check_timeout_ms: int = 2000  # a check answered later than this fails, milliseconds
+    fall: int = 3  # failed checks in a row before a replica is out: a busy replica answers a check late, and
+    # marking a live one down would answer its sessions `session_lost`; a dead one refuses connections, and
+    # those requests are redispatched at once anyway
     rise: int = 2  # passed checks in a row before it takes work again
-    server_timeout_s: int = 150  # longest answer of a replica, s; above MCDENOISE_FRAME_TIMEOUT_S (120 s default)
+    server_timeout_s: int = 150  # longest answer of a replica, s: above MCDENOISE_FRAME_TIMEOUT_S
     tunnel_timeout_s: int = 3600  # an idle WebSocket stream is closed after this, seconds
     resolve: bool = False  # replica addresses are DNS names, resolved at run time (/etc/resolv.conf)
 
     def __post_init__(self) -> None:
-        for name in ("check_interval_ms", "fall", "rise", "server_timeout_s", "tunnel_timeout_s"):
+        for name in ("check_interval_ms", "check_timeout_ms", "fall", "rise", "server_timeout_s", "tunnel_timeout_s"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
 
@@ -79,6 +84,7 @@ def render(replicas: Sequence[Replica], options: ProxyOptions) -> str:
         f"    timeout server {options.server_timeout_s}s",
         f"    timeout tunnel {options.tunnel_timeout_s}s",
         "    timeout http-request 75s",
+        f"    timeout check {options.check_timeout_ms}ms",
         "    retries 2",
         "    option redispatch 1",
         *(f"    http-error status {status} content-type application/json "
@@ -93,8 +99,7 @@ def render(replicas: Sequence[Replica], options: ProxyOptions) -> str:
         "    balance leastconn",
         f"    option httpchk GET {READY_PATH}",
         "    http-check expect status 200",
-        f"    default-server inter {options.check_interval_ms}ms fall {options.fall} rise {options.rise} "
-        "on-marked-down shutdown-sessions",
+        f"    default-server inter {options.check_interval_ms}ms fall {options.fall} rise {options.rise}",
         f"    http-request set-var(txn.replica) path,field(4,/),field(1,.) if {{ path_beg {SESSIONS_PATH} }}",
         *(f"    use-server {r.name} if {{ var(txn.replica) -m str {r.name} }}" for r in replicas),
         *(f"    server {r.name} {r.address} {server_flags}" for r in replicas),

@@ -9,7 +9,7 @@ import sys
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 from service.cluster.haproxy import READY_PATH, Replica
@@ -45,16 +45,15 @@ def replica_environment(environ: Mapping[str, str], replica_id: str, replicas: i
     return env
 
 
-def start(count: int, environ: Mapping[str, str], cpus: int, log_level: str) -> list[Running]:
-    """Start `count` replicas `r0`, `r1`, ... on free loopback ports (their output goes to ours)."""
-    running = []
+def start(count: int, environ: Mapping[str, str], cpus: int, log_level: str) -> Iterator[Running]:
+    """Start `count` replicas `r0`, `r1`, ... on free loopback ports (their output goes to ours), yielding each
+    as soon as its process runs."""
     for i in range(count):
         replica = Replica(f"r{i}", f"{LOOPBACK}:{free_port()}")
         command = [sys.executable, "-m", "service", "serve", "--host", LOOPBACK,
                    "--port", replica.address.rpartition(":")[2], "--log-level", log_level]
         env = replica_environment(environ, replica.name, count, cpus)
-        running.append(Running(replica, subprocess.Popen(command, env=env)))
-    return running
+        yield Running(replica, subprocess.Popen(command, env=env))
 
 
 def wait_ready(running: Sequence[Running], timeout_s: float) -> None:

@@ -79,3 +79,18 @@ def test_the_client_reopens_a_lost_session_only_when_asked(make_server, sequence
         reopening._use({"id": "r9." + reopening.id.split(".", 1)[1]})
         assert sum(not isinstance(out, ServiceError) for out in reopening.stream(sequence_exr[:3])) == 3
         assert reopening.reopens == 2 and reopening.status()["frames"] == 3
+
+
+def test_worker_processes_of_one_server_share_its_instance(monkeypatch):
+    """`serve` draws one instance for its worker processes: a session reaching a sibling worker is unknown
+    there (404), not lost (410)."""
+    from service.api.core.errors import UnknownSessionError
+    from service.api.sessions import INSTANCE_ENV
+
+    monkeypatch.setenv(INSTANCE_ENV, "0123abcd")
+    first, sibling = SessionStore(4, 60.0, "r1"), SessionStore(4, 60.0, "r1")
+    assert first.prefix == sibling.prefix == "r1.0123abcd."
+    with pytest.raises(UnknownSessionError):
+        sibling.get(first.new_id(), None)
+    monkeypatch.setenv(INSTANCE_ENV, "not hex!")
+    assert SessionStore(4, 60.0, "r1").prefix != first.prefix  # a malformed value: drawn afresh

@@ -31,6 +31,7 @@ REPLICAS, SESSIONS, FRAMES, SIZE = 3, 12, 20, 32  # the issue's targets; frames 
 PIPELINE = "bilateral"  # the fastest pipeline
 START_TIMEOUT_S = 120.0
 LOST_WITHIN_S = 5.0
+DOWN_WITHIN_S = 10.0  # HAProxy marks a killed replica DOWN: 3 failed checks 1 s apart, on a loaded machine
 
 
 @pytest.fixture(scope="module")
@@ -52,16 +53,18 @@ def cluster(tmp_path_factory):
         proc = subprocess.Popen([sys.executable, "-m", "service", "cluster", "--replicas", str(REPLICAS), "--port",
                                  str(port), "--stats-port", str(free_port())], cwd=ROOT, env=env, stdout=sink,
                                 stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while "cluster: " not in log.read_text():
-        assert proc.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
-        time.sleep(0.1)
-    pids = {line.split(":")[0].split()[1]: int(line.split("pid ")[1].split(",")[0])
-            for line in log.read_text().splitlines() if line.startswith("replica ")}
-    yield f"http://127.0.0.1:{port}", pids, proc, log
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=60)
+    try:  # whatever fails, the cluster stops (SIGTERM stops its replicas and HAProxy)
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while "cluster: " not in log.read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
+            time.sleep(0.1)
+        pids = {line.split(":")[0].split()[1]: int(line.split("pid ")[1].split(",")[0])
+                for line in log.read_text().splitlines() if line.startswith("replica ")}
+        yield f"http://127.0.0.1:{port}", pids, proc, log
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=60)
 
 
 def _open(url: str) -> str:
@@ -146,8 +149,8 @@ def test_a_killed_replica_loses_only_its_sessions_which_reopen(cluster, frames):
     assert all(s.reopens == 0 for s in sessions if s not in doomed) and all(n == FRAMES for n in done.values())
     assert all(s.status()["frames"] == FRAMES for s in sessions if s not in doomed)
     stats = log.read_text().split(", stats ")[1].split()[0]  # http://127.0.0.1:PORT/stats
-    while _status(stats, victim) != "DOWN":  # /readyz checks: out within fall x inter = 1 s
-        assert time.monotonic() - killed_at[0] < LOST_WITHIN_S, _status(stats, victim)
+    while _status(stats, victim) != "DOWN":  # /readyz checks: out within fall x inter = 3 s
+        assert time.monotonic() - killed_at[0] < DOWN_WITHIN_S, _status(stats, victim)
         time.sleep(0.1)
     fresh = [_open(url) for _ in range(2 * REPLICAS)]
     assert not any(sid.startswith(victim + ".") for sid in fresh)

@@ -22,7 +22,7 @@ def test_sessions_go_to_their_named_replica_and_the_rest_to_the_least_loaded():
     assert [line for line in lines if line.startswith("    server ")] == [
         "    server r0 127.0.0.1:9001 check", "    server r1 127.0.0.1:9002 check"]
     assert "    option httpchk GET /readyz" in lines and "    option redispatch 1" in lines
-    assert "    default-server inter 500ms fall 2 rise 2 on-marked-down shutdown-sessions" in lines
+    assert "    default-server inter 1000ms fall 3 rise 2" in lines and "    timeout check 2000ms" in lines
     assert not any("stats" in line or "resolvers" in line for line in lines)
 
 
