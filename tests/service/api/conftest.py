@@ -27,6 +27,7 @@ import uvicorn
 from bench.synthetic import synthetic_sequence
 from service.api.core.config import Settings
 from service.api.main import create_app
+from service.cluster.replicas import free_port
 from service.exr import encode_frame
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -81,12 +82,6 @@ def wait_healthy(url: str, timeout: float = START_TIMEOUT_S, proc: subprocess.Po
             pass
         time.sleep(0.1)
     raise TimeoutError(f"server at {url} did not answer /healthz within {timeout} s")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def start_subprocess_server(python: str, env: dict[str, str], log: Path, cwd: Path = ROOT
