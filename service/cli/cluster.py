@@ -23,7 +23,7 @@ SERVER_TIMEOUT_MARGIN_S = 30  # HAProxy waits for a replica's answer this much b
 
 def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--replicas", type=int, default=2, help=f"replicas (1 to {MAX_REPLICAS}, default 2)")
-    p.add_argument("--host", default="127.0.0.1", help="address HAProxy binds (default 127.0.0.1)")
+    p.add_argument("--host", default="127.0.0.1", help="IPv4 address or host name HAProxy binds (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8000, help="port HAProxy serves on (default 8000)")
     p.add_argument("--stats-port", type=int, default=8404,
                    help="loopback port of HAProxy's stats page, /stats (default 8404; 0: none)")
@@ -45,6 +45,10 @@ def run(args: argparse.Namespace) -> int:
     for name in ("port", "stats_port"):
         if not (0 if name == "stats_port" else 1) <= getattr(args, name) <= 65535:
             raise ValueError(f"--{name.replace('_', '-')} must be a TCP port, got {getattr(args, name)}")
+    if args.stats_port == args.port:
+        raise ValueError(f"--stats-port must differ from --port ({args.port})")
+    if not args.host.strip() or any(c in args.host for c in " /:[]"):
+        raise ValueError(f"--host must be an IPv4 address or a host name, got {args.host!r}")
     if args.start_timeout <= 0:
         raise ValueError(f"--start-timeout must be > 0, got {args.start_timeout}")
     haproxy = shutil.which("haproxy")
@@ -66,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
             path = Path(folder) / "haproxy.cfg"
             path.write_text(config)
             proxy = subprocess.Popen([haproxy, "-f", str(path), "-db"])
-            front = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
+            front = "127.0.0.1" if args.host == "0.0.0.0" else args.host
             replicas.wait_ready([replicas.Running(Replica("haproxy", f"{front}:{args.port}"), proxy)],
                                 args.start_timeout)  # /readyz through HAProxy: it listens and routes
             for r in running:
