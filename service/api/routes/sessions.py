@@ -11,7 +11,8 @@ from service.api.schemas import ErrorBody, SessionCreate, SessionInfo
 from service.api.sessions import SessionSpec
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
-_NOT_FOUND = {404: {"model": ErrorBody, "description": "unknown, ended or expired session (or another key's)"}}
+_NOT_FOUND = {404: {"model": ErrorBody, "description": "unknown, ended or expired session (or another key's)"},
+              410: {"model": ErrorBody, "description": "session_lost: the replica that held it stopped"}}
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, summary="open a session for one sequence",

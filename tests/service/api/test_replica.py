@@ -94,3 +94,10 @@ def test_worker_processes_of_one_server_share_its_instance(monkeypatch):
         sibling.get(first.new_id(), None)
     monkeypatch.setenv(INSTANCE_ENV, "not hex!")
     assert SessionStore(4, 60.0, "r1").prefix != first.prefix  # a malformed value: drawn afresh
+
+
+def test_the_schema_documents_session_lost_on_every_session_route():
+    paths = create_app(Settings(replica_id="r1")).openapi()["paths"]
+    for path, method in (("/v1/sessions/{session_id}", "get"), ("/v1/sessions/{session_id}", "delete"),
+                         ("/v1/sessions/{session_id}/frames", "post")):
+        assert "410" in paths[path][method]["responses"], (path, method)
