@@ -35,16 +35,19 @@ START_TIMEOUT_S = 300.0
 WINDOW = 2  # WebSocket frames in flight per streaming session
 
 
-def start_cluster(replicas: int, log: Path) -> tuple[str, subprocess.Popen]:
-    """`python -m service cluster --replicas N` on a free port; (url, process) once it says it runs."""
+def start_cluster(replicas: int, log: Path, settings: dict[str, str], stats_port: int = 0,
+                  timeout_s: float = START_TIMEOUT_S) -> tuple[str, subprocess.Popen]:
+    """`python -m service cluster --replicas N` on a free port, its output to `log`, with the MCDENOISE_*
+    `settings` (no API key); (url, process) once it says it runs. RuntimeError, the cluster stopped, when it
+    exits or is not running within `timeout_s` seconds. The caller stops it (SIGTERM)."""
     port = free_port()
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "MCDENOISE_MAX_SESSIONS": "64", "MCDENOISE_MAX_INFLIGHT": "64"}
+    env = {**os.environ, "PYTHONPATH": str(ROOT), **settings}
     env.pop("MCDENOISE_API_KEY", None)
     with open(log, "wb") as sink:
         proc = subprocess.Popen([sys.executable, "-m", "service", "cluster", "--replicas", str(replicas), "--port",
-                                 str(port), "--stats-port", "0"], cwd=ROOT, env=env, stdout=sink,
+                                 str(port), "--stats-port", str(stats_port)], cwd=ROOT, env=env, stdout=sink,
                                 stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + START_TIMEOUT_S
+    deadline = time.monotonic() + timeout_s
     while "cluster: " not in log.read_text():
         if proc.poll() is not None or time.monotonic() > deadline:
             proc.terminate()  # the cluster stops its replicas and HAProxy (a kill would orphan them)
@@ -57,7 +60,8 @@ def start_cluster(replicas: int, log: Path) -> tuple[str, subprocess.Popen]:
 def measure(replicas: int, args: argparse.Namespace, bodies, expected, size) -> tuple[float, float, int]:
     """(frames/s, latency p50 in ms, frames lost, reordered or refused) with `replicas` replicas."""
     with tempfile.TemporaryDirectory() as folder:
-        url, proc = start_cluster(replicas, Path(folder) / "cluster.log")
+        url, proc = start_cluster(replicas, Path(folder) / "cluster.log",
+                                  {"MCDENOISE_MAX_SESSIONS": "64", "MCDENOISE_MAX_INFLIGHT": "64"})
         try:
             with Client(url) as client:  # one session per replica and more: every replica builds the pipeline
                 for session in [client.session(args.pipeline, *size) for _ in range(2 * replicas)]:

@@ -17,8 +17,8 @@ Choices where the paper is silent:
 - Space-to-depth, as in models/nets/rae.py: the network runs at half resolution (2x2 pixels -> 4x the
   channels in, and back out by pixel shuffle), so that the network and FLR together stay within a quarter
   of OIDN-high's time at 1280x720 on a 2-core CPU.
-- Max pooling down, nearest upsampling, concatenated skips; leaky ReLU slope 0.1; He initialisation; the
-  head is linear.
+- Max pooling down, nearest upsampling, concatenated skips; leaky ReLU slope 0.1; He initialisation (the
+  recurrent autoencoder's `conv3x3`); the head is linear and starts at zero.
 
 Tensors: features (N, in_channels, H, W) float32, H and W multiples of `alignment` (the caller pads);
 output (N, guides, H, W) float32.
@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.nets import seeded
-from models.nets.rae import LEAKY_SLOPE, SPACE_TO_DEPTH
+from models.nets.rae import LEAKY_SLOPE, SPACE_TO_DEPTH, conv3x3
 from service.layout import FLNR_OUTPUTS, RAE_INPUTS, channel_slices, total_channels
 
 # The input planes the output starts from: normal and relative depth, adjacent in RAE_INPUTS
@@ -61,19 +61,12 @@ class FlnrConfig:
         return len(self.widths)
 
 
-def _conv(cin: int, cout: int) -> nn.Conv2d:
-    conv = nn.Conv2d(cin, cout, 3, padding=1)
-    nn.init.kaiming_normal_(conv.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")
-    nn.init.zeros_(conv.bias)
-    return conv
-
-
 class Block(nn.Module):
     """Two 3x3 convolutions, each followed by a leaky ReLU (Salmi et al.)."""
 
     def __init__(self, cin: int, cout: int):
         super().__init__()
-        self.first, self.second = _conv(cin, cout), _conv(cout, cout)
+        self.first, self.second = conv3x3(cin, cout), conv3x3(cout, cout)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return F.leaky_relu(self.second(F.leaky_relu(self.first(x), LEAKY_SLOPE)), LEAKY_SLOPE)

@@ -68,7 +68,8 @@ class RaeConfig:
         return [(c, height // s, width // s) for c, s in zip(self.widths, self.scales, strict=True)]
 
 
-def _conv(cin: int, cout: int) -> nn.Conv2d:
+def conv3x3(cin: int, cout: int) -> nn.Conv2d:
+    """A 3x3 convolution (padding 1) He-initialised for the leaky ReLU that follows it, bias 0."""
     conv = nn.Conv2d(cin, cout, 3, padding=1)
     nn.init.kaiming_normal_(conv.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")  # He et al. 2015b
     nn.init.zeros_(conv.bias)
@@ -84,9 +85,9 @@ class RecurrentBlock(nn.Module):
 
     def __init__(self, cin: int, width: int):
         super().__init__()
-        self.input = _conv(cin, width)
-        self.mix = _conv(2 * width, width)
-        self.out = _conv(width, width)
+        self.input = conv3x3(cin, width)
+        self.mix = conv3x3(2 * width, width)
+        self.out = conv3x3(width, width)
 
     def forward(self, x: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
         x = _act(self.input(x))
@@ -105,10 +106,10 @@ class RecurrentAutoencoder(nn.Module):
         s2 = SPACE_TO_DEPTH * SPACE_TO_DEPTH
         cins = (self.config.in_channels * s2, *w[:-1])
         self.encoder = nn.ModuleList(RecurrentBlock(cin, c) for cin, c in zip(cins, w, strict=True))
-        self.bottleneck = _conv(w[-1], w[-1])
+        self.bottleneck = conv3x3(w[-1], w[-1])
         ups = (*w[1:], w[-1])  # channels arriving from below at each level
         self.decoder = nn.ModuleList(
-            nn.ModuleList([_conv(up + c, c), _conv(c, c)]) for up, c in zip(ups, w, strict=True)
+            nn.ModuleList([conv3x3(up + c, c), conv3x3(c, c)]) for up, c in zip(ups, w, strict=True)
         )
         self.head = nn.Conv2d(w[0], self.config.out_channels * s2, 3, padding=1)  # linear (sec. 5.3)
         nn.init.kaiming_normal_(self.head.weight, nonlinearity="linear")

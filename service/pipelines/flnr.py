@@ -9,8 +9,8 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
   2. FLR (service/stages/flr.py) of the radiance (below 0 read as 0) demodulated by the albedo on those
      guides, with the regression options the network was trained through (its metadata);
   3. clamp to the local range of the noisy input, as `flr` does.
-The network was trained end to end through FLR's torch twin (models/train/flnr.py); tests/pipelines hold the
-served pipeline to it.
+The network was trained end to end through FLR's torch twin (models/train/flnr.py);
+tests/service/pipelines/test_flnr.py holds the served pipeline to it.
 """
 
 from __future__ import annotations

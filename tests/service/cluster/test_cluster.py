@@ -9,8 +9,6 @@ import csv
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import threading
 import time
 import urllib.request
@@ -20,10 +18,11 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
+from bench.cluster import start_cluster
 from bench.synthetic import synthetic_sequence
 from service.client import Client
 from service.exr import encode_frame, read_frame
-from tests.service.api.conftest import ROOT, call, exr_post, free_port
+from tests.service.api.conftest import call, exr_post, free_port
 
 pytestmark = [pytest.mark.skipif(shutil.which("haproxy") is None, reason="haproxy is not installed (make haproxy)"),
               pytest.mark.timeout(300)]
@@ -43,24 +42,16 @@ def frames() -> list[bytes]:
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
     """(url, {replica id: pid}, cluster process, its output file) of a running 3-replica cluster."""
-    port, log = free_port(), tmp_path_factory.mktemp("cluster") / "cluster.log"
+    log = tmp_path_factory.mktemp("cluster") / "cluster.log"
     # Frame slots for every session at once: leastconn may put 5 of the 12 sessions on one replica (they open
     # together), whose default 4 slots (1 worker) would answer one of them 503 busy, which is not under test.
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "MCDENOISE_MAX_SESSIONS": "32", "MCDENOISE_MAX_WIDTH": "64",
-           "MCDENOISE_MAX_HEIGHT": "64", "MCDENOISE_MAX_INFLIGHT": str(SESSIONS)}
-    env.pop("MCDENOISE_API_KEY", None)
-    with open(log, "wb") as sink:
-        proc = subprocess.Popen([sys.executable, "-m", "service", "cluster", "--replicas", str(REPLICAS), "--port",
-                                 str(port), "--stats-port", str(free_port())], cwd=ROOT, env=env, stdout=sink,
-                                stderr=subprocess.STDOUT)
+    settings = {"MCDENOISE_MAX_SESSIONS": "32", "MCDENOISE_MAX_WIDTH": "64", "MCDENOISE_MAX_HEIGHT": "64",
+                "MCDENOISE_MAX_INFLIGHT": str(SESSIONS)}
+    url, proc = start_cluster(REPLICAS, log, settings, stats_port=free_port(), timeout_s=START_TIMEOUT_S)
     try:  # whatever fails, the cluster stops (SIGTERM stops its replicas and HAProxy)
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while "cluster: " not in log.read_text():
-            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
-            time.sleep(0.1)
         pids = {line.split(":")[0].split()[1]: int(line.split("pid ")[1].split(",")[0])
                 for line in log.read_text().splitlines() if line.startswith("replica ")}
-        yield f"http://127.0.0.1:{port}", pids, proc, log
+        yield url, pids, proc, log
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
