@@ -1,17 +1,22 @@
 """`python -m bench.error_estimate --sequences DIR... [--pipelines NAME...] [--tile 32]`: how well the
 reference-free error estimate (service/stages/error_estimate.py) ranks denoisers, tile by tile.
 
-Per sequence, every candidate runs twice through its own state: on the frames as they are, giving f(C),
-and on frames whose `color` is half A alone (the halves removed), giving f(A). Per frame and tile:
-- the estimate auto's is made of (service/pipelines/tiled.py): `tile_error(f(A), colorA, colorB, scale,
-  cap=FIREFLY_CAP)`, scale the median of the candidates' f(A). Not auto's exact estimate: here f(A) runs
-  every frame through its own state (a temporal candidate with its history), while auto runs it from a
-  fresh state every `every` frames and averages with the previous evaluation;
+Per sequence, every candidate runs three times through its own state: on the frames as they are, giving
+f(C), and on frames whose `color` is half A alone or half B alone (the halves removed), giving f(A) and
+f(B). Per frame and tile, with scale the median of the candidates' f(A) and f(B):
+- one way: `tile_error(f(A), colorA, colorB, scale, cap=FIREFLY_CAP)`;
+- both ways: `cross_tile_error(f(A), f(B), ...)`, the estimate auto's is made of
+  (service/pipelines/tiled.py);
+- averaged: both ways, averaged with the previous frame's average (weights 1/2, 1/2), as auto averages an
+  evaluation with the previous one. Not auto's exact estimate: here the candidates run every frame
+  through their own states (a temporal candidate with its history), while auto runs them from fresh
+  states every `every` frames;
 - the truth: the tile's relL2 of f(C) against the reference (what a per-tile choice would serve), and of
-  f(A) (what the estimate estimates).
-Printed per sequence: Spearman's rank correlation between estimate and truth over the (frame, tile) pairs
-of each candidate, its median over candidates, and over all (frame, tile, candidate) triples; the share
-of tiles whose estimated best candidate is the true best; and the relL2 of a frame assembled per tile from
+  f(A) (what the one-way estimate estimates).
+Printed per sequence: Spearman's rank correlation between each estimate and the truth over the (frame,
+tile) pairs of each candidate, its median over candidates ("rho 1-way", "rho both", "rho avg"), and the
+averaged estimate's over all (frame, tile, candidate) triples; then, for the averaged estimate, the share
+of tiles whose estimated best candidate is the true best and the relL2 of a frame assembled per tile from
 the estimated best candidate's f(C) ("chosen"), beside the best single candidate's and the per-tile
 oracle's. Candidates must run without the half buffers (not crossregression or crossreg, which need them).
 """
@@ -27,9 +32,9 @@ import numpy as np
 from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import rel_l2, rel_l2_map
-from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP, half_a
+from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP, one_half
 from service.process import configure
-from service.stages.error_estimate import TILE, tile_error, tile_means
+from service.stages.error_estimate import TILE, cross_tile_error, tile_error, tile_means
 
 DEFAULT_CANDIDATES = CANDIDATES
 def spearman(x: np.ndarray, y: np.ndarray) -> float:
@@ -51,10 +56,12 @@ def assemble(outputs: np.ndarray, choice: np.ndarray, tile: int) -> np.ndarray:
 class SequenceReport:
     name: str
     candidates: list[str]
-    per_candidate: list[float]  # Spearman estimate vs f(C) truth over (frame, tile), per candidate
-    pooled: float  # Spearman over (frame, tile, candidate)
-    pooled_half: float  # the same against f(A)'s true error
-    best_match: float  # share of (frame, tile) whose estimated best is the true best (f(C))
+    one_way: list[float]  # Spearman, one-way estimate vs f(C) truth over (frame, tile), per candidate
+    both_ways: list[float]  # the same for the estimate both ways
+    per_candidate: list[float]  # the same for the averaged estimate both ways
+    pooled: float  # Spearman of the averaged estimate over (frame, tile, candidate)
+    pooled_half: float  # the one-way estimate's against f(A)'s true error
+    best_match: float  # share of (frame, tile) whose estimated best (averaged) is the true best (f(C))
     chosen: float  # mean relL2 over frames of the frame assembled from the estimated best per tile
     best_single: tuple[str, float]  # the candidate of lowest mean relL2, and it
     oracle: float  # mean relL2 of the frame assembled from the true best per tile
@@ -67,29 +74,36 @@ def evaluate(folder: Path, names: list[str], tile: int = TILE) -> SequenceReport
     if not all("reference" in f and "colorA" in f and "colorB" in f for f in frames):
         raise ValueError(f"{folder}: frames need 'reference', 'colorA' and 'colorB'")
     full = {n: _run(pipelines.get(n), frames) for n in names}
-    half = {n: _run(pipelines.get(n), [half_a(f) for f in frames]) for n in names}
-    est, truth, truth_half, chosen, oracle, single = [], [], [], [], [], {n: [] for n in names}
+    half_a = {n: _run(pipelines.get(n), [one_half(f, "colorA") for f in frames]) for n in names}
+    half_b = {n: _run(pipelines.get(n), [one_half(f, "colorB") for f in frames]) for n in names}
+    one, both, avg, truth, truth_half = [], [], [], [], []
+    chosen, oracle, single = [], [], {n: [] for n in names}
     for i, frame in enumerate(frames):
+        a, b = frame["colorA"], frame["colorB"]
         outs = np.stack([full[n][i] for n in names])
-        scale = np.median([half[n][i] for n in names], axis=0)
-        e = np.stack([tile_error(half[n][i], frame["colorA"], frame["colorB"], scale, tile, cap=FIREFLY_CAP).mean
-                      for n in names])
+        scale = np.median([half_a[n][i] for n in names] + [half_b[n][i] for n in names], axis=0)
+        one.append(np.stack([tile_error(half_a[n][i], a, b, scale, tile, cap=FIREFLY_CAP).mean for n in names]))
+        both.append(np.stack([cross_tile_error(half_a[n][i], half_b[n][i], a, b, scale, tile, cap=FIREFLY_CAP).mean
+                              for n in names]))
+        avg.append(both[-1] if i == 0 else 0.5 * (avg[-1] + both[-1]))
         t = np.stack([tile_means(rel_l2_map(full[n][i], frame["reference"]), tile) for n in names])
-        th = np.stack([tile_means(rel_l2_map(half[n][i], frame["reference"]), tile) for n in names])
-        est.append(e)
         truth.append(t)
-        truth_half.append(th)
-        chosen.append(rel_l2(assemble(outs, e.argmin(axis=0), tile), frame["reference"]))
+        truth_half.append(np.stack([tile_means(rel_l2_map(half_a[n][i], frame["reference"]), tile) for n in names]))
+        chosen.append(rel_l2(assemble(outs, avg[-1].argmin(axis=0), tile), frame["reference"]))
         oracle.append(rel_l2(assemble(outs, t.argmin(axis=0), tile), frame["reference"]))
         for n in names:
             single[n].append(rel_l2(full[n][i], frame["reference"]))
-    est, truth, truth_half = (np.stack(a, axis=1) for a in (est, truth, truth_half))  # (K, frames, th, tw)
+    # (K, frames, th, tw)
+    one, both, est, truth, truth_half = (np.stack(x, axis=1) for x in (one, both, avg, truth, truth_half))
     means = {n: float(np.mean(v)) for n, v in single.items()}
     best = min(means, key=means.get)
+
+    def per_candidate(e: np.ndarray) -> list[float]:
+        return [spearman(e[k].ravel(), truth[k].ravel()) for k in range(len(names))]
+
     return SequenceReport(
-        folder.name, names,
-        [spearman(est[k].ravel(), truth[k].ravel()) for k in range(len(names))],
-        spearman(est.ravel(), truth.ravel()), spearman(est.ravel(), truth_half.ravel()),
+        folder.name, names, per_candidate(one), per_candidate(both), per_candidate(est),
+        spearman(est.ravel(), truth.ravel()), spearman(one.ravel(), truth_half.ravel()),
         float((est.argmin(axis=0) == truth.argmin(axis=0)).mean()),
         float(np.mean(chosen)), (best, means[best]), float(np.mean(oracle)),
     )
@@ -113,14 +127,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tile", type=int, default=TILE)
     args = parser.parse_args(argv)
     print(f"tile {args.tile}; candidates {', '.join(args.pipelines)}")
-    print(f"{'sequence':14s} {'rho med':>7s} {'rho all':>7s} {'rho f(A)':>8s} {'best hit':>8s} "
-          f"{'chosen':>8s} {'best single':>22s} {'oracle':>8s}")
+    print(f"{'sequence':14s} {'rho 1-way':>9s} {'rho both':>8s} {'rho avg':>7s} {'rho all':>7s} {'rho f(A)':>8s} "
+          f"{'best hit':>8s} {'chosen':>8s} {'best single':>22s} {'oracle':>8s}")
     for folder in args.sequences:
         r = evaluate(folder, args.pipelines, args.tile)
-        print(f"{r.name:14s} {np.median(r.per_candidate):7.3f} {r.pooled:7.3f} {r.pooled_half:8.3f} "
-              f"{r.best_match:8.2f} {r.chosen:8.4f} {r.best_single[0]:>12s} {r.best_single[1]:8.4f} {r.oracle:8.4f}")
-        print(" " * 15 + "per candidate: " + ", ".join(f"{n} {v:.3f}" for n, v in zip(r.candidates, r.per_candidate,
-                                                                                        strict=True)))
+        print(f"{r.name:14s} {np.median(r.one_way):9.3f} {np.median(r.both_ways):8.3f} "
+              f"{np.median(r.per_candidate):7.3f} {r.pooled:7.3f} {r.pooled_half:8.3f} {r.best_match:8.2f} "
+              f"{r.chosen:8.4f} {r.best_single[0]:>12s} {r.best_single[1]:8.4f} {r.oracle:8.4f}")
+        print(" " * 15 + "rho avg per candidate: " + ", ".join(
+            f"{n} {v:.3f}" for n, v in zip(r.candidates, r.per_candidate, strict=True)))
     return 0
 
 

@@ -2,10 +2,12 @@
 a tolerance of the best one's.
 
 Every `every` frames (and at the first), each candidate (CANDIDATES whose layers the frame has) denoises
-half A alone from a fresh state; `service.stages.error_estimate` gives its per-tile relL2 estimate from
-the halves (normalised by the median of the candidates' outputs, the same for all; halves clipped at
-FIREFLY_CAP times that level, so that fireflies do not decide), averaged with the previous evaluation's
-where there is one (steadier, but older; a temporal candidate is judged without its history). Per tile
+half A alone and half B alone from fresh states (`both_halves`; else half A only);
+`service.stages.error_estimate` gives its per-tile relL2 estimate from the halves, both ways
+(`cross_tile_error`: half the variance of one way), normalised by the median of the candidates' outputs
+(the same for all; halves clipped at FIREFLY_CAP times that level, so that fireflies do not decide),
+averaged with the previous evaluation's where there is one (steadier, but older; a temporal candidate is
+judged without its history). Per tile
 the cheapest candidate (CANDIDATES is in order of cost) whose estimate is within `tolerance` of the
 tile's lowest is chosen. Every frame, the chosen candidates denoise the frame from their own states (a
 temporal one keeps its history while it stays chosen, and starts afresh when chosen again) and their
@@ -32,7 +34,7 @@ from service.frame import LAYERS, Frame, FrameError
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState, Split
 from service.pipelines.options import option
-from service.stages.error_estimate import TILE, interpolate_tiles, interpolation_matrix, tile_error
+from service.stages.error_estimate import TILE, cross_tile_error, interpolate_tiles, interpolation_matrix, tile_error
 
 # Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest at
 # 1280x720 first (README): flr, bmfr, svgf
@@ -47,6 +49,8 @@ class AutoOptions:
     every: int = option(8, low=1, high=1000)  # frames between two evaluations of the candidates
     # a candidate is eligible in a tile when its estimate is at most (1 + tolerance) x the tile's best
     tolerance: float = option(0.05, low=0.0, high=10.0)
+    # run every candidate on both halves at an evaluation (twice its cost, half the estimate's variance)
+    both_halves: bool = option(True)
 
 
 @dataclass
@@ -136,29 +140,41 @@ class AutoPipeline(Pipeline):
 
     def _evaluate(self, frame: Frame, state: AutoState) -> None:
         """Estimate every candidate's per-tile error on half A (fresh states) and choose per tile."""
-        half = half_a(frame)
-        outputs = []
-        for pipeline in state.candidates.values():
-            out, sub = pipeline.step(half, pipeline.start(frame.height, frame.width))
-            sub.close()
-            outputs.append(out["color"])
-        scale = np.median(outputs, axis=0)  # robust to one candidate blowing up (a sky through a window)
-        estimate = np.stack([tile_error(out, frame["colorA"], frame["colorB"], scale, self.options.tile,
-                                        cap=FIREFLY_CAP).mean for out in outputs])
+        halves = HALVES if self.options.both_halves else HALVES[:1]
+        outputs = {h: [self._run_fresh(pipeline, one_half(frame, h)) for pipeline in state.candidates.values()]
+                   for h in halves}
+        # robust to one candidate blowing up (a sky through a window)
+        scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
+        a, b, tile = frame["colorA"], frame["colorB"], self.options.tile
+        if self.options.both_halves:
+            estimate = np.stack([cross_tile_error(out_a, out_b, a, b, scale, tile, cap=FIREFLY_CAP).mean
+                                 for out_a, out_b in zip(outputs["colorA"], outputs["colorB"], strict=True)])
+        else:
+            estimate = np.stack([tile_error(out_a, a, b, scale, tile, cap=FIREFLY_CAP).mean
+                                 for out_a in outputs["colorA"]])
         if state.estimate is not None:
             estimate = 0.5 * (state.estimate + estimate)
         state.estimate = estimate
         state.choice = choose(estimate, self.options.tolerance)
-        tile, height, width = self.options.tile, frame.height, frame.width
-        state.weights = tile_weights(state.choice, len(outputs), tile, height, width)
+        height, width = frame.height, frame.width
+        state.weights = tile_weights(state.choice, len(state.candidates), tile, height, width)
         chosen = np.take_along_axis(estimate, state.choice[None], axis=0)[0]
         state.error = np.maximum(interpolate_tiles(chosen, tile, height, width), 0.0)[..., None].astype(np.float32)
 
 
-def half_a(frame: Frame) -> Frame:
-    """`frame` with half A as its `color` and the halves removed: what a candidate's f(A) is computed from."""
+    @staticmethod
+    def _run_fresh(pipeline: Pipeline, frame: Frame) -> np.ndarray:
+        """(H, W, 3) float32: `pipeline`'s output for `frame` from a fresh state."""
+        out, sub = pipeline.step(frame, pipeline.start(frame.height, frame.width))
+        sub.close()
+        return out["color"]
+
+
+def one_half(frame: Frame, half: str = "colorA") -> Frame:
+    """`frame` with one half (`colorA` or `colorB`) as its `color` and the halves removed: what a candidate's
+    f(A) or f(B) is computed from."""
     buffers = {k: v for k, v in frame.buffers.items() if k not in HALVES}
-    return Frame({**buffers, "color": frame["colorA"]}, dict(frame.nonfinite))
+    return Frame({**buffers, "color": frame[half]}, dict(frame.nonfinite))
 
 
 def choose(estimate: np.ndarray, tolerance: float) -> np.ndarray:

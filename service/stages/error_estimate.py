@@ -20,6 +20,15 @@ clipped at cap times the scale's level (plus cap x sqrt(REL_L2_EPS), so that dar
 the same clipped target for every candidate, so the ranking stays fair, at the price of an estimate biased
 low in tiles with fireflies.
 
+Both ways (`cross_tile_error`): with f also run on half B alone, the mean of d for f(A) against B and of
+d for f(B) against A. Writing n_A, n_B for the halves' noise and e_A, e_B for f(A)'s and f(B)'s errors,
+
+    d(f(A), B) = e_A^2 - 2 e_A n_B + (n_B^2 - n_A^2) / 2 + n_A n_B
+
+and the halves' own term (n_B^2 - n_A^2) / 2, the largest where f is good, changes sign between the two
+ways and cancels in the mean. For Gaussian noise that halves the variance where the error is small
+(2 sigma^4 -> sigma^4 per pixel and channel), at the price of running f twice.
+
 It estimates the error of f on half the samples, not on the full frame: the ranking of candidates is what
 it is for (bench/error_estimate.py measures how well it ranks them against the true error of f on the
 full frame).
@@ -94,9 +103,24 @@ def pixel_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, sca
 def tile_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray, tile: int = TILE,
                eps: float = REL_L2_EPS, cap: float | None = None) -> TileError:
     """Per-tile estimated relL2 of `out_a` and the variance of each estimate (arguments as `pixel_error`)."""
+    return _tiled(pixel_error(out_a, color_a, color_b, scale, eps, cap), tile)
+
+
+def cross_tile_error(out_a: np.ndarray, out_b: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
+                     scale: np.ndarray, tile: int = TILE, eps: float = REL_L2_EPS,
+                     cap: float | None = None) -> TileError:
+    """Per-tile estimated relL2 of a denoiser on half the samples, both ways (module docstring): out_a and
+    out_b (H, W, 3) are its outputs from half A alone and from half B alone; the other arguments as
+    `pixel_error`. The variance takes the pixels' mean of the two ways as independent, as `tile_error` does."""
+    d = 0.5 * (pixel_error(out_a, color_a, color_b, scale, eps, cap)
+               + pixel_error(out_b, color_b, color_a, scale, eps, cap))
+    return _tiled(d, tile)
+
+
+def _tiled(d: np.ndarray, tile: int) -> TileError:
+    """Per-tile mean of the (H, W) float64 per-pixel estimates `d`, and its variance."""
     if tile < 1:
         raise ValueError(f"tile must be >= 1, got {tile}")
-    d = pixel_error(out_a, color_a, color_b, scale, eps, cap)
     sums, counts = tile_sums(d, tile)
     squares, _ = tile_sums(d * d, tile)
     mean = sums / counts

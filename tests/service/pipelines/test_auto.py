@@ -7,7 +7,7 @@ from bench.synthetic import synthetic_sequence
 from service import pipelines
 from service.frame import Frame
 from service.pipelines import tiled
-from service.pipelines.tiled import CANDIDATES, choose, tile_weights
+from service.pipelines.tiled import CANDIDATES, choose, one_half, tile_weights
 from service.stages.error_estimate import interpolate_tiles
 
 
@@ -128,19 +128,46 @@ def test_two_chosen_candidates_are_blended_by_their_tile_weights(frames, monkeyp
         np.testing.assert_allclose(out["color"], expected, rtol=1e-5, atol=1e-6)
 
 
-def test_each_evaluation_averages_with_the_previous_estimate(frames, monkeypatch):
+@pytest.mark.parametrize("both_halves", [True, False])
+def test_each_evaluation_averages_with_the_previous_estimate(frames, monkeypatch, both_halves):
     from service.stages.error_estimate import TileError
 
     calls = []
 
-    def fake(out, color_a, color_b, scale, tile, cap=None):
+    def fake(*args, **kwargs):
         calls.append(len(calls))
         value = np.full((3, 5), float(len(calls)))  # 1, 2, 3, ... per candidate call
-        return TileError(value, np.zeros_like(value), tile)
+        return TileError(value, np.zeros_like(value), 16)
 
-    monkeypatch.setattr(tiled, "tile_error", fake)
-    _, state = _run(pipelines.get("auto", tile=16, every=2), frames[:3])  # evaluations at frames 0 and 2
+    monkeypatch.setattr(tiled, "cross_tile_error" if both_halves else "tile_error", fake)
+    _, state = _run(pipelines.get("auto", tile=16, every=2, both_halves=both_halves), frames[:3])  # frames 0, 2
     k = len(CANDIDATES)
     first = np.arange(1, k + 1, dtype=float)
     second = np.arange(k + 1, 2 * k + 1, dtype=float)
     np.testing.assert_allclose(state.estimate[:, 0, 0], 0.5 * (first + second))
+
+
+def test_the_estimate_both_ways_compares_each_candidate_on_half_a_and_on_half_b(frames, monkeypatch):
+    """Each candidate's f(A) and f(B) (from fresh states) go to `cross_tile_error` with the halves, and the
+    estimate is what it returns."""
+    from service.stages.error_estimate import cross_tile_error
+
+    seen = []
+
+    def spy(out_a, out_b, color_a, color_b, scale, tile, cap=None):
+        seen.append((out_a, out_b))
+        return cross_tile_error(out_a, out_b, color_a, color_b, scale, tile, cap=cap)
+
+    monkeypatch.setattr(tiled, "cross_tile_error", spy)
+    _, state = _run(pipelines.get("auto", tile=16, every=8), frames[:1])
+    frame = frames[0]
+    outputs = {h: [_run(pipelines.get(n), [one_half(frame, h)])[0][0]["color"] for n in CANDIDATES]
+               for h in ("colorA", "colorB")}
+    assert len(seen) == len(CANDIDATES)
+    scale = np.median(outputs["colorA"] + outputs["colorB"], axis=0)
+    for k, (out_a, out_b) in enumerate(seen):
+        np.testing.assert_array_equal(out_a, outputs["colorA"][k])
+        np.testing.assert_array_equal(out_b, outputs["colorB"][k])
+        expected = cross_tile_error(out_a, out_b, frame["colorA"], frame["colorB"], scale, 16,
+                                    cap=tiled.FIREFLY_CAP).mean
+        np.testing.assert_array_equal(state.estimate[k], expected)

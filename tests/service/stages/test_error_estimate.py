@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service.metrics import REL_L2_EPS
-from service.stages.error_estimate import pixel_error, tile_error, tile_sums
+from service.stages.error_estimate import cross_tile_error, pixel_error, tile_error, tile_sums
 
 
 def _halves(rng, mu, sigma):
@@ -41,6 +41,27 @@ def test_estimate_is_unbiased_and_its_variance_calibrated(kind):
     z = np.array(z)
     assert abs(z.mean()) < 0.15  # unbiased: 20 frames x 12 tiles of z-scores average to ~0
     assert 0.6 < (z * z).mean() < 1.6  # the variance matches the scatter
+
+
+@pytest.mark.parametrize("kind", ["biased", "identity", "perfect"])
+def test_the_estimate_both_ways_is_unbiased_calibrated_and_steadier_than_one_way(kind):
+    rng = np.random.default_rng(4)
+    mu, sigma = _scene(rng)
+    z, one_way, both_ways = [], [], []
+    for _ in range(20):
+        a, b = _halves(rng, mu, sigma)
+        f = {"biased": lambda h: mu * 1.1 + 0.05, "identity": lambda h: h, "perfect": lambda h: mu}[kind]
+        out_a, out_b = (np.asarray(f(h), np.float32) for h in (a, b))
+        est = cross_tile_error(out_a, out_b, a, b, mu, tile=32)
+        truth = 0.5 * (_truth(out_a, mu, 32) + _truth(out_b, mu, 32))
+        z.append((est.mean - truth) / np.sqrt(est.variance))
+        one_way.append(tile_error(out_a, a, b, mu, tile=32).mean - _truth(out_a, mu, 32))
+        both_ways.append(est.mean - truth)
+    z = np.array(z)
+    assert abs(z.mean()) < 0.15
+    assert 0.5 < (z * z).mean() < 1.6
+    if kind == "perfect":  # the halves' own noise cancels: 2 sigma^4 -> sigma^4 per pixel (module docstring)
+        assert np.var(both_ways) < 0.6 * np.var(one_way)
 
 
 def test_estimate_ranks_a_better_denoiser_below_a_worse_one_in_every_tile():
