@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Render a training set with Mitsuba's cuda_ad_rgb variant and train `rae` on one CUDA GPU, in a fixed time.
+# Render a training set with Mitsuba's cuda_ad_rgb variant and train the offline networks on one CUDA GPU, in
+# a fixed time.
 #
-# usage: models/train/accelerator.sh OUT RENDER_SECONDS TRAIN_MINUTES [WORKERS]
+# usage: [NETS="rae flnr"] models/train/accelerator.sh OUT RENDER_SECONDS TRAIN_MINUTES [WORKERS]
 #
 # 1. Renders, for at most RENDER_SECONDS, WORKERS `python -m models.data dataset` processes side by side on
 #    the one GPU: worker 0 renders make data's training seeds (2-5), worker k > 0 the seeds 7 + 4(k-1) ..
@@ -9,8 +10,9 @@
 #    references). Seeds 0 (benchmark), 1 (hard cases) and 6 (validation) are never trained on. A sequence
 #    cut off by the time limit has no sequence.json and is not used. The validation set (seed 6, one
 #    sequence per scene, as make data's) renders beside them.
-# 2. Trains one run (OUT/rae, with the hidden-state warp, as the shipped weights) for TRAIN_MINUTES.
-#    `python -m export rae OUT/rae/best.pt OUT.onnx` exports it.
+# 2. Trains one run per network in $NETS (default: all of them), one after the other, TRAIN_MINUTES each:
+#    OUT/rae (with the hidden-state warp, as the shipped weights), OUT/flnr. `python -m export NET
+#    OUT/NET/best.pt OUT/NET.onnx` exports each.
 #
 # Needs: a CUDA GPU, torch with CUDA, mitsuba (cuda_ad_rgb), OpenEXR, numba, tqdm, matplotlib (or DEVICE=cpu
 # and MCDENOISE_MI_VARIANT=llvm_ad_rgb or scalar_rgb, slowly).
@@ -39,4 +41,9 @@ echo "rendered: $(ls "$out"/data/train/*/sequence.json 2>/dev/null | wc -l) trai
 common=(--data "$out/data/train" --val "$out/data/val" --device "$device" --steps 1000000 --minutes "$train_min"
         --batch 16 --lr 0.001 --warmup 200 --seed 0 --val-every 500 --log-every 50 --checkpoint-every 500
         --ema 0.999)
-$py -m models.train rae "${common[@]}" --warp --out "$out/rae" >"$out/logs/train.log" 2>&1
+declare -A extra=([rae]="--warp" [flnr]="")
+for net in ${NETS:-rae flnr}; do
+  # shellcheck disable=SC2086  # the extra options are words
+  $py -m models.train "$net" "${common[@]}" ${extra[$net]} --out "$out/$net" >"$out/logs/train_$net.log" 2>&1
+  $py -m export "$net" "$out/$net/best.pt" "$out/$net.onnx" >>"$out/logs/train_$net.log" 2>&1
+done
