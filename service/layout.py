@@ -91,6 +91,26 @@ FLNR_OUTPUTS: tuple[ChannelGroup, ...] = (
 )
 
 
+# The multi-scale kernel-predicting network with dual motion vectors (Zeng et al. 2023, sec. 4, Fig. 4): the
+# recurrent autoencoder's planes plus the previous output warped to this frame (its recurrent state, an
+# explicit part of the input; the noisy radiance where the warp fails and at a sequence's first frame).
+KPN_INPUTS: tuple[ChannelGroup, ...] = RAE_INPUTS + (
+    ChannelGroup("previous", 3, TRANSFORM_LOG1P_DEMODULATED, "previous output warped to this frame, demodulated"),
+)
+KPN_TAPS = 25  # a 5 x 5 per-pixel kernel (Zeng 2023 sec. 4.3, Fig. 6)
+# Zeng 2023 Fig. 6, finest scale (51 = two 5x5 kernels + alpha_t), at the frame's resolution
+KPN_FINE_OUTPUTS: tuple[ChannelGroup, ...] = (
+    ChannelGroup("kernel", KPN_TAPS, TRANSFORM_NONE, "spatial 5x5 kernel on the noisy radiance, softmax: sums to 1"),
+    ChannelGroup("temporal", KPN_TAPS, TRANSFORM_NONE, "5x5 kernel on the warped previous output, sums to 1"),
+    ChannelGroup("alpha", 1, TRANSFORM_NONE, "sigmoid: weight of the current frame's filtered radiance, (0, 1)"),
+)
+# Zeng 2023 Fig. 6, each coarser scale (26 = a 5x5 kernel + alpha), at 1/2 and 1/4 of the frame's resolution
+KPN_COARSE_OUTPUTS: tuple[ChannelGroup, ...] = (
+    ChannelGroup("kernel", KPN_TAPS, TRANSFORM_NONE, "5x5 kernel on the downsampled noisy radiance, sums to 1"),
+    ChannelGroup("alpha", 1, TRANSFORM_NONE, "sigmoid: weight of this scale against the finer one (eq. 4), (0, 1)"),
+)
+
+
 def total_channels(groups: Sequence[ChannelGroup]) -> int:
     return sum(g.channels for g in groups)
 
