@@ -1,5 +1,5 @@
 """Exporting a models.train checkpoint (`python -m export NET CHECKPOINT OUT.onnx`): the network's ONNX file
-and its manifest, for every offline-trained network (export/rae.py, export/flnr.py make the ONNX bytes).
+and its manifest, for every offline-trained network (export/rae.py, export/flnr.py, export/kpn.py make the ONNX bytes).
 
 The manifest (OUT.json) says what the shipped weights are and how they were made: the network, the training
 run (its options as a command line, preceded by the runs it fine-tuned, oldest first), data, seed, steps,
@@ -15,14 +15,16 @@ from typing import Any
 
 import torch
 
-from export import flnr, rae
+from export import flnr, kpn, rae
 from export import onnx as onnx_export
 from models.nets import count_parameters
 from models.nets.flnr import load_network as load_flnr
+from models.nets.kpn import load_network as load_kpn
 from models.nets.rae import load_network as load_rae
-from models.train.train import LOG, inference_state
+from models.train.train import LOG, LOG_TERMS, inference_state
 
-NETWORKS = {"rae": (load_rae, rae.export_bytes), "flnr": (load_flnr, flnr.export_bytes)}  # name -> (load, export)
+NETWORKS = {"rae": (load_rae, rae.export_bytes), "flnr": (load_flnr, flnr.export_bytes),
+            "kpn": (load_kpn, kpn.export_bytes)}  # name -> (load, export)
 
 
 def train_command(opts: dict[str, Any], step: int) -> str:
@@ -63,7 +65,7 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
         "data": ckpt.get("data"),
         "validation": ckpt.get("val"),
         "best_val_rel_l2": ckpt.get("best_val_rel_l2"),
-        "final_train_loss": {k: float(train_rows[-1][k]) for k in ("loss", "spatial", "gradient", "temporal")}
+        "final_train_loss": {k: float(train_rows[-1][k]) for k in LOG_TERMS if train_rows[-1].get(k)}
         if train_rows else None,  # the last log row at or before the exported step
         "validation_curve": [{"step": int(r["step"]), "rel_l2": float(r["val_rel_l2"]),
                               "temporal": float(r["val_temporal"])} for r in val_rows
