@@ -5,10 +5,10 @@
     L_temp = mean |(I_i - I_{i-1}) - (R_i - R_{i-1})|                 over frames 1..T-1
     L_occ  = mean |I_i (.) W_i - R_i (.) W_i|,  W_i = sum_k w_k M^k_i  eq. 5, w = 1, 0.8, 0.6
 
-M^k_i is 1 where |motionDual - motion| > OCCLUSION_PX at frame i - k (the pixels that were occluded in the
-frame before it); as the paper says, a frame without i - k in the window takes M^0_i in its place. The
-paper adds L_occ after half of the training (sec. 5), the `occlusion` argument here (models/train/kpn.py
-switches it on at TrainOptions.occlusion_from of the steps).
+M^k_i is 1 where |motionDual - motion| > DUAL_OCCLUSION_PX (service.stages.reprojection, 0.5 px) at frame
+i - k (the pixels that were occluded in the frame before it); as the paper says, a frame without i - k in
+the window takes M^0_i in its place. The paper adds L_occ after half of the training (sec. 5), the
+`occlusion` argument here (models/train/kpn.py switches it on at TrainOptions.occlusion_from of the steps).
 
 Domain: as the recurrent autoencoder's loss (models/train/rae_loss.py `tone`): prediction and reference are
 linear demodulated radiance raised to the power 0.2 (with its epsilon) before the L1; the paper takes L1
@@ -20,15 +20,15 @@ from __future__ import annotations
 import torch
 
 from models.train.rae_loss import LossTerms, prediction_to_linear, tone
+from service.stages.reprojection import DUAL_OCCLUSION_PX
 
-OCCLUSION_PX = 0.5  # |motionDual - motion| (Euclidean, pixels) above which a pixel was occluded before
 MASK_WEIGHTS = (1.0, 0.8, 0.6)  # w_i^0, w_i^1, w_i^2 (Zeng 2023 sec. 4.4)
 
 
 def occlusion_weights(motion: torch.Tensor, motion_dual: torch.Tensor) -> torch.Tensor:
     """motion, motion_dual: (N, T, 2, H, W) backward motion, pixels. Returns (N, T, 1, H, W) float32
     sum_k w_k M^k_t (module docstring), in [0, 2.4]."""
-    masks = ((motion_dual - motion).square().sum(dim=2, keepdim=True) > OCCLUSION_PX**2).to(motion.dtype)
+    masks = ((motion_dual - motion).square().sum(dim=2, keepdim=True) > DUAL_OCCLUSION_PX**2).to(motion.dtype)
     t = masks.shape[1]
     out = torch.zeros_like(masks)
     for k, weight in enumerate(MASK_WEIGHTS):
