@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from models.nets import seeded
+from models.nets import from_checkpoint, seeded
 from models.nets.rae import LEAKY_SLOPE, SPACE_TO_DEPTH, conv3x3
 from service.layout import FLNR_OUTPUTS, RAE_INPUTS, channel_slices, total_channels
 
@@ -114,7 +114,4 @@ def make_flnr(config: FlnrConfig | None = None, *, seed: int | None = None) -> G
 
 def load_network(ckpt: dict) -> GuideNet:
     """The network of a checkpoint dict ({'config', 'state_dict'}), weights loaded, in eval mode."""
-    values = ckpt["config"]
-    net = GuideNet(FlnrConfig(**{**values, "widths": tuple(values["widths"])}))
-    net.load_state_dict(ckpt["state_dict"])
-    return net.eval()
+    return from_checkpoint(GuideNet, FlnrConfig, ckpt)

@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from models.nets import seeded
+from models.nets import from_checkpoint, seeded
 from models.nets.flnr import Block
 from models.nets.rae import SPACE_TO_DEPTH
 from service.layout import KPN_COARSE_OUTPUTS, KPN_FINE_OUTPUTS, KPN_INPUTS, KPN_TAPS, total_channels
@@ -120,7 +120,4 @@ def make_kpn(config: KpnConfig | None = None, *, seed: int | None = None) -> Ker
 
 def load_network(ckpt: dict) -> KernelPredictor:
     """The network of a checkpoint dict ({'config', 'state_dict'}), weights loaded, in eval mode."""
-    values = ckpt["config"]
-    net = KernelPredictor(KpnConfig(**{**values, "widths": tuple(values["widths"])}))
-    net.load_state_dict(ckpt["state_dict"])
-    return net.eval()
+    return from_checkpoint(KernelPredictor, KpnConfig, ckpt)

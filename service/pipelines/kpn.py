@@ -22,20 +22,19 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from service.frame import Frame
 from service.layout import KPN_INPUTS, channel_slices, pad_planes
 from service.pipelines import register
-from service.pipelines.base import Pipeline, SequenceState
-from service.pipelines.networks import registered_model
+from service.pipelines.base import SequenceState
+from service.pipelines.networks import NetworkPipeline, frame_planes
 from service.pipelines.options import MAX_THREADS, option
-from service.runtime import OnnxModel, weight_names
+from service.runtime import weight_names
 from service.stages.kernel_filter import kernel_filter
-from service.stages.rae_inputs import RADIANCE, radiance_from_output, rae_planes
-from service.stages.reprojection import reproject, surface_hit
+from service.stages.rae_inputs import RADIANCE, radiance_from_output
+from service.stages.reprojection import reproject
 
 NETWORK = "kpn"  # the network a `weights` file must hold (its ONNX metadata)
 DEFAULT_WEIGHTS = "kpn"  # models/weights/kpn.onnx (manifest: kpn.json)
@@ -69,27 +68,15 @@ def warp_motion(frame: Frame, mode: str) -> np.ndarray:
 
 
 @register
-class KpnPipeline(Pipeline):
+class KpnPipeline(NetworkPipeline):
     name = "kpn"
     summary = "multi-scale kernel prediction with dual motion vectors (Zeng 2023), trained offline; temporal"
     requires = ("color", "albedo", "normal", "depth", "motion")
     optional = ("motionDual", "roughness", "emission")
     temporal = True
     Options = KpnOptions
-
-    def __init__(self, **options: Any):
-        super().__init__(**options)
-        self._model: OnnxModel | None = None  # loaded on first use; sessions share it (no state inside)
-
-    def model(self) -> OnnxModel:
-        if self._model is None:
-            self._model = registered_model(self.options.weights, NETWORK, threads=self.options.threads or None,
-                                           swappable=False)
-        return self._model
-
-    def new_state(self, height: int, width: int) -> KpnState:
-        self.model()  # a bad `weights` file fails at the start of the sequence, not at its first frame
-        return KpnState(height, width)
+    network = NETWORK
+    State = KpnState
 
     def check(self, frame: Frame, state: SequenceState) -> None:
         """Pipeline.check, and `motionDual` is required with motion="dual"."""
@@ -108,10 +95,7 @@ class KpnPipeline(Pipeline):
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         model = self.model()
         info = model.info
-        albedo, color = frame["albedo"], frame["color"]
-        background = ~surface_hit(frame["normal"])  # (H, W): nothing was hit
-        planes = rae_planes(color, albedo, frame["normal"], frame["depth"], frame.get("roughness"),
-                            background=background)
+        planes, background = frame_planes(frame)
         previous = self.previous(frame, state, planes[RADIANCE])
         features = np.ascontiguousarray(pad_planes(np.concatenate([planes, previous]), info.alignment))
         outputs = model.run({info.input_name: features[None]})
@@ -123,5 +107,5 @@ class KpnPipeline(Pipeline):
             raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite kernels; "
                                      "its recurrent state was reset")
         state.previous = np.ascontiguousarray(filtered)
-        radiance = radiance_from_output(filtered, albedo)
-        return {"color": np.where(background[..., None], color, radiance)}, state
+        radiance = radiance_from_output(filtered, frame["albedo"])
+        return {"color": np.where(background[..., None], frame["color"], radiance)}, state
