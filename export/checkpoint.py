@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,10 @@ NETWORKS = {"rae": (load_rae, rae.export_bytes), "flnr": (load_flnr, flnr.export
 
 def train_command(opts: dict[str, Any], step: int) -> str:
     """The `python -m models.train` command line that remakes a run's checkpoint of step `step` from its
-    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps)."""
+    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps), and
+    `--occlusion-from` rescaled so that the occlusion term joins at the same step as in the run."""
+    if "occlusion_from" in opts and step:
+        opts = {**opts, "occlusion_from": float(f"{min(1.0, opts['occlusion_from'] * opts['steps'] / step):.6g}")}
     opts = {**opts, "steps": step}
     opts.setdefault("ema", 0.0)  # runs from before the `ema` option used raw weights
     flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
@@ -73,6 +77,7 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
         "training_seconds": ckpt.get("seconds"),  # wall time of this run up to the exported checkpoint
         "fine_tuned_from": base,
         "machine": ckpt.get("machine"),
+        "trained": datetime.fromtimestamp(checkpoint.stat().st_mtime, UTC).date().isoformat(),  # the checkpoint's day
     }
 
 

@@ -73,3 +73,12 @@ def test_metadata_contract(exported):
     assert [(c["output"], c["scale"]) for c in info.metadata["coarse"]] == list(COARSE_OUTPUTS)
     assert info.metadata["motion"] == "plain" and info.metadata["config"]["widths"] == [6, 8, 10]
     assert json.loads(json.dumps(info.metadata)) == info.metadata
+
+
+def test_manifest_command_keeps_the_step_the_occlusion_term_joined():
+    """A run of 5,500 steps stopped at 4,434: its occlusion term joined at step 2,750, and so must the remake's."""
+    from export.checkpoint import train_command
+
+    command = train_command({"net": "kpn", "steps": 5500, "occlusion_from": 0.5, "motion": "dual"}, 4434)
+    share = float(command.split("--occlusion-from ")[1].split()[0])
+    assert "--steps 4434" in command and round(share * 4434) == 2750
