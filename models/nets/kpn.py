@@ -12,7 +12,8 @@ models/train/kernel_filter.py); this module only predicts.
 
 Departures from the paper and choices where it is silent:
 - Space-to-depth, as models/nets/rae.py: the trunk runs at half resolution (2x2 pixels -> 4x the channels
-  in); the finest kernels come out at half resolution 4x over and are pixel-shuffled to full resolution.
+  in); the finest predictions come out at half resolution 4x over (pixel-shuffle order), and the filter
+  reads each pixel's where it lies.
   The 1/2-scale kernels are predicted by the trunk's first level, the 1/4-scale ones by its second.
 - Widths `KpnConfig.widths` (24, 32, 48, 64): three poolings below the half-resolution level, two 3x3
   convolutions with leaky ReLU per level (the FLNR `Block`), max pooling in the trunk, nearest upsampling,
@@ -20,15 +21,17 @@ Departures from the paper and choices where it is silent:
 - Prediction heads are 1x1 convolutions that start at zero: an untrained network filters with 5x5 box
   kernels and weighs every scale and the history by 1/2.
 - Kernels are normalised by a softmax over their 25 taps (so a constant image stays constant), the weights
-  by a sigmoid (the paper does not say how it normalises them).
+  by a sigmoid (the paper does not say how it normalises them); both in the filter, which takes the
+  network's logits (service/stages/kernel_filter.py says why).
 - Inputs are the recurrent autoencoder's planes (log1p demodulated radiance, normal, relative depth,
   roughness; service.layout.RAE_INPUTS) and the warped previous output in the same log1p demodulated space
   (KPN_INPUTS): the paper's albedo goes in as demodulation. The filter works in that log1p space.
 - He initialisation of the trunk (the paper: Xavier).
 
 Tensors: features (N, 11, H, W) float32 in service.layout.KPN_INPUTS order, H and W multiples of `alignment`
-(the caller pads); outputs fine (N, 51, H, W) in KPN_FINE_OUTPUTS order, half (N, 26, H/2, W/2) and quarter
-(N, 26, H/4, W/4) in KPN_COARSE_OUTPUTS order; kernels sum to 1 per pixel, weights lie in (0, 1).
+(the caller pads); outputs, all logits: fine (N, 51 * 4, H/2, W/2), the full-resolution KPN_FINE_OUTPUTS in
+space-to-depth layout (`F.pixel_shuffle(fine, 2)` is (N, 51, H, W)), half (N, 26, H/2, W/2) and quarter
+(N, 26, H/4, W/4) in KPN_COARSE_OUTPUTS order.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ from torch import nn
 from models.nets import from_checkpoint, seeded
 from models.nets.flnr import Block
 from models.nets.rae import SPACE_TO_DEPTH
-from service.layout import KPN_COARSE_OUTPUTS, KPN_FINE_OUTPUTS, KPN_INPUTS, KPN_TAPS, total_channels
+from service.layout import KPN_COARSE_OUTPUTS, KPN_FINE_OUTPUTS, KPN_INPUTS, total_channels
 
 FINE = total_channels(KPN_FINE_OUTPUTS)  # 51 (Zeng 2023 Fig. 6)
 COARSE = total_channels(KPN_COARSE_OUTPUTS)  # 26 (Zeng 2023 Fig. 6)
@@ -61,12 +64,6 @@ class KpnConfig:
                              f"{self.widths}")
 
 
-def _normalised(raw: torch.Tensor, kernels: int) -> torch.Tensor:
-    """(N, 25 k + a, H, W) raw head output -> softmax over each kernel's 25 taps, sigmoid of the a weights."""
-    parts = [torch.softmax(part, dim=1) for part in raw[:, : kernels * KPN_TAPS].split(KPN_TAPS, dim=1)]
-    return torch.cat([*parts, torch.sigmoid(raw[:, kernels * KPN_TAPS :])], dim=1)
-
-
 def _zero_head(cin: int, cout: int) -> nn.Conv2d:
     head = nn.Conv2d(cin, cout, 1)
     nn.init.zeros_(head.weight)
@@ -75,7 +72,7 @@ def _zero_head(cin: int, cout: int) -> nn.Conv2d:
 
 
 class KernelPredictor(nn.Module):
-    """features (N, 11, H, W) -> (fine, half, quarter) kernels and weights; shapes in the module docstring."""
+    """features (N, 11, H, W) -> (fine, half, quarter) kernel and weight logits; shapes in the module docstring."""
 
     def __init__(self, config: KpnConfig | None = None):
         super().__init__()
@@ -86,7 +83,7 @@ class KernelPredictor(nn.Module):
                                                                       strict=True))
         self.bottleneck = Block(w[-2], w[-1])
         self.decoder = nn.ModuleList(Block(up + c, c) for up, c in zip(w[1:], w[:-1], strict=True))
-        self.fine_head = _zero_head(w[0], FINE * s2)  # pixel-shuffled to full resolution
+        self.fine_head = _zero_head(w[0], FINE * s2)  # full resolution in space-to-depth layout
         self.half_head = _zero_head(w[0], COARSE)
         self.quarter_head = _zero_head(w[1], COARSE)
 
@@ -109,8 +106,7 @@ class KernelPredictor(nn.Module):
             x = self.decoder[level](torch.cat([x, skips[level]], dim=1))
             decoded.append(x)
         half_res, quarter_res = decoded[-1], decoded[-2]
-        fine = _normalised(F.pixel_shuffle(self.fine_head(half_res), SPACE_TO_DEPTH), 2)
-        return fine, _normalised(self.half_head(half_res), 1), _normalised(self.quarter_head(quarter_res), 1)
+        return self.fine_head(half_res), self.half_head(half_res), self.quarter_head(quarter_res)
 
 
 def make_kpn(config: KpnConfig | None = None, *, seed: int | None = None) -> KernelPredictor:

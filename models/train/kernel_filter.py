@@ -1,9 +1,10 @@
 """The multi-scale kernel filter with temporal blend of Zeng et al. 2023 (sec. 4.3, eq. 4) in torch,
 differentiable in the kernels, the weights and both images.
 
-The same filter as service/stages/kernel_filter.py (numba, inference; the equations and the kernel layout
-are in its docstring), written with whole-tensor shifts over the 5x5 window of an edge-replicated image;
-tests/models/train/test_kernel_filter_parity.py holds the two together. Layout (N, C, H, W).
+The same filter as service/stages/kernel_filter.py (numba, inference; the equations, the kernel layout and
+the normalisation of the network's logits are in its docstring), written with whole-tensor shifts over the
+5x5 window of an edge-replicated image; tests/models/train/test_kernel_filter_parity.py holds the two
+together. Layout (N, C, H, W).
 """
 
 from __future__ import annotations
@@ -14,8 +15,10 @@ import torch.nn.functional as F
 from service.stages.kernel_filter import COARSE, FINE, KERNEL_SIZE, RADIUS
 
 
-def apply_kernel(image: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
-    """image (N, C, H, W); kernel (N, 25, H, W) -> (N, C, H, W): per-pixel 5x5 weighted sums, edges replicated."""
+def apply_kernel(image: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
+    """image (N, C, H, W); logits (N, 25, H, W) tap logits -> (N, C, H, W): per pixel, the softmax of its logits
+    weighing its edge-replicated 5x5 neighbourhood."""
+    kernel = torch.softmax(logits, dim=1)
     h, w = image.shape[-2:]
     padded = F.pad(image, (RADIUS,) * 4, mode="replicate")
     out = torch.zeros_like(image)
@@ -42,14 +45,18 @@ def combine_scales(fine: torch.Tensor, coarse: torch.Tensor, alpha: torch.Tensor
 
 
 def kernel_filter(noisy: torch.Tensor, previous: torch.Tensor, fine: torch.Tensor, half: torch.Tensor,
-                  quarter: torch.Tensor) -> torch.Tensor:
-    """noisy, previous (N, 3, H, W) log1p demodulated radiance, H and W multiples of 4; fine (N, 51, H, W),
-    half (N, 26, H/2, W/2), quarter (N, 26, H/4, W/4): the network's outputs (models/nets/kpn.py).
-    Returns (N, 3, H, W) filtered log1p demodulated radiance."""
+                  quarter: torch.Tensor, space_to_depth: int = 1) -> torch.Tensor:
+    """noisy, previous (N, 3, H, W) log1p demodulated radiance, H and W multiples of 4 and of s =
+    `space_to_depth`; fine (N, 51 s^2, H / s, W / s) (pixel-shuffle order), half (N, 26, H/2, W/2), quarter
+    (N, 26, H/4, W/4): the network's raw predictions (models/nets/kpn.py). Returns (N, 3, H, W) filtered log1p
+    demodulated radiance."""
+    fine = F.pixel_shuffle(fine, space_to_depth)
     half_noisy = downsample(noisy)
     coarse = apply_kernel(downsample(half_noisy), quarter[:, COARSE["kernel"]])
-    coarse = combine_scales(apply_kernel(half_noisy, half[:, COARSE["kernel"]]), coarse, quarter[:, COARSE["alpha"]])
-    spatial = combine_scales(apply_kernel(noisy, fine[:, FINE["kernel"]]), coarse, half[:, COARSE["alpha"]])
+    coarse = combine_scales(apply_kernel(half_noisy, half[:, COARSE["kernel"]]), coarse,
+                            torch.sigmoid(quarter[:, COARSE["alpha"]]))
+    spatial = combine_scales(apply_kernel(noisy, fine[:, FINE["kernel"]]), coarse,
+                             torch.sigmoid(half[:, COARSE["alpha"]]))
     temporal = apply_kernel(previous, fine[:, FINE["temporal"]])
-    alpha = fine[:, FINE["alpha"]]
+    alpha = torch.sigmoid(fine[:, FINE["alpha"]])
     return alpha * spatial + (1.0 - alpha) * temporal

@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from models.nets.kpn import KernelPredictor, KpnConfig, load_network, make_kpn
+from models.nets.rae import SPACE_TO_DEPTH
 from models.nets.warp import warp_valid
 from models.train.dataset import Sequence, Window
 from models.train.kernel_filter import kernel_filter
@@ -58,7 +59,8 @@ def filter_window(net: KernelPredictor, noisy: torch.Tensor, guides: torch.Tenso
         previous = radiance if i == 0 else warped_previous(outputs[-1], motion[:, i], radiance)
         features = F.pad(torch.cat([planes, previous], dim=1), pad, mode="replicate")
         kernels = net(features)
-        out = kernel_filter(features[:, PLANES["radiance"]], features[:, PLANES["previous"]], *kernels)
+        out = kernel_filter(features[:, PLANES["radiance"]], features[:, PLANES["previous"]], *kernels,
+                            space_to_depth=SPACE_TO_DEPTH)
         outputs.append(out[..., :h, :w])
     return torch.stack(outputs, dim=1)
 

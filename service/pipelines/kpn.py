@@ -9,8 +9,9 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
      screen) and at a sequence's first frame, the noisy radiance of step 1 (Zeng 2023 sec. 5)
   3. the network in ONNX Runtime on planes and warped previous output (service.layout.KPN_INPUTS), padded by
      edge replication to its alignment -> 5x5 kernels at full, 1/2 and 1/4 resolution, their blending
-     weights, the temporal kernel and alpha_t (models/nets/kpn.py)
-  4. the multi-scale kernel filter with temporal blend (service/stages/kernel_filter.py), cropped back
+     weights, the temporal kernel and alpha_t, as logits (models/nets/kpn.py)
+  4. the multi-scale kernel filter with temporal blend, which normalises them
+     (service/stages/kernel_filter.py), cropped back
   5. expm1 and remodulation by the albedo
 The background (nothing hit: zero normal) passes through as it came and the network sees zero radiance there,
 as in `rae`. State: the previous output of step 4 (3, H, W) float32, none at the first frame of a sequence.
@@ -100,7 +101,8 @@ class KpnPipeline(NetworkPipeline):
         features = np.ascontiguousarray(pad_planes(np.concatenate([planes, previous]), info.alignment))
         outputs = model.run({info.input_name: features[None]})
         coarse = [outputs[c["output"]][0] for c in info.metadata["coarse"]]  # half, quarter
-        filtered = kernel_filter(features[RADIANCE], features[PREVIOUS], outputs[info.output_name][0], *coarse)
+        filtered = kernel_filter(features[RADIANCE], features[PREVIOUS], outputs[info.output_name][0], *coarse,
+                                 space_to_depth=int(info.metadata["space_to_depth"]))
         filtered = filtered[:, : frame.height, : frame.width]
         if not np.isfinite(filtered).all():
             state.previous = None  # the next frame starts afresh

@@ -50,12 +50,13 @@ def test_torch_and_onnxruntime_agree_over_recurrent_steps(exported, size):
             previous_np, previous_t = planes[:3], torch.from_numpy(planes[:3].copy())
         features = pad_planes(np.concatenate([planes, previous_np]), info.alignment)
         out = model.run({info.input_name: features[None]})
-        served = filter_served(features[:3], features[8:], out["fine"][0], out["half"][0], out["quarter"][0])
+        served = filter_served(features[:3], features[8:], out["fine"][0], out["half"][0], out["quarter"][0],
+                               space_to_depth=info.metadata["space_to_depth"])
         with torch.no_grad():
             feats_t = pad_planes(np.concatenate([planes, previous_t.numpy()]), net.alignment)
             fine, half, quarter = net(torch.from_numpy(feats_t[None]))
             ours = filter_torch(torch.from_numpy(feats_t[None, :3]), torch.from_numpy(feats_t[None, 8:]),
-                                fine, half, quarter)[0]
+                                fine, half, quarter, space_to_depth=2)[0]
         for name, ref in zip(("fine", "half", "quarter"), (fine, half, quarter), strict=True):
             np.testing.assert_allclose(out[name], ref.numpy(), atol=ORT_ATOL, rtol=1e-4, err_msg=name)
         np.testing.assert_allclose(served, ours.numpy(), atol=ORT_ATOL, rtol=1e-4)
@@ -71,6 +72,7 @@ def test_metadata_contract(exported):
     assert info.metadata["inputs"]["features"] == groups_to_json(KPN_INPUTS)
     assert info.metadata["outputs"]["fine"] == groups_to_json(KPN_FINE_OUTPUTS)
     assert [(c["output"], c["scale"]) for c in info.metadata["coarse"]] == list(COARSE_OUTPUTS)
+    assert info.metadata["space_to_depth"] == 2
     assert info.metadata["motion"] == "plain" and info.metadata["config"]["widths"] == [6, 8, 10]
     assert json.loads(json.dumps(info.metadata)) == info.metadata
 
