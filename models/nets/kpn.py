@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.nets import from_checkpoint, seeded
-from models.nets.flnr import Block
+from models.nets.flnr import Block, unet
 from models.nets.rae import SPACE_TO_DEPTH
 from service.layout import KPN_COARSE_OUTPUTS, KPN_FINE_OUTPUTS, KPN_INPUTS, total_channels
 
@@ -93,18 +93,7 @@ class KernelPredictor(nn.Module):
         return SPACE_TO_DEPTH * 2 ** (len(self.config.widths) - 1)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        x = F.pixel_unshuffle(features, SPACE_TO_DEPTH)
-        skips = []
-        for block in self.encoder:
-            x = block(x)
-            skips.append(x)
-            x = F.max_pool2d(x, 2)
-        x = self.bottleneck(x)
-        decoded = []
-        for level in reversed(range(len(self.decoder))):
-            x = F.interpolate(x, scale_factor=2.0, mode="nearest")
-            x = self.decoder[level](torch.cat([x, skips[level]], dim=1))
-            decoded.append(x)
+        decoded = unet(F.pixel_unshuffle(features, SPACE_TO_DEPTH), self.encoder, self.bottleneck, self.decoder)
         half_res, quarter_res = decoded[-1], decoded[-2]
         return self.fine_head(half_res), self.half_head(half_res), self.quarter_head(quarter_res)
 
