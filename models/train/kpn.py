@@ -73,15 +73,15 @@ class KpnRecipe:
     crop = CROP
     reverse = False  # the previous output is warped by backward motion
 
-    def __init__(self, warp: bool = False, motion: str = "dual", occlusion_from: int = 0):
-        """motion: one of MOTIONS; occlusion_from: the step from which the loss has its motion-occlusion
-        term (Zeng 2023 sec. 5: half of the training)."""
+    def __init__(self, warp: bool = False, motion: str = "dual", occlusion_step: int = 0):
+        """motion: one of MOTIONS; occlusion_step: the optimiser step from which the loss has its
+        motion-occlusion term (Zeng 2023 sec. 5: half of the training)."""
         if warp:
             raise ValueError("kpn always warps its previous output (--warp is rae's)")
         if motion not in MOTIONS:
             raise ValueError(f"motion must be one of {', '.join(MOTIONS)}, got '{motion}'")
         self.motion = motion
-        self.occlusion_from = occlusion_from
+        self.occlusion_step = occlusion_step
 
     def build(self, seed: int) -> KernelPredictor:
         return make_kpn(KpnConfig(), seed=seed)
@@ -96,7 +96,7 @@ class KpnRecipe:
     def loss(self, net: KernelPredictor, batch: Window, step: int = 0) -> LossTerms:
         pred = filter_window(net, batch.noisy, batch.guides, self.warp_motion(batch.motion, batch.motion_dual))
         weights = occlusion_weights(batch.motion, batch.motion_dual)
-        return kpn_loss(pred, batch.target, weights, occlusion=step >= self.occlusion_from)
+        return kpn_loss(pred, batch.target, weights, occlusion=step >= self.occlusion_step)
 
     @torch.no_grad()
     def denoise(self, net: KernelPredictor, seq: Sequence) -> torch.Tensor:

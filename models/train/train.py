@@ -100,7 +100,7 @@ class TrainOptions:
 def make_recipe(opts: TrainOptions) -> Recipe:
     """The recipe of `opts.net` with the options it reads (ValueError for one it cannot take)."""
     if opts.net == "kpn":
-        return KpnRecipe(warp=opts.warp, motion=opts.motion, occlusion_from=round(opts.occlusion_from * opts.steps))
+        return KpnRecipe(warp=opts.warp, motion=opts.motion, occlusion_step=round(opts.occlusion_from * opts.steps))
     return RECIPES[opts.net](warp=opts.warp)
 
 
