@@ -117,7 +117,8 @@ def markdown(results: dict[str, Any]) -> str:
         f"- Timing: {results['settings']['ms_per_frame']}; warm-up: {results['settings']['warmup']}.",
         "- relL2: mean over frames, 0.1% of worst pixels trimmed; 1-SSIM and FLIP: mean over frames; temporal: "
         "relL2 of the frame-to-frame change against the reference's change; relL2 disocc.: untrimmed relL2 over "
-        "pixels the reprojection marks invalid (disoccluded), every frame but the first.",
+        "disoccluded pixels (the reprojection marks them invalid, or motionDual differs from motion by more than "
+        "0.5 px), every frame but the first.",
         "",
         "## Overall",
         "",

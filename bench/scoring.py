@@ -7,9 +7,12 @@ benchmark); this module only decides which frames and pixels each one sees and h
 - 1-SSIM (`dssim`) and FLIP (`flip_error`): mean over frames.
 - temporal: `temporal_rel_l2` of consecutive outputs against consecutive references, mean over frames
   1..N-1 (it needs a previous frame).
-- disoccluded relL2: untrimmed relL2 over the pixels the reprojection stage marks invalid (surfaces
-  not visible in the previous frame, `~valid` of service.stages.reprojection.reproject), pooled over
-  frames 1..N-1. That is where a temporal pipeline has no history to lean on.
+- disoccluded relL2: untrimmed relL2 over the disoccluded pixels (surfaces not visible in the previous
+  frame), pooled over frames 1..N-1: where the reprojection stage marks a pixel invalid (`~valid` of
+  service.stages.reprojection.reproject), or, in a frame with `motionDual`, where it differs from `motion`
+  by more than 0.5 px (`dual_occluded`: the pixel was hidden behind a moving occluder, which the
+  reprojection's depth and normal tests can miss when the background matches). That is where a temporal
+  pipeline has no history to lean on, and where history warped by `motion` ghosts (Zeng et al. 2023).
 """
 
 from __future__ import annotations
@@ -21,13 +24,13 @@ import numpy as np
 
 from service.frame import Frame
 from service.metrics import TRIM_FRACTION, dssim, flip_error, rel_l2_map, temporal_rel_l2, trimmed_mean
-from service.stages.reprojection import reproject
+from service.stages.reprojection import dual_occluded, reproject
 
 
 def disoccluded_mask(frame: Frame, prev: Frame) -> np.ndarray | None:
-    """(H, W) bool: pixels of `frame` whose surface was not visible in `prev` (motion invalid).
-
-    Uses the reprojection stage with every G-buffer both frames have. None when the frame has no
+    """(H, W) bool: pixels of `frame` whose surface was not visible in `prev`: reprojection by `motion`
+    fails (the reprojection stage with every G-buffer both frames have) or, where the frame has
+    `motionDual`, it differs from `motion` by more than DUAL_OCCLUSION_PX. None when the frame has no
     `motion` layer.
     """
     if "motion" not in frame:
@@ -40,7 +43,10 @@ def disoccluded_mask(frame: Frame, prev: Frame) -> np.ndarray | None:
         normal=frame.get("normal"),
         prev_normal=prev.get("normal"),
     )
-    return ~np.asarray(valid, bool)
+    mask = ~np.asarray(valid, bool)
+    if "motionDual" in frame:
+        mask |= dual_occluded(frame["motion"], frame["motionDual"])
+    return mask
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""`python -m export NET CHECKPOINT OUT.onnx`: export a trained network (rae, flnr) with its metadata contract.
+"""`python -m export NET CHECKPOINT OUT.onnx`: export a trained network (rae, flnr, kpn) with its metadata contract.
 
 NET names the network as `python -m models.train NET` does (the shipped manifests' commands carry it);
 the crossreg U-Net has its own command, `python -m export.crossreg_unet CHECKPOINT OUT` (its checkpoints
@@ -13,7 +13,7 @@ from pathlib import Path
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m export", description=__doc__.splitlines()[0])
-    parser.add_argument("net", choices=["flnr", "rae"], help="the network (a models.train checkpoint)")
+    parser.add_argument("net", choices=["flnr", "kpn", "rae"], help="the network (a models.train checkpoint)")
     parser.add_argument("checkpoint", type=Path)
     parser.add_argument("out", type=Path)
     args = parser.parse_args(argv)

@@ -1,5 +1,5 @@
 """Exporting a models.train checkpoint (`python -m export NET CHECKPOINT OUT.onnx`): the network's ONNX file
-and its manifest, for every offline-trained network (export/rae.py, export/flnr.py make the ONNX bytes).
+and its manifest, for every offline-trained network (export/rae.py, export/flnr.py, export/kpn.py make the ONNX bytes).
 
 The manifest (OUT.json) says what the shipped weights are and how they were made: the network, the training
 run (its options as a command line, preceded by the runs it fine-tuned, oldest first), data, seed, steps,
@@ -10,24 +10,30 @@ from __future__ import annotations
 
 import csv
 import json
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from export import flnr, rae
+from export import flnr, kpn, rae
 from export import onnx as onnx_export
 from models.nets import count_parameters
 from models.nets.flnr import load_network as load_flnr
+from models.nets.kpn import load_network as load_kpn
 from models.nets.rae import load_network as load_rae
-from models.train.train import LOG, inference_state
+from models.train.train import LOG, LOG_TERMS, inference_state
 
-NETWORKS = {"rae": (load_rae, rae.export_bytes), "flnr": (load_flnr, flnr.export_bytes)}  # name -> (load, export)
+NETWORKS = {"rae": (load_rae, rae.export_bytes), "flnr": (load_flnr, flnr.export_bytes),
+            "kpn": (load_kpn, kpn.export_bytes)}  # name -> (load, export)
 
 
 def train_command(opts: dict[str, Any], step: int) -> str:
     """The `python -m models.train` command line that remakes a run's checkpoint of step `step` from its
-    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps)."""
+    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps), and
+    `--occlusion-from` rescaled so that the occlusion term joins at the same step as in the run."""
+    if "occlusion_from" in opts and step:
+        opts = {**opts, "occlusion_from": float(f"{min(1.0, opts['occlusion_from'] * opts['steps'] / step):.6g}")}
     opts = {**opts, "steps": step}
     opts.setdefault("ema", 0.0)  # runs from before the `ema` option used raw weights
     flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
@@ -63,7 +69,7 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
         "data": ckpt.get("data"),
         "validation": ckpt.get("val"),
         "best_val_rel_l2": ckpt.get("best_val_rel_l2"),
-        "final_train_loss": {k: float(train_rows[-1][k]) for k in ("loss", "spatial", "gradient", "temporal")}
+        "final_train_loss": {k: float(train_rows[-1][k]) for k in LOG_TERMS if train_rows[-1].get(k)}
         if train_rows else None,  # the last log row at or before the exported step
         "validation_curve": [{"step": int(r["step"]), "rel_l2": float(r["val_rel_l2"]),
                               "temporal": float(r["val_temporal"])} for r in val_rows
@@ -71,6 +77,7 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
         "training_seconds": ckpt.get("seconds"),  # wall time of this run up to the exported checkpoint
         "fine_tuned_from": base,
         "machine": ckpt.get("machine"),
+        "trained": datetime.fromtimestamp(checkpoint.stat().st_mtime, UTC).date().isoformat(),  # the checkpoint's day
     }
 
 

@@ -1,4 +1,4 @@
-"""The one torch -> ONNX export path of every network (export/crossreg_unet.py, export/rae.py).
+"""The one torch -> ONNX export path of every network (export/crossreg_unet.py, rae.py, flnr.py, kpn.py).
 
 `export_bytes` traces the network with the TorchScript exporter (opset 17), makes height and width (and the
 batch axis) of every input and output dynamic, and writes the JSON metadata entry `mcdenoise` that

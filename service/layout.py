@@ -91,6 +91,28 @@ FLNR_OUTPUTS: tuple[ChannelGroup, ...] = (
 )
 
 
+# The multi-scale kernel-predicting network with dual motion vectors (Zeng et al. 2023, sec. 4, Fig. 4): the
+# recurrent autoencoder's planes plus the previous output warped to this frame (its recurrent state, an
+# explicit part of the input; the noisy radiance where the warp fails and at a sequence's first frame).
+KPN_INPUTS: tuple[ChannelGroup, ...] = RAE_INPUTS + (
+    ChannelGroup("previous", 3, TRANSFORM_LOG1P_DEMODULATED, "previous output warped to this frame, demodulated"),
+)
+KPN_TAPS = 25  # a 5 x 5 per-pixel kernel (Zeng 2023 sec. 4.3, Fig. 6)
+# The network's raw predictions; the kernel filter (service/stages/kernel_filter.py) normalises them: a softmax
+# over each kernel's 25 taps (weights that sum to 1), a sigmoid of each alpha (a weight in (0, 1)).
+# Zeng 2023 Fig. 6, finest scale (51 = two 5x5 kernels + alpha_t), at the frame's resolution
+KPN_FINE_OUTPUTS: tuple[ChannelGroup, ...] = (
+    ChannelGroup("kernel", KPN_TAPS, TRANSFORM_NONE, "logits of the spatial 5x5 kernel on the noisy radiance"),
+    ChannelGroup("temporal", KPN_TAPS, TRANSFORM_NONE, "logits of the 5x5 kernel on the warped previous output"),
+    ChannelGroup("alpha", 1, TRANSFORM_NONE, "logit of alpha_t, the weight of the current frame's filtered radiance"),
+)
+# Zeng 2023 Fig. 6, each coarser scale (26 = a 5x5 kernel + alpha), at 1/2 and 1/4 of the frame's resolution
+KPN_COARSE_OUTPUTS: tuple[ChannelGroup, ...] = (
+    ChannelGroup("kernel", KPN_TAPS, TRANSFORM_NONE, "logits of the 5x5 kernel on the downsampled noisy radiance"),
+    ChannelGroup("alpha", 1, TRANSFORM_NONE, "logit of this scale's weight against the finer one (eq. 4)"),
+)
+
+
 def total_channels(groups: Sequence[ChannelGroup]) -> int:
     return sum(g.channels for g in groups)
 

@@ -2,7 +2,7 @@
 
 from collections.abc import Callable
 from dataclasses import asdict
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import torch
 from torch import nn
@@ -29,3 +29,12 @@ def state_for(net: nn.Module) -> dict:
     """{'config': constructor args (the network's `config` dataclass), 'state_dict': weights}: what a checkpoint
     stores of a network."""
     return {"config": asdict(net.config), "state_dict": net.state_dict()}
+
+
+def from_checkpoint(network: Callable[[Any], Net], config: Callable[..., Any], ckpt: dict) -> Net:
+    """network(config(...)) of a checkpoint dict (`state_for` keys): the constructor args as stored (JSON lists
+    back to tuples), the weights loaded, in eval mode."""
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in ckpt["config"].items()}
+    net = network(config(**values))
+    net.load_state_dict(ckpt["state_dict"])
+    return net.eval()

@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from models.nets import seeded
+from models.nets import from_checkpoint, seeded
 from models.nets.rae import LEAKY_SLOPE, SPACE_TO_DEPTH, conv3x3
 from service.layout import FLNR_OUTPUTS, RAE_INPUTS, channel_slices, total_channels
 
@@ -72,6 +72,25 @@ class Block(nn.Module):
         return F.leaky_relu(self.second(F.leaky_relu(self.first(x), LEAKY_SLOPE)), LEAKY_SLOPE)
 
 
+def unet(x: torch.Tensor, encoder: nn.ModuleList, bottleneck: nn.Module, decoder: nn.ModuleList) -> list[torch.Tensor]:
+    """A U-Net pass: each encoder block then 2x max pooling, the bottleneck, then per level from the coarsest
+    nearest 2x upsampling, the skip concatenated and that level's decoder block. x (N, C, h, w), h and w
+    multiples of 2^len(encoder). Returns the decoder levels' outputs, coarsest first (the last is at x's
+    resolution)."""
+    skips = []
+    for block in encoder:
+        x = block(x)
+        skips.append(x)
+        x = F.max_pool2d(x, 2)
+    x = bottleneck(x)
+    decoded = []
+    for level in reversed(range(len(decoder))):
+        x = F.interpolate(x, scale_factor=2.0, mode="nearest")
+        x = decoder[level](torch.cat([x, skips[level]], dim=1))
+        decoded.append(x)
+    return decoded
+
+
 class GuideNet(nn.Module):
     """features (N, in_channels, H, W) -> guides (N, guides, H, W); shapes in the module docstring."""
 
@@ -95,15 +114,7 @@ class GuideNet(nn.Module):
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         x = F.pixel_unshuffle(features, self.config.space_to_depth)
-        skips = []
-        for block in self.encoder:
-            x = block(x)
-            skips.append(x)
-            x = F.max_pool2d(x, 2)
-        x = self.bottleneck(x)
-        for level in reversed(range(self.config.levels)):
-            x = F.interpolate(x, scale_factor=2.0, mode="nearest")
-            x = self.decoder[level](torch.cat([x, skips[level]], dim=1))
+        x = unet(x, self.encoder, self.bottleneck, self.decoder)[-1]
         return features[:, BASE_GUIDES] + F.pixel_shuffle(self.head(x), self.config.space_to_depth)
 
 
@@ -114,7 +125,4 @@ def make_flnr(config: FlnrConfig | None = None, *, seed: int | None = None) -> G
 
 def load_network(ckpt: dict) -> GuideNet:
     """The network of a checkpoint dict ({'config', 'state_dict'}), weights loaded, in eval mode."""
-    values = ckpt["config"]
-    net = GuideNet(FlnrConfig(**{**values, "widths": tuple(values["widths"])}))
-    net.load_state_dict(ckpt["state_dict"])
-    return net.eval()
+    return from_checkpoint(GuideNet, FlnrConfig, ckpt)

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from models.nets import seeded
+from models.nets import from_checkpoint, seeded
 from service.layout import RAE_INPUTS, RAE_OUTPUTS, total_channels
 
 LEAKY_SLOPE = 0.1  # Chaitanya 2017 sec. 5.3: leaky ReLU with alpha = 0.1
@@ -147,12 +147,6 @@ def make_rae(config: RaeConfig | None = None, *, seed: int | None = None) -> Rec
     return seeded(lambda: RecurrentAutoencoder(config), seed)
 
 
-def config_from_dict(values: dict) -> RaeConfig:
-    return RaeConfig(**{**values, "widths": tuple(values["widths"])})
-
-
 def load_network(ckpt: dict) -> RecurrentAutoencoder:
     """The network of a checkpoint dict (`state_for` keys), weights loaded, in eval mode."""
-    net = RecurrentAutoencoder(config_from_dict(ckpt["config"]))
-    net.load_state_dict(ckpt["state_dict"])
-    return net.eval()
+    return from_checkpoint(RecurrentAutoencoder, RaeConfig, ckpt)

@@ -20,9 +20,10 @@ def downsample_motion(motion: torch.Tensor, scale: int) -> torch.Tensor:
     return F.avg_pool2d(motion, scale) / scale if scale > 1 else motion
 
 
-def warp(state: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+def warp_valid(state: torch.Tensor, motion: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """state: (N, C, h, w) of the previous frame; motion: (N, 2, h, w) backward motion on its grid, pixels.
-    Returns (N, C, h, w), the state sampled where each pixel was (module docstring)."""
+    Returns (warped (N, C, h, w), the state sampled where each pixel was, zero where invalid; valid
+    (N, 1, h, w) bool): `reproject`'s (warped, valid) (module docstring)."""
     n, _, h, w = state.shape
     rows = torch.arange(h, dtype=state.dtype, device=state.device).view(1, h, 1)
     cols = torch.arange(w, dtype=state.dtype, device=state.device).view(1, 1, w)
@@ -32,8 +33,14 @@ def warp(state: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
     sample = F.grid_sample(state, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
     ones = torch.ones(n, 1, h, w, dtype=state.dtype, device=state.device)
     total = F.grid_sample(ones, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-    valid = (on_screen[:, None] & (total >= MIN_WEIGHT)).to(state.dtype)
-    return sample / total.clamp_min(MIN_WEIGHT) * valid
+    valid = on_screen[:, None] & (total >= MIN_WEIGHT)
+    return sample / total.clamp_min(MIN_WEIGHT) * valid.to(state.dtype), valid
+
+
+def warp(state: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+    """state: (N, C, h, w) of the previous frame; motion: (N, 2, h, w) backward motion on its grid, pixels.
+    Returns (N, C, h, w), the state sampled where each pixel was (module docstring)."""
+    return warp_valid(state, motion)[0]
 
 
 def warp_level(state: torch.Tensor, motion: torch.Tensor, scale: int) -> torch.Tensor:

@@ -1,6 +1,6 @@
 """`python -m models.train NET --data DIR --val DIR --out DIR [--steps N] [--resume]`: train an offline network.
 
-NET is one of models.train.train.RECIPES (`rae`, `flnr`). DIR folders hold sequence folders rendered by
+NET is one of models.train.train.RECIPES (`rae`, `flnr`, `kpn`). DIR folders hold sequence folders rendered by
 `python -m models.data dataset`. See models/train/train.py for what the output folder holds.
 """
 
@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
+from models.train.kpn import MOTIONS
 from models.train.train import DEVICES, RECIPES, TrainOptions, train
 from service.process import configure
 
@@ -28,6 +29,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--minutes", type=float, default=defaults["minutes"], help="wall-time limit (0: none)")
     p.add_argument("--warp", action="store_true", help="warp the recurrent state by motion between frames")
     p.add_argument("--device", choices=DEVICES, default=defaults["device"], help="where the network trains")
+    p.add_argument("--motion", choices=MOTIONS, default=defaults["motion"],
+                   help="kpn: warp the previous output by motionDual (dual, where the frame has it) or motion (plain)")
+    p.add_argument("--occlusion-from", type=float, default=defaults["occlusion_from"],
+                   help="kpn: share of the steps after which the motion-occlusion loss joins (0..1)")
     p.add_argument("--init", default="", help="start from this checkpoint's weights (fine-tune)")
     return p
 

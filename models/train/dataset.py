@@ -34,7 +34,7 @@ from service.stages.rae_inputs import GUIDE_PLANES, ROUGHNESS_ABSENT, demodulate
 NOISY = ("color", "colorA", "colorB")  # the estimates a window may take its noisy input from
 NOISY_P = (0.5, 0.25, 0.25)
 ROUGHNESS_DROP = 0.2  # share of windows that see no roughness
-WINDOW_FIELDS = ("noisy", "target", "guides", "motion")
+WINDOW_FIELDS = ("noisy", "target", "guides", "motion", "motion_dual")
 
 
 @dataclass
@@ -48,6 +48,7 @@ class Sequence:
     albedo: np.ndarray  # (F, 3, H, W) float32 remodulation factor (service.stages.albedo.remodulate of 1)
     emission: np.ndarray  # (F, 3, H, W) float32 emission layer (zeros when absent)
     motion: np.ndarray  # (F, 2, H, W) float32 backward motion, pixels (zeros when absent)
+    motion_dual: np.ndarray  # (F, 2, H, W) float32 `motionDual`, pixels (`motion` where absent)
     reference: np.ndarray  # (F, 3, H, W) float32 reference radiance (with emission), for validation scores
 
     @property
@@ -62,7 +63,7 @@ def _planes(arr: np.ndarray) -> np.ndarray:
 def load_sequence(folder: str | Path) -> Sequence:
     """Read a rendered folder (every frame needs color, colorA, colorB, albedo, normal, depth, reference)."""
     folder = Path(folder)
-    noisy, target, guides, albedo, emission, motion, reference = [], [], [], [], [], [], []
+    noisy, target, guides, albedo, emission, motion, dual, reference = [], [], [], [], [], [], [], []
     for path in list_sequence(folder):
         frame = read_frame(path)
         missing = [k for k in (*NOISY, "albedo", "normal", "depth", "reference") if k not in frame]
@@ -82,11 +83,12 @@ def load_sequence(folder: str | Path) -> Sequence:
         emission.append(_planes(emit))
         move = frame.get("motion")
         motion.append(_planes(np.zeros((h, w, 2), np.float32) if move is None else move))
+        dual.append(_planes(frame["motionDual"]) if "motionDual" in frame else motion[-1])
         reference.append(_planes(frame["reference"]))
     if not target:
         raise ValueError(f"{folder}: no frames")
     return Sequence(folder.name, np.stack(noisy, axis=1), np.stack(target), np.stack(guides), np.stack(albedo),
-                    np.stack(emission), np.stack(motion), np.stack(reference))
+                    np.stack(emission), np.stack(motion), np.stack(dual), np.stack(reference))
 
 
 def sequence_folders(root: str | Path) -> list[Path]:
@@ -105,6 +107,7 @@ class Window:
     target: torch.Tensor  # (T, 3, S, S) demodulated reference, linear, >= 0
     guides: torch.Tensor  # (T, 5, S, S) normal, log1p relative depth, roughness
     motion: torch.Tensor  # (T, 2, S, S) backward motion in pixels, in the window's orientation
+    motion_dual: torch.Tensor  # (T, 2, S, S) dual motion vectors (`motionDual`), the same way
 
     def to(self, device: str | torch.device) -> Window:
         """The same window with every tensor on `device` (copied without blocking from the CPU)."""
@@ -156,15 +159,15 @@ class SequenceBank:
         if rng.random() < ROUGHNESS_DROP:
             guides = guides.copy()
             guides[:, GUIDE_PLANES["roughness"]] = ROUGHNESS_ABSENT
-        motion = seq.motion[window]
+        motion, dual = seq.motion[window], seq.motion_dual[window]
         if order[0] > order[-1]:  # played backwards: no forward motion is stored, so none is given
-            motion = np.zeros_like(motion)
+            motion, dual = np.zeros_like(motion), np.zeros_like(dual)
 
         def turn(a: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(np.rot90(a, k, axes=(-2, -1))))
 
         return Window(turn(seq.noisy[source][window] * scale), turn(seq.target[window] * scale),
-                      turn(guides), turn(_rotate_motion(motion, k)))
+                      turn(guides), turn(_rotate_motion(motion, k)), turn(_rotate_motion(dual, k)))
 
 
 def collate(windows: list[Window]) -> Window:

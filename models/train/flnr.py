@@ -67,7 +67,8 @@ class FlnrRecipe:
     def load(self, state: dict[str, Any]) -> GuideNet:
         return load_network(state)
 
-    def loss(self, net: GuideNet, batch: Window) -> LossTerms:
+    def loss(self, net: GuideNet, batch: Window, step: int = 0) -> LossTerms:
+        """The loss of one batch (the same at every optimiser `step`)."""
         pred = regress(net, batch.noisy[:, 0], batch.guides[:, 0])
         return tone_loss(pred.clamp_min(0.0)[:, None], batch.target)
 

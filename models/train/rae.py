@@ -62,7 +62,8 @@ class RaeRecipe:
             outputs.append(out)
         return torch.stack(outputs, dim=1)
 
-    def loss(self, net: RecurrentAutoencoder, batch: Window) -> LossTerms:
+    def loss(self, net: RecurrentAutoencoder, batch: Window, step: int = 0) -> LossTerms:
+        """The loss of one batch (the same at every optimiser `step`)."""
         return rae_loss(self.run(net, self.inputs(batch.noisy, batch.guides), batch.motion), batch.target)
 
     @torch.no_grad()

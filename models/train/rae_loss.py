@@ -20,7 +20,7 @@ power's derivative finite at 0.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -71,12 +71,15 @@ def hfen(image: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class LossTerms:
-    """The window loss and its three terms (each already weighted over frames), scalars."""
+    """The window loss and its terms (each already weighted over frames), scalars. `occlusion` is the `kpn`
+    loss's motion-occlusion term (models/train/kpn_loss.py), 0 for the others; `gradient` (HFEN) is 0 for
+    `kpn`."""
 
     total: torch.Tensor
     spatial: torch.Tensor
     gradient: torch.Tensor
     temporal: torch.Tensor
+    occlusion: torch.Tensor = field(default_factory=lambda: torch.zeros(()))
 
 
 def rae_loss(pred: torch.Tensor, target: torch.Tensor) -> LossTerms:

@@ -32,19 +32,22 @@ import torch
 from models.nets import state_for
 from models.train.dataset import SequenceBank, collate
 from models.train.flnr import FlnrRecipe
+from models.train.kpn import MOTIONS, KpnRecipe
 from models.train.rae import RaeRecipe
 from service.metrics import TRIM_FRACTION, rel_l2, temporal_rel_l2
 
-RECIPES = {"rae": RaeRecipe, "flnr": FlnrRecipe}  # NET name -> how to build, feed and score it (takes warp=)
-Recipe = RaeRecipe | FlnrRecipe
+RECIPES = {"rae": RaeRecipe, "flnr": FlnrRecipe, "kpn": KpnRecipe}  # NET name -> how to build, feed and score it
+Recipe = RaeRecipe | FlnrRecipe | KpnRecipe
 RESUME_MAY_CHANGE = ("steps", "minutes", "threads", "out", "device")  # options a resumed run may set anew
 CHECKPOINT = "checkpoint.pt"
 BEST = "best.pt"
 LOG = "log.csv"
 CURVES = "curves.png"
 DEVICES = ("cpu", "cuda")
-LOG_FIELDS = ("step", "kind", "loss", "spatial", "gradient", "temporal", "lr", "seq_per_s", "val_rel_l2",
+LOG_FIELDS = ("step", "kind", "loss", "spatial", "gradient", "temporal", "occlusion", "lr", "seq_per_s", "val_rel_l2",
               "val_temporal", "seconds")
+TERMS = ("total", "spatial", "gradient", "temporal", "occlusion")  # LossTerms fields, logged as LOG_TERMS
+LOG_TERMS = ("loss", "spatial", "gradient", "temporal", "occlusion")
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,9 @@ class TrainOptions:
     ema: float = 0.999  # decay of the exponential moving average of the weights that is validated and
     # exported (Polyak averaging; 0: the raw weights). Batches of 4 windows make single steps noisy.
     device: str = "cpu"  # where the network trains: "cpu" or "cuda" (windows are cut on the CPU either way)
+    motion: str = "dual"  # kpn: the motion that warps the previous output, "dual" (motionDual) or "plain" (motion)
+    occlusion_from: float = 0.5  # kpn: share of `steps` after which the motion-occlusion loss term joins (Zeng
+    # 2023 sec. 5: half), in [0, 1]
 
     def __post_init__(self):
         if self.net not in RECIPES:
@@ -81,8 +87,21 @@ class TrainOptions:
             raise ValueError(f"lr must be in (0, 1], got {self.lr}")
         if not 0 <= self.ema < 1:
             raise ValueError(f"ema must be in [0, 1), got {self.ema}")
+        if self.motion not in MOTIONS:
+            raise ValueError(f"motion must be one of {', '.join(MOTIONS)}, got '{self.motion}'")
+        if self.net != "kpn" and self.motion != "dual":
+            raise ValueError("--motion is kpn's (the network that warps its previous output)")
+        if not 0 <= self.occlusion_from <= 1:
+            raise ValueError(f"occlusion_from must be in [0, 1], got {self.occlusion_from}")
         if self.device not in DEVICES:
             raise ValueError(f"device must be one of {', '.join(DEVICES)}, got '{self.device}'")
+
+
+def make_recipe(opts: TrainOptions) -> Recipe:
+    """The recipe of `opts.net` with the options it reads (ValueError for one it cannot take)."""
+    if opts.net == "kpn":
+        return KpnRecipe(warp=opts.warp, motion=opts.motion, occlusion_step=round(opts.occlusion_from * opts.steps))
+    return RECIPES[opts.net](warp=opts.warp)
 
 
 def learning_rate(step: int, peak: float, warmup: int) -> float:
@@ -227,7 +246,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
         torch.backends.cudnn.benchmark = True  # fixed window shapes: let cuDNN pick its fastest convolutions
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
-    recipe = RECIPES[opts.net](warp=opts.warp)
+    recipe = make_recipe(opts)
     bank, held_out = SequenceBank.from_root(opts.data), SequenceBank.from_root(opts.val)
     ckpt_path, log_path = out / CHECKPOINT, out / LOG
     net, ema, optimizer, step, best, rng, elapsed = _start(opts, recipe, ckpt_path, resume)
@@ -236,7 +255,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
     extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences],
              "machine": machine(opts.device)}
     started = time.perf_counter() - elapsed  # wall time counts across resumes
-    sums, count, tick = torch.zeros(4, device=opts.device), 0, time.perf_counter()
+    sums, count, tick = torch.zeros(len(TERMS), device=opts.device), 0, time.perf_counter()
     bar = tqdm(total=opts.steps, initial=step, unit="step", disable=not progress, desc=opts.net)
     net.train()
     while step < opts.steps:
@@ -244,25 +263,24 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
             group["lr"] = learning_rate(step, opts.lr, opts.warmup)
         batch = collate([bank.sample(rng, recipe.frames, recipe.crop, reverse=recipe.reverse)
                          for _ in range(opts.batch)]).to(opts.device)
-        terms = recipe.loss(net, batch)
+        terms = recipe.loss(net, batch, step)
         optimizer.zero_grad(set_to_none=True)
         terms.total.backward()
         optimizer.step()
         update_average(ema, net, opts.ema, step)
         step += 1
         # summed on the device: no synchronisation per step, so the next windows are cut while the GPU works
-        sums += torch.stack([terms.total, terms.spatial, terms.gradient, terms.temporal]).detach()
+        sums += torch.stack([getattr(terms, name).to(sums) for name in TERMS]).detach()
         count += 1
         bar.update(1)
         if step % opts.log_every == 0:
             now = time.perf_counter()
             rate = count * opts.batch / (now - tick)
             mean = (sums / count).tolist()
-            _append_log(log_path, {"step": step, "kind": "train", "loss": mean[0], "spatial": mean[1],
-                                   "gradient": mean[2], "temporal": mean[3], "lr": optimizer.param_groups[0]["lr"],
-                                   "seq_per_s": rate, "seconds": now - started})
+            _append_log(log_path, {"step": step, "kind": "train", **dict(zip(LOG_TERMS, mean, strict=True)),
+                                   "lr": optimizer.param_groups[0]["lr"], "seq_per_s": rate, "seconds": now - started})
             bar.set_postfix(loss=f"{mean[0]:.4f}", seq_s=f"{rate:.2f}")
-            sums, count, tick = torch.zeros(4, device=opts.device), 0, now
+            sums, count, tick = torch.zeros(len(TERMS), device=opts.device), 0, now
         timed_out = opts.minutes > 0 and time.perf_counter() - started - elapsed > 60 * opts.minutes
         if step % opts.val_every == 0 or step == opts.steps or timed_out:
             rel, tmp = validate(recipe, ema, held_out)

@@ -17,21 +17,18 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from service.frame import Frame
 from service.layout import pad_planes
 from service.pipelines import register
-from service.pipelines.base import Pipeline, SequenceState
-from service.pipelines.networks import registered_model
+from service.pipelines.base import SequenceState
+from service.pipelines.networks import NetworkPipeline, frame_planes
 from service.pipelines.options import MAX_THREADS, option
 from service.runtime import OnnxModel, weight_names
 from service.stages.flr import FlrParams, local_linear_regression
-from service.stages.rae_inputs import rae_planes
 from service.stages.range_clamp import clamp_to_local_range
-from service.stages.reprojection import surface_hit
 
 NETWORK = "flnr"  # the network a `weights` file must hold (its ONNX metadata)
 DEFAULT_WEIGHTS = "flnr"  # models/weights/flnr.onnx (manifest: flnr.json)
@@ -52,34 +49,19 @@ def regression_params(model: OnnxModel) -> FlrParams:
 
 
 @register
-class FlnrPipeline(Pipeline):
+class FlnrPipeline(NetworkPipeline):
     name = "flnr"
     summary = "fast local regression on guides a small network learns (Salmi et al.); ONNX Runtime + FLR"
     requires = ("color", "albedo", "normal", "depth")
     optional = ("roughness", "emission")
     Options = FlnrOptions
-
-    def __init__(self, **options: Any):
-        super().__init__(**options)
-        self._model: OnnxModel | None = None  # loaded on first use; sessions share it (no state inside)
-
-    def model(self) -> OnnxModel:
-        if self._model is None:
-            self._model = registered_model(self.options.weights, NETWORK, threads=self.options.threads or None,
-                                           swappable=False)
-        return self._model
-
-    def new_state(self, height: int, width: int) -> SequenceState:
-        self.model()  # a bad `weights` file fails at the start of the sequence, not at its first frame
-        return SequenceState(height, width)
+    network = NETWORK
 
     def guides(self, frame: Frame) -> np.ndarray:
         """(G, H, W) float32: the network's FLR guides for `frame`."""
         model = self.model()
         info = model.info
-        background = ~surface_hit(frame["normal"])  # the network sees no radiance where nothing was hit (as rae)
-        planes = rae_planes(frame["color"], frame["albedo"], frame["normal"], frame["depth"], frame.get("roughness"),
-                            background=background)
+        planes, _background = frame_planes(frame)  # the network sees no radiance where nothing was hit (as rae)
         learned = model.run({info.input_name: np.ascontiguousarray(pad_planes(planes, info.alignment))[None]})
         learned = learned[info.output_name][0, :, : frame.height, : frame.width]
         if not np.isfinite(learned).all():

@@ -21,20 +21,18 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from service.frame import Frame
 from service.layout import pad_planes
 from service.pipelines import register
-from service.pipelines.base import Pipeline, SequenceState
-from service.pipelines.networks import registered_model
+from service.pipelines.base import SequenceState
+from service.pipelines.networks import NetworkPipeline, frame_planes
 from service.pipelines.options import MAX_THREADS, option
 from service.runtime import OnnxModel, weight_names
 from service.stages.hidden_warp import warp_states
-from service.stages.rae_inputs import radiance_from_output, rae_planes
-from service.stages.reprojection import surface_hit
+from service.stages.rae_inputs import radiance_from_output
 
 NETWORK = "rae"  # the network a `weights` file must hold (its ONNX metadata)
 DEFAULT_WEIGHTS = "rae"  # models/weights/rae.onnx (manifest: rae.json)
@@ -66,37 +64,21 @@ def trained_with_warp(model: OnnxModel) -> bool:
 
 
 @register
-class RaePipeline(Pipeline):
+class RaePipeline(NetworkPipeline):
     name = "rae"
     summary = "recurrent denoising autoencoder (Chaitanya 2017), trained offline; ONNX Runtime, temporal"
     requires = ("color", "albedo", "normal", "depth")
     optional = ("roughness", "motion", "emission")
     temporal = True
     Options = RaeOptions
-
-    def __init__(self, **options: Any):
-        super().__init__(**options)
-        self._model: OnnxModel | None = None  # loaded on first use; sessions share it (no state inside)
-        self._warps = False  # `warps`, settled when the model loads
-
-    def model(self) -> OnnxModel:
-        if self._model is None:
-            model = registered_model(self.options.weights, NETWORK, threads=self.options.threads or None,
-                                     swappable=False)
-            warp = self.options.warp
-            self._warps = trained_with_warp(model) if warp is None else warp
-            self._model = model
-        return self._model
+    network = NETWORK
+    State = RaeState
 
     @property
     def warps(self) -> bool:
         """Whether the hidden state is moved by `motion`: the `warp` option, else as the weights were trained."""
-        self.model()
-        return self._warps
-
-    def new_state(self, height: int, width: int) -> RaeState:
-        self.model()  # a bad `weights` file fails at the start of the sequence, not at its first frame
-        return RaeState(height, width)
+        warp = self.options.warp
+        return trained_with_warp(self.model()) if warp is None else warp
 
     def check(self, frame: Frame, state: SequenceState) -> None:
         """Pipeline.check, and `motion` is required while the hidden state is warped."""
@@ -107,10 +89,7 @@ class RaePipeline(Pipeline):
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         model = self.model()
         info = model.info
-        albedo, color = frame["albedo"], frame["color"]
-        background = ~surface_hit(frame["normal"])  # (H, W): nothing was hit
-        planes = rae_planes(color, albedo, frame["normal"], frame["depth"], frame.get("roughness"),
-                            background=background)
+        planes, background = frame_planes(frame)
         padded = np.ascontiguousarray(pad_planes(planes, info.alignment))
         height, width = padded.shape[1:]
         hidden = state.hidden
@@ -130,5 +109,6 @@ class RaePipeline(Pipeline):
             raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite values; "
                                      "its recurrent state was reset")
         state.hidden = [outputs[spec.output] for spec in info.state]
-        radiance = radiance_from_output(outputs[info.output_name][0, :, : frame.height, : frame.width], albedo)
-        return {"color": np.where(background[..., None], color, radiance)}, state
+        radiance = radiance_from_output(outputs[info.output_name][0, :, : frame.height, : frame.width],
+                                        frame["albedo"])
+        return {"color": np.where(background[..., None], frame["color"], radiance)}, state

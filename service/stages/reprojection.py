@@ -31,6 +31,18 @@ def surface_hit(normal: np.ndarray) -> np.ndarray:
     return np.einsum("...c,...c->...", normal, normal) > NORMAL_HIT
 
 
+DUAL_OCCLUSION_PX = 0.5  # |motionDual - motion| above which a pixel was occluded in the previous frame, pixels
+# (Zeng 2023 sec. 4.4 takes the two vectors' difference as its occlusion mask; the threshold is ours)
+
+
+def dual_occluded(motion: np.ndarray, motion_dual: np.ndarray) -> np.ndarray:
+    """motion, motion_dual: (H, W, 2) float32 backward motion and dual motion vectors, pixels. Returns (H, W)
+    bool: the Euclidean length of their difference exceeds DUAL_OCCLUSION_PX (the surface was hidden in the
+    previous frame; FRAME_FORMAT.md)."""
+    diff = motion_dual - motion
+    return np.einsum("hwc,hwc->hw", diff, diff) > np.float32(DUAL_OCCLUSION_PX**2)
+
+
 @dataclass(frozen=True)
 class ReprojectionParams:
     depth_tolerance: float = 0.1  # max relative depth change |z - z_prev| / z of a consistent tap

@@ -37,7 +37,15 @@ def test_sequence_summary_pools_disoccluded_pixels_and_takes_median_time() -> No
 
 def test_static_camera_has_no_disocclusion(tiny_layers) -> None:
     prev, frame = Frame.from_buffers(tiny_layers[0]), Frame.from_buffers(tiny_layers[1])
-    static = frame.replace(motion=np.zeros_like(frame["motion"]), depth=prev["depth"], normal=prev["normal"])
+    still = np.zeros_like(frame["motion"])
+    static = frame.replace(motion=still, motionDual=still, depth=prev["depth"], normal=prev["normal"])
     mask = disoccluded_mask(static, prev)
     assert mask is not None and mask.shape == (frame.height, frame.width) and not mask.any()
+    dual = still.copy()
+    dual[1, 2] = (0.3, -0.3)  # 0.42 px apart: not occluded
+    dual[3, 4] = (0.0, 0.6)  # 0.6 px: occluded in the previous frame
+    mask = disoccluded_mask(static.replace(motionDual=dual), prev)
+    assert mask.sum() == 1 and mask[3, 4]
+    plain = Frame({k: v for k, v in static.replace(motionDual=dual).buffers.items() if k != "motionDual"}, {})
+    assert not disoccluded_mask(plain, prev).any()  # without motionDual, only the reprojection decides
     assert disoccluded_mask(Frame.from_buffers({"color": frame["color"]}), prev) is None  # no motion layer

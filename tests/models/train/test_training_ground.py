@@ -233,3 +233,24 @@ def test_weight_average_follows_the_weights_and_is_what_a_checkpoint_serves():
     ckpt = {"config": {}, "state_dict": {"w": 1}, "ema_state_dict": {"w": 2}}
     assert inference_state(ckpt)["state_dict"] == {"w": 2}
     assert inference_state({"config": {}, "state_dict": {"w": 1}})["state_dict"] == {"w": 1}
+
+
+def test_kpn_trains_with_the_occlusion_term_from_its_step_and_windows_carry_motion_dual(tmp_path, bank):
+    """`--occlusion-from 0.5` of 4 steps: the logged total is spatial + temporal for steps 1-2 and adds the
+    occlusion term from step 3; the windows' dual motion differs from the motion somewhere (the sample has
+    moving occluders)."""
+    rng = np.random.default_rng(4)
+    windows = [bank.sample(rng, 7, 64, reverse=False) for _ in range(6)]
+    assert any((w.motion_dual != w.motion).any() for w in windows)
+    opts = TrainOptions(**{**_opts(tmp_path, 4, "kpn").__dict__, "net": "kpn", "occlusion_from": 0.5})
+    train(opts, progress=False)
+    rows = [r for r in csv.DictReader((tmp_path / "kpn" / LOG).open()) if r["kind"] == "train"]
+    assert len(rows) == 4 and all(float(r["occlusion"]) > 0 for r in rows)  # seed 0's windows show occlusions
+    for row in rows:
+        terms = float(row["spatial"]) + float(row["temporal"])
+        occlusion = float(row["occlusion"]) if int(row["step"]) > 2 else 0.0
+        assert float(row["loss"]) == pytest.approx(terms + occlusion, rel=1e-5), row["step"]
+    with pytest.raises(ValueError, match="--motion is kpn's"):
+        TrainOptions(**{**_opts(tmp_path, 4).__dict__, "motion": "plain"})
+    with pytest.raises(ValueError, match="kpn always warps"):
+        train(TrainOptions(**{**opts.__dict__, "warp": True}), progress=False)

@@ -110,11 +110,12 @@ def test_every_declared_bound_runs(name, tiny_layers):
 def test_weights_come_from_the_registry_and_an_operator_folder(tmp_path, monkeypatch):
     from service.runtime import SHIPPED_WEIGHTS, WEIGHTS_DIR_ENV, weight_names
 
-    assert weight_names() == ("crossreg_unet", "flnr", "rae") and weight_names("crossreg_unet") == ("crossreg_unet",)
+    assert weight_names() == ("crossreg_unet", "flnr", "kpn", "rae")
+    assert weight_names("crossreg_unet") == ("crossreg_unet",)
     shutil.copy(SHIPPED_WEIGHTS / "crossreg_unet.onnx", tmp_path / "site_tuned.onnx")
     (tmp_path / "not_a_model.onnx").write_bytes(b"not onnx")
     monkeypatch.setenv(WEIGHTS_DIR_ENV, str(tmp_path))
-    assert weight_names() == ("crossreg_unet", "flnr", "not_a_model", "rae", "site_tuned")
+    assert weight_names() == ("crossreg_unet", "flnr", "kpn", "not_a_model", "rae", "site_tuned")
     # a file that is not a model is offered to every network, so that choosing it says what is wrong
     assert weight_names("crossreg_unet") == ("crossreg_unet", "not_a_model", "site_tuned")
     assert weight_names("rae") == ("not_a_model", "rae")

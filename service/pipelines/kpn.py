@@ -1,0 +1,113 @@
+"""`kpn`: neural temporal denoising with dual motion vectors (Zeng et al. 2023): a network predicts per-pixel
+kernels at three scales and a temporal kernel, trained offline, run in ONNX Runtime; the filter runs in numba.
+
+Stages, per frame (emission already split off by Pipeline.step, added back after):
+  1. input planes: demodulated log1p radiance, normal, relative depth, roughness (service/stages/rae_inputs.py)
+  2. the previous output (log1p demodulated, the sequence state) warped to this frame by `motionDual`
+     (`motion` option: auto takes it where the frame has it, else `motion`), bilinear, taps outside the frame
+     dropped (service.stages.reprojection.reproject without G-buffer tests); where the warp fails (off
+     screen) and at a sequence's first frame, the noisy radiance of step 1 (Zeng 2023 sec. 5)
+  3. the network in ONNX Runtime on planes and warped previous output (service.layout.KPN_INPUTS), padded by
+     edge replication to its alignment -> 5x5 kernels at full, 1/2 and 1/4 resolution, their blending
+     weights, the temporal kernel and alpha_t, as logits (models/nets/kpn.py)
+  4. the multi-scale kernel filter with temporal blend, which normalises them
+     (service/stages/kernel_filter.py), cropped back
+  5. expm1 and remodulation by the albedo
+The background (nothing hit: zero normal) passes through as it came and the network sees zero radiance there,
+as in `rae`. State: the previous output of step 4 (3, H, W) float32, none at the first frame of a sequence.
+The network and the filter were trained together through their torch twins (models/train/kpn.py);
+tests/service/pipelines/test_kpn.py holds the served pipeline to them.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.frame import Frame
+from service.layout import KPN_INPUTS, channel_slices, pad_planes
+from service.pipelines import register
+from service.pipelines.base import SequenceState
+from service.pipelines.networks import NetworkPipeline, frame_planes
+from service.pipelines.options import MAX_THREADS, option
+from service.runtime import weight_names
+from service.stages.kernel_filter import kernel_filter
+from service.stages.rae_inputs import RADIANCE, radiance_from_output
+from service.stages.reprojection import reproject
+
+NETWORK = "kpn"  # the network a `weights` file must hold (its ONNX metadata)
+DEFAULT_WEIGHTS = "kpn"  # models/weights/kpn.onnx (manifest: kpn.json)
+MOTIONS = ("auto", "dual", "plain")
+PREVIOUS = channel_slices(KPN_INPUTS)["previous"]  # the warped previous output among the network's input planes
+
+
+@dataclass(frozen=True)
+class KpnOptions:
+    # network weights: a name from the registry (service.runtime.weight_files), never a path
+    weights: str = option(DEFAULT_WEIGHTS, choices=functools.partial(weight_names, NETWORK))
+    # which motion warps the previous output: "dual" (`motionDual`, required), "plain" (`motion`), "auto"
+    # (`motionDual` where the frame has it, else `motion`)
+    motion: str = option("auto", choices=MOTIONS)
+    # ONNX Runtime intra-op threads (0: $MCDENOISE_ORT_THREADS or ORT's default)
+    threads: int = option(0, low=0, high=MAX_THREADS)
+
+
+@dataclass
+class KpnState(SequenceState):
+    """previous: (3, H, W) float32 the last output, log1p demodulated radiance; None before the first frame."""
+
+    previous: np.ndarray | None = None
+
+
+def warp_motion(frame: Frame, mode: str) -> np.ndarray:
+    """(H, W, 2) float32: the frame's `motionDual` (mode "dual", or "auto" where present) or `motion`."""
+    if mode == "dual" or (mode == "auto" and "motionDual" in frame):
+        return frame["motionDual"]
+    return frame["motion"]
+
+
+@register
+class KpnPipeline(NetworkPipeline):
+    name = "kpn"
+    summary = "multi-scale kernel prediction with dual motion vectors (Zeng 2023), trained offline; temporal"
+    requires = ("color", "albedo", "normal", "depth", "motion")
+    optional = ("motionDual", "roughness", "emission")
+    temporal = True
+    Options = KpnOptions
+    network = NETWORK
+    State = KpnState
+
+    def check(self, frame: Frame, state: SequenceState) -> None:
+        """Pipeline.check, and `motionDual` is required with motion="dual"."""
+        super().check(frame, state)
+        if self.options.motion == "dual":
+            frame.require(("motionDual",), who=f"pipeline '{self.name}' with motion 'dual'")
+
+    def previous(self, frame: Frame, state: KpnState, noisy: np.ndarray) -> np.ndarray:
+        """(3, H, W) float32: the last output warped to `frame`, `noisy` (3, H, W) where the warp fails or
+        there is no last output (module docstring, stage 2)."""
+        if state.previous is None:
+            return noisy
+        warped, valid = reproject(state.previous.transpose(1, 2, 0), warp_motion(frame, self.options.motion))
+        return np.where(valid, warped.transpose(2, 0, 1), noisy)
+
+    def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
+        model = self.model()
+        info = model.info
+        planes, background = frame_planes(frame)
+        previous = self.previous(frame, state, planes[RADIANCE])
+        features = np.ascontiguousarray(pad_planes(np.concatenate([planes, previous]), info.alignment))
+        outputs = model.run({info.input_name: features[None]})
+        coarse = [outputs[c["output"]][0] for c in info.metadata["coarse"]]  # half, quarter
+        filtered = kernel_filter(features[RADIANCE], features[PREVIOUS], outputs[info.output_name][0], *coarse,
+                                 space_to_depth=int(info.metadata["space_to_depth"]))
+        filtered = filtered[:, : frame.height, : frame.width]
+        if not np.isfinite(filtered).all():
+            state.previous = None  # the next frame starts afresh
+            raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite kernels; "
+                                     "its recurrent state was reset")
+        state.previous = np.ascontiguousarray(filtered)
+        radiance = radiance_from_output(filtered, frame["albedo"])
+        return {"color": np.where(background[..., None], frame["color"], radiance)}, state

@@ -1,0 +1,160 @@
+"""Pipeline `kpn`: the served composition (ONNX Runtime kernels, numba filter, numba warp of the previous
+output) against its training twin (models/train/kpn.py) over a few frames; with the shipped weights: contract,
+denoising, the history is used and reset per sequence, the motion option, constants, errors."""
+
+import numpy as np
+import pytest
+
+from models.data import SAMPLE_DIRS
+from service import pipelines
+from service.exr import read_sequence
+from service.frame import Frame, FrameError
+from service.metrics import TRIM_FRACTION, rel_l2, temporal_rel_l2
+from service.pipelines.options import OptionError
+from service.stages.emission import subtract_emission
+
+SAMPLE = SAMPLE_DIRS[0]  # `shadows`, 120x120: not a multiple of the alignment (16), so the pipeline pads
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    return [frame for _path, frame in read_sequence(SAMPLE)]
+
+
+def _inputs(frame: Frame, **replace: np.ndarray) -> Frame:
+    return Frame({**{k: v for k, v in frame.buffers.items() if k != "reference"}, **replace}, {})
+
+
+def _run(pipeline, frames, *, fresh_each_frame=False):
+    state, outs = None, []
+    for frame in frames:
+        if state is None or fresh_each_frame:
+            state = pipeline.start(frame.height, frame.width)
+        out, state = pipeline.step(_inputs(frame), state)
+        outs.append(out["color"])
+    return outs, state
+
+
+def test_contract():
+    info = pipelines.get("kpn").describe()
+    assert info["temporal"] and set(info["requires"]) == {"color", "albedo", "normal", "depth", "motion"}
+    assert {"motionDual", "roughness", "emission"} <= set(info["optional"])
+    assert info["option_specs"]["weights"]["enum"] == ["kpn"]
+    assert info["option_specs"]["motion"]["enum"] == ["auto", "dual", "plain"]
+
+
+@pytest.mark.parametrize("motion", ["dual", "plain"])
+def test_served_pipeline_matches_the_training_twin(frames, tmp_path, monkeypatch, motion):
+    """Three frames through the served pipeline (with its own state) and through models/train/kpn.py's
+    `filter_window` (torch network, torch warp, torch filter) on the same planes: the same filtered output."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from export.kpn import export_bytes
+    from models.nets.kpn import KpnConfig, make_kpn
+    from models.train.kpn import filter_window
+    from service.runtime import WEIGHTS_DIR_ENV
+    from service.stages.rae_inputs import RADIANCE, rae_planes
+    from service.stages.reprojection import surface_hit
+    from tests.export.test_kpn_export import random_heads
+
+    net = random_heads(make_kpn(KpnConfig(widths=(6, 8, 10, 12)), seed=4)).eval()
+    (tmp_path / "tiny.onnx").write_bytes(export_bytes(net))
+    monkeypatch.setenv(WEIGHTS_DIR_ENV, str(tmp_path))
+    pipeline = pipelines.get("kpn", weights="tiny", motion=motion)
+    state = pipeline.start(frames[0].height, frames[0].width)
+    served, planes = [], []
+    for frame in frames[:3]:
+        color = subtract_emission([frame["color"]], frame["emission"])[0]  # as Pipeline.step hands it over
+        _, state = pipeline.denoise(_inputs(frame, color=color), state)
+        served.append(state.previous)
+        planes.append(rae_planes(color, frame["albedo"], frame["normal"], frame["depth"], frame.get("roughness"),
+                                 background=~surface_hit(frame["normal"])))
+    planes = torch.from_numpy(np.stack(planes))[None]
+    moves = np.stack([f["motionDual" if motion == "dual" else "motion"].transpose(2, 0, 1) for f in frames[:3]])
+    with torch.no_grad():
+        ours = filter_window(net, torch.expm1(planes[:, :, RADIANCE]), planes[:, :, RADIANCE.stop:],
+                             torch.from_numpy(moves)[None])[0]
+    assert (moves[1:] != 0).any() and (served[2] != served[1]).any()
+    for t in range(3):
+        np.testing.assert_allclose(served[t], ours[t].numpy(), atol=2e-4, rtol=1e-4, err_msg=f"frame {t}")
+
+
+def test_denoises_the_sample_and_history_lowers_the_temporal_error(frames):
+    pipeline = pipelines.get("kpn")
+    with_history, state = _run(pipeline, frames)
+    without, _ = _run(pipeline, frames, fresh_each_frame=True)
+    refs = [f["reference"] for f in frames]
+    noisy = np.mean([rel_l2(f["color"], r, trim=TRIM_FRACTION) for f, r in zip(frames, refs, strict=True)])
+    error = np.mean([rel_l2(o, r, trim=TRIM_FRACTION) for o, r in zip(with_history, refs, strict=True)])
+    assert error < 0.5 * noisy
+    assert state.frame_index == len(frames) and state.previous.shape == (3, 120, 120)
+
+    def temporal(outs):
+        return np.mean([temporal_rel_l2(outs[i - 1], outs[i], refs[i - 1], refs[i]) for i in range(1, len(outs))])
+
+    assert temporal(with_history) < temporal(without)
+
+
+def test_frame_two_depends_on_frame_one_and_a_new_sequence_forgets_it(frames):
+    pipeline = pipelines.get("kpn")
+    (_, second), _ = _run(pipeline, frames[:2])
+    brighter = Frame({**frames[0].buffers, "color": frames[0]["color"] * 2}, {})
+    (_, second_after_brighter), _ = _run(pipeline, [brighter, frames[1]])
+    assert np.abs(second_after_brighter - second).max() > 1e-2 * np.abs(second).max()
+    (first,), _ = _run(pipeline, frames[1:2])
+    (_, again), _ = _run(pipeline, [brighter, frames[1]], fresh_each_frame=True)
+    np.testing.assert_array_equal(first, again)  # a sequence's first frame uses no history
+
+
+def test_a_constant_image_stays_constant(frames):
+    """Kernels that sum to 1 and weights in (0, 1) on a constant radiance and albedo: that constant, every frame."""
+    h, w = 37, 53  # odd sizes
+    base = {k: frames[0][k][:h, :w] for k in ("normal", "depth", "motion", "motionDual", "roughness")}
+    flat = Frame({**base, "color": np.full((h, w, 3), 0.3, np.float32),
+                  "albedo": np.full((h, w, 3), 0.5, np.float32)}, {})
+    hit = np.einsum("hwc,hwc->hw", base["normal"], base["normal"]) > 0.25
+    outs, _ = _run(pipelines.get("kpn"), [flat, flat, flat])
+    for out in outs:
+        np.testing.assert_allclose(out[hit], 0.3, rtol=1e-4)
+
+
+def test_motion_option(frames):
+    """auto = dual where the frame has motionDual, plain otherwise; dual without motionDual is refused."""
+    def third(**options):
+        return _run(pipelines.get("kpn", **options), frames[:3])[0][2]
+
+    auto, dual, plain = third(), third(motion="dual"), third(motion="plain")
+    np.testing.assert_array_equal(auto, dual)
+    assert not np.array_equal(dual, plain)
+    no_dual = [Frame({k: v for k, v in f.buffers.items() if k != "motionDual"}, {}) for f in frames[:3]]
+    np.testing.assert_array_equal(_run(pipelines.get("kpn"), no_dual)[0][2], plain)
+    pipeline = pipelines.get("kpn", motion="dual")
+    with pytest.raises(FrameError, match="missing layer 'motionDual' required by pipeline 'kpn' with motion 'dual'"):
+        pipeline.step(no_dual[0], pipeline.start(120, 120))
+    with pytest.raises(OptionError, match="motion"):
+        pipelines.get("kpn", motion="sideways")
+
+
+def test_missing_motion_and_a_frame_of_another_size_are_refused(frames):
+    pipeline = pipelines.get("kpn")
+    state = pipeline.start(120, 120)
+    with pytest.raises(FrameError, match="missing layer 'motion' required by pipeline 'kpn'"):
+        pipeline.step(Frame({k: v for k, v in frames[0].buffers.items() if k != "motion"}, {}), state)
+    small = Frame({k: v[:50, :61] for k, v in frames[0].buffers.items()}, {})
+    with pytest.raises(FrameError, match="sequence is 120x120"):
+        pipeline.step(small, state)
+
+
+def test_a_non_finite_network_output_resets_the_state_and_the_sequence_goes_on(frames, monkeypatch):
+    pipeline = pipelines.get("kpn")
+    state = pipeline.start(120, 120)
+    _, state = pipeline.step(frames[0], state)
+    model = pipeline.model()
+    real = model.run
+    monkeypatch.setattr(model, "run", lambda feeds: {k: v * np.nan for k, v in real(feeds).items()})
+    with pytest.raises(FloatingPointError, match="recurrent state was reset"):
+        pipeline.step(frames[1], state)
+    assert state.previous is None
+    monkeypatch.setattr(model, "run", real)
+    out, state = pipeline.step(frames[2], state)
+    assert np.isfinite(out["color"]).all() and state.previous is not None
