@@ -37,8 +37,8 @@ from service.pipelines.options import option
 from service.stages.error_estimate import TILE, cross_tile_error, interpolate_tiles, interpolation_matrix, tile_error
 
 # Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest at
-# 1280x720 first (README): flr, bmfr, svgf
-CANDIDATES = ("flr", "bmfr", "svgf")
+# 1280x720 first (README): flr, bmfr, svgf, kpn
+CANDIDATES = ("flr", "bmfr", "svgf", "kpn")
 HALVES = ("colorA", "colorB")
 FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (error_estimate `cap`)
 
@@ -75,7 +75,7 @@ class AutoState(SequenceState):
 @register
 class AutoPipeline(Pipeline):
     name = pipelines.AUTO
-    summary = ("per tile, the cheapest of flr, bmfr and svgf within a tolerance of the lowest error estimated "
+    summary = ("per tile, the cheapest of flr, bmfr, svgf and kpn within a tolerance of the lowest error estimated "
                "from the half buffers; also outputs that estimate (`error`)")
     requires = ("color",)
     optional = tuple(k for k in LAYERS if k not in ("color", "reference", "error"))  # any candidate or fallback reads

@@ -26,8 +26,6 @@ from service.frame import Frame
 # below), and one that passes must leave the list; those within 20% of the limit may pass or fail (another
 # CPU's rounding).
 KNOWN_FAILURES: dict[tuple[str, str], float] = {
-    # auto: where it keeps flr's choice of a tile that flr fails (the light's ring, the caustic)
-    ("auto", "bulb"): 1.36, ("auto", "caustics"): 1.65,
     ("bilateral", "bulb"): 2.11, ("bilateral", "bulb_emission"): 2.11, ("bilateral", "caustics"): 1.88,
     ("bilateral", "glints"): 1.15,
     ("bmfr", "bulb"): 1.92, ("bmfr", "bulb_emission"): 1.92, ("bmfr", "caustics"): 1.87, ("bmfr", "window"): 4.36,
