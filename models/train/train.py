@@ -44,6 +44,7 @@ BEST = "best.pt"
 LOG = "log.csv"
 CURVES = "curves.png"
 DEVICES = ("cpu", "cuda")
+KPN_ONLY = {"motion": "dual", "occlusion_from": 0.5}  # TrainOptions only kpn reads, and their defaults
 LOG_FIELDS = ("step", "kind", "loss", "spatial", "gradient", "temporal", "occlusion", "lr", "seq_per_s", "val_rel_l2",
               "val_temporal", "seconds")
 TERMS = ("total", "spatial", "gradient", "temporal", "occlusion")  # LossTerms fields, logged as LOG_TERMS
@@ -73,9 +74,10 @@ class TrainOptions:
     ema: float = 0.999  # decay of the exponential moving average of the weights that is validated and
     # exported (Polyak averaging; 0: the raw weights). Batches of 4 windows make single steps noisy.
     device: str = "cpu"  # where the network trains: "cpu" or "cuda" (windows are cut on the CPU either way)
-    motion: str = "dual"  # kpn: the motion that warps the previous output, "dual" (motionDual) or "plain" (motion)
-    occlusion_from: float = 0.5  # kpn: share of `steps` after which the motion-occlusion loss term joins (Zeng
-    # 2023 sec. 5: half), in [0, 1]
+    # kpn: the motion that warps the previous output, "dual" (motionDual) or "plain" (motion)
+    motion: str = KPN_ONLY["motion"]
+    # kpn: share of `steps` after which the motion-occlusion loss term joins (Zeng 2023 sec. 5: half), in [0, 1]
+    occlusion_from: float = KPN_ONLY["occlusion_from"]
 
     def __post_init__(self):
         if self.net not in RECIPES:
@@ -89,10 +91,12 @@ class TrainOptions:
             raise ValueError(f"ema must be in [0, 1), got {self.ema}")
         if self.motion not in MOTIONS:
             raise ValueError(f"motion must be one of {', '.join(MOTIONS)}, got '{self.motion}'")
-        if self.net != "kpn" and self.motion != "dual":
+        if self.net != "kpn" and self.motion != KPN_ONLY["motion"]:
             raise ValueError("--motion is kpn's (the network that warps its previous output)")
         if not 0 <= self.occlusion_from <= 1:
             raise ValueError(f"occlusion_from must be in [0, 1], got {self.occlusion_from}")
+        if self.net != "kpn" and self.occlusion_from != KPN_ONLY["occlusion_from"]:
+            raise ValueError("--occlusion-from is kpn's (the network trained with the motion-occlusion loss)")
         if self.device not in DEVICES:
             raise ValueError(f"device must be one of {', '.join(DEVICES)}, got '{self.device}'")
 
@@ -154,12 +158,18 @@ def _state(net, ema, optimizer, step, rng, opts, best, seconds, extra) -> dict[s
 
 
 def _append_log(path: Path, row: dict[str, Any]) -> None:
+    """Append `row` to the CSV log under the file's own header (a run resumed from an older version keeps its
+    columns; fields the header lacks are left out), or LOG_FIELDS for a new file."""
+    fields = LOG_FIELDS
+    if path.exists():
+        with path.open(newline="") as f:
+            fields = tuple(next(csv.reader(f), LOG_FIELDS))
     new = not path.exists()
     with path.open("a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=LOG_FIELDS)
+        writer = csv.DictWriter(f, fieldnames=fields)
         if new:
             writer.writeheader()
-        writer.writerow({k: row.get(k, "") for k in LOG_FIELDS})
+        writer.writerow({k: row.get(k, "") for k in fields})
 
 
 def plot_curves(log_path: Path, png_path: Path) -> None:

@@ -4,7 +4,8 @@ kernels at three scales and a temporal kernel, trained offline, run in ONNX Runt
 Stages, per frame (emission already split off by Pipeline.step, added back after):
   1. input planes: demodulated log1p radiance, normal, relative depth, roughness (service/stages/rae_inputs.py)
   2. the previous output (log1p demodulated, the sequence state) warped to this frame by `motionDual`
-     (`motion` option: auto takes it where the frame has it, else `motion`), bilinear, taps outside the frame
+     (`motion` option: auto takes it where the frame has it and the weights were trained with it, else
+     `motion`), bilinear, taps outside the frame
      dropped (service.stages.reprojection.reproject without G-buffer tests); where the warp fails (off
      screen) and at a sequence's first frame, the noisy radiance of step 1 (Zeng 2023 sec. 5)
   3. the network in ONNX Runtime on planes and warped previous output (service.layout.KPN_INPUTS), padded by
@@ -31,8 +32,8 @@ from service.layout import KPN_INPUTS, channel_slices, pad_planes
 from service.pipelines import register
 from service.pipelines.base import SequenceState
 from service.pipelines.networks import NetworkPipeline, frame_planes
-from service.pipelines.options import MAX_THREADS, option
-from service.runtime import weight_names
+from service.pipelines.options import MAX_THREADS, OptionError, option
+from service.runtime import OnnxModel, weight_names
 from service.stages.kernel_filter import kernel_filter
 from service.stages.rae_inputs import RADIANCE, radiance_from_output
 from service.stages.reprojection import reproject
@@ -48,7 +49,7 @@ class KpnOptions:
     # network weights: a name from the registry (service.runtime.weight_files), never a path
     weights: str = option(DEFAULT_WEIGHTS, choices=functools.partial(weight_names, NETWORK))
     # which motion warps the previous output: "dual" (`motionDual`, required), "plain" (`motion`), "auto"
-    # (`motionDual` where the frame has it, else `motion`)
+    # (as the weights were trained: `motionDual` where the frame has it for dual-trained weights, else `motion`)
     motion: str = option("auto", choices=MOTIONS)
     # ONNX Runtime intra-op threads (0: $MCDENOISE_ORT_THREADS or ORT's default)
     threads: int = option(0, low=0, high=MAX_THREADS)
@@ -61,9 +62,11 @@ class KpnState(SequenceState):
     previous: np.ndarray | None = None
 
 
-def warp_motion(frame: Frame, mode: str) -> np.ndarray:
-    """(H, W, 2) float32: the frame's `motionDual` (mode "dual", or "auto" where present) or `motion`."""
-    if mode == "dual" or (mode == "auto" and "motionDual" in frame):
+def warp_motion(frame: Frame, mode: str, trained: str = "dual") -> np.ndarray:
+    """(H, W, 2) float32: the frame's `motionDual` or `motion`. mode "dual" or "plain" says which; "auto"
+    follows `trained`, the motion the weights were trained with (their metadata): `motionDual` where the
+    frame has it for weights trained with it, else `motion`."""
+    if mode == "dual" or (mode == "auto" and trained == "dual" and "motionDual" in frame):
         return frame["motionDual"]
     return frame["motion"]
 
@@ -79,6 +82,16 @@ class KpnPipeline(NetworkPipeline):
     network = NETWORK
     State = KpnState
 
+    def model(self) -> OnnxModel:
+        """NetworkPipeline.model, and OptionError on `weights` unless its coarse outputs are at scales 2 and 4."""
+        model = super().model()
+        scales = sorted(c.get("scale") for c in model.info.metadata.get("coarse", []))
+        if scales != [2, 4]:
+            self._model = None
+            raise OptionError(f"weights '{self.options.weights}' have coarse outputs at scales {scales}, not 2 and 4",
+                              "weights")
+        return model
+
     def check(self, frame: Frame, state: SequenceState) -> None:
         """Pipeline.check, and `motionDual` is required with motion="dual"."""
         super().check(frame, state)
@@ -90,7 +103,8 @@ class KpnPipeline(NetworkPipeline):
         there is no last output (module docstring, stage 2)."""
         if state.previous is None:
             return noisy
-        warped, valid = reproject(state.previous.transpose(1, 2, 0), warp_motion(frame, self.options.motion))
+        motion = warp_motion(frame, self.options.motion, self.model().info.metadata.get("motion", "dual"))
+        warped, valid = reproject(state.previous.transpose(1, 2, 0), motion)
         return np.where(valid, warped.transpose(2, 0, 1), noisy)
 
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
@@ -100,9 +114,9 @@ class KpnPipeline(NetworkPipeline):
         previous = self.previous(frame, state, planes[RADIANCE])
         features = np.ascontiguousarray(pad_planes(np.concatenate([planes, previous]), info.alignment))
         outputs = model.run({info.input_name: features[None]})
-        coarse = [outputs[c["output"]][0] for c in info.metadata["coarse"]]  # half, quarter
-        filtered = kernel_filter(features[RADIANCE], features[PREVIOUS], outputs[info.output_name][0], *coarse,
-                                 space_to_depth=int(info.metadata["space_to_depth"]))
+        coarse = {c["scale"]: outputs[c["output"]][0] for c in info.metadata["coarse"]}
+        filtered = kernel_filter(features[RADIANCE], features[PREVIOUS], outputs[info.output_name][0], coarse[2],
+                                 coarse[4], space_to_depth=int(info.metadata["space_to_depth"]))
         filtered = filtered[:, : frame.height, : frame.width]
         if not np.isfinite(filtered).all():
             state.previous = None  # the next frame starts afresh

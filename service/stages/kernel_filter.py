@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from service.layout import KPN_COARSE_OUTPUTS, KPN_FINE_OUTPUTS, KPN_TAPS, channel_slices
+from service.layout import KPN_COARSE_OUTPUTS, KPN_FINE_OUTPUTS, KPN_TAPS, channel_slices, total_channels
 
 KERNEL_SIZE = 5  # Zeng 2023 sec. 4.3: 5x5 per-pixel kernels
 RADIUS = KERNEL_SIZE // 2
@@ -142,6 +142,17 @@ def kernel_filter(noisy: np.ndarray, previous: np.ndarray, fine: np.ndarray, hal
     demodulated radiance.
     """
     s = space_to_depth
+    height, width = noisy.shape[1:]
+    step = np.lcm(ALIGNMENT, s)
+    if height % step or width % step:
+        raise ValueError(f"kernel filter: the frame ({width}x{height}) must be padded to a multiple of {step}")
+    fine_c, coarse_c = total_channels(KPN_FINE_OUTPUTS), total_channels(KPN_COARSE_OUTPUTS)
+    expected = {"previous": (previous, (3, height, width)), "fine": (fine, (fine_c * s * s, height // s, width // s)),
+                "half": (half, (coarse_c, height // 2, width // 2)),
+                "quarter": (quarter, (coarse_c, height // 4, width // 4))}
+    for name, (array, shape) in expected.items():
+        if array.shape != shape:
+            raise ValueError(f"kernel filter: {name} has shape {array.shape}, expected {shape}")
     half_noisy = downsample(noisy)
     coarse = apply_kernel(downsample(half_noisy), quarter, first=COARSE["kernel"].start)
     coarse = combine_scales(apply_kernel(half_noisy, half, first=COARSE["kernel"].start), coarse,

@@ -84,3 +84,5 @@ def test_manifest_command_keeps_the_step_the_occlusion_term_joined():
     command = train_command({"net": "kpn", "steps": 5500, "occlusion_from": 0.5, "motion": "dual"}, 4434)
     share = float(command.split("--occlusion-from ")[1].split()[0])
     assert "--steps 4434" in command and round(share * 4434) == 2750
+    rae = train_command({"net": "rae", "steps": 500, "occlusion_from": 0.5, "motion": "dual", "batch": 4}, 500)
+    assert "--occlusion-from" not in rae and "--motion" not in rae and "--batch 4" in rae

@@ -16,7 +16,7 @@ from models.train.dataset import (  # noqa: E402
     collate,
     load_sequence,
 )
-from models.train.train import BEST, CHECKPOINT, CURVES, LOG, TrainOptions, learning_rate, train  # noqa: E402
+from models.train.train import BEST, CHECKPOINT, CURVES, LOG, LOG_FIELDS, TrainOptions, learning_rate, train  # noqa: E402
 from service.exr import read_sequence  # noqa: E402
 from service.stages.rae_inputs import GUIDE_PLANES, ROUGHNESS_ABSENT, demodulated  # noqa: E402
 
@@ -252,5 +252,21 @@ def test_kpn_trains_with_the_occlusion_term_from_its_step_and_windows_carry_moti
         assert float(row["loss"]) == pytest.approx(terms + occlusion, rel=1e-5), row["step"]
     with pytest.raises(ValueError, match="--motion is kpn's"):
         TrainOptions(**{**_opts(tmp_path, 4).__dict__, "motion": "plain"})
+    with pytest.raises(ValueError, match="--occlusion-from is kpn's"):
+        TrainOptions(**{**_opts(tmp_path, 4).__dict__, "occlusion_from": 0.25})
     with pytest.raises(ValueError, match="kpn always warps"):
         train(TrainOptions(**{**opts.__dict__, "warp": True}), progress=False)
+
+
+def test_a_log_from_an_older_version_keeps_its_columns_when_a_resumed_run_appends(tmp_path):
+    """A log.csv whose header lacks a field (written before `occlusion` existed) gets rows under its own
+    header, so every value stays under its name."""
+    from models.train.train import _append_log
+
+    path = tmp_path / LOG
+    old = [f for f in LOG_FIELDS if f != "occlusion"]
+    path.write_text(",".join(old) + "\n")
+    _append_log(path, {"step": 7, "kind": "val", "occlusion": 0.5, "val_rel_l2": 0.125, "lr": 0.001})
+    (row,) = list(csv.DictReader(path.open()))
+    assert list(row) == old
+    assert row["step"] == "7" and row["val_rel_l2"] == "0.125" and row["lr"] == "0.001"

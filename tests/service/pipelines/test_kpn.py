@@ -106,16 +106,22 @@ def test_frame_two_depends_on_frame_one_and_a_new_sequence_forgets_it(frames):
     np.testing.assert_array_equal(first, again)  # a sequence's first frame uses no history
 
 
-def test_a_constant_image_stays_constant(frames):
-    """Kernels that sum to 1 and weights in (0, 1) on a constant radiance and albedo: that constant, every frame."""
+def test_a_constant_image_stays_constant_and_the_background_passes_through(frames):
+    """Kernels that sum to 1 and weights in (0, 1) on a constant radiance and albedo: that constant, every frame;
+    where nothing was hit (zero normal: a sky of 7 in the first 6 columns) the input comes out unchanged."""
     h, w = 37, 53  # odd sizes
-    base = {k: frames[0][k][:h, :w] for k in ("normal", "depth", "motion", "motionDual", "roughness")}
-    flat = Frame({**base, "color": np.full((h, w, 3), 0.3, np.float32),
-                  "albedo": np.full((h, w, 3), 0.5, np.float32)}, {})
+    base = {k: frames[0][k][:h, :w].copy() for k in ("normal", "depth", "motion", "motionDual", "roughness")}
+    base["normal"][:, :6] = 0.0
+    color = np.full((h, w, 3), 0.3, np.float32)
+    color[:, :6] = 7.0
+    flat = Frame({**base, "color": color, "albedo": np.full((h, w, 3), 0.5, np.float32)}, {})
     hit = np.einsum("hwc,hwc->hw", base["normal"], base["normal"]) > 0.25
+    assert hit[:, 6:].all() and not hit[:, :6].any()
     outs, _ = _run(pipelines.get("kpn"), [flat, flat, flat])
     for out in outs:
-        np.testing.assert_allclose(out[hit], 0.3, rtol=1e-4)
+        np.testing.assert_array_equal(out[:, :6], color[:, :6])
+        np.testing.assert_allclose(out[:, 30:], 0.3, rtol=1e-4)  # away from the sky, whose radiance the network
+        # does not see (zero there, as in `rae`; training windows show it: docs/training.md)
 
 
 def test_motion_option(frames):
@@ -158,3 +164,26 @@ def test_a_non_finite_network_output_resets_the_state_and_the_sequence_goes_on(f
     monkeypatch.setattr(model, "run", real)
     out, state = pipeline.step(frames[2], state)
     assert np.isfinite(out["color"]).all() and state.previous is not None
+
+
+def test_auto_motion_follows_what_the_weights_were_trained_with(frames, tmp_path, monkeypatch):
+    """Weights whose metadata says they were trained with plain motion: `auto` warps by `motion`, as `plain`
+    does, though the frames have `motionDual`."""
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from export.kpn import export_bytes
+    from models.nets.kpn import KpnConfig, make_kpn
+    from service.runtime import WEIGHTS_DIR_ENV
+    from tests.export.test_kpn_export import random_heads
+
+    net = random_heads(make_kpn(KpnConfig(widths=(6, 8, 10, 12)), seed=4)).eval()
+    (tmp_path / "plain.onnx").write_bytes(export_bytes(net, extra={"training": {"options": {"motion": "plain"}}}))
+    (tmp_path / "dual.onnx").write_bytes(export_bytes(net))
+    monkeypatch.setenv(WEIGHTS_DIR_ENV, str(tmp_path))
+
+    def third(**options):
+        return _run(pipelines.get("kpn", **options), frames[:3])[0][2]
+
+    np.testing.assert_array_equal(third(weights="plain"), third(weights="plain", motion="plain"))
+    np.testing.assert_array_equal(third(weights="dual"), third(weights="dual", motion="dual"))
+    assert not np.array_equal(third(weights="plain"), third(weights="plain", motion="dual"))
