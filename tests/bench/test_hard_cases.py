@@ -31,7 +31,6 @@ KNOWN_FAILURES: dict[tuple[str, str], float] = {
     ("bmfr", "bulb"): 1.92, ("bmfr", "bulb_emission"): 1.92, ("bmfr", "caustics"): 1.87, ("bmfr", "window"): 4.36,
     ("crossregression", "glints"): 1.72,
     ("flnr", "bulb"): 1.3, ("flnr", "bulb_emission"): 1.3, ("flnr", "caustics"): 1.92,
-    ("kpn", "bulb"): 1.37,
     ("flr", "bulb"): 1.36, ("flr", "bulb_emission"): 1.36, ("flr", "caustics"): 2.04, ("flr", "veiled"): 2.07,
     ("statistical", "bulb"): 2.44, ("statistical", "bulb_emission"): 2.17, ("statistical", "caustics"): 1.88,
     ("statistical", "glints"): 1.34,

@@ -46,13 +46,15 @@ def test_contract():
 @pytest.mark.parametrize("motion", ["dual", "plain"])
 def test_served_pipeline_matches_the_training_twin(frames, tmp_path, monkeypatch, motion):
     """Three frames through the served pipeline (with its own state) and through models/train/kpn.py's
-    `filter_window` (torch network, torch warp, torch filter) on the same planes: the same filtered output."""
+    `filter_window` (torch network, torch warp, torch filter) on the same planes (the served outlier clamp
+    applied): the same filtered output."""
     torch = pytest.importorskip("torch")
     pytest.importorskip("onnx")
     from export.kpn import export_bytes
     from models.nets.kpn import KpnConfig, make_kpn
     from models.train.kpn import filter_window
     from service.runtime import WEIGHTS_DIR_ENV
+    from service.stages.outliers import clamp_outliers
     from service.stages.rae_inputs import RADIANCE, rae_planes
     from service.stages.reprojection import surface_hit
     from tests.export.test_kpn_export import random_heads
@@ -67,8 +69,8 @@ def test_served_pipeline_matches_the_training_twin(frames, tmp_path, monkeypatch
         color = subtract_emission([frame["color"]], frame["emission"])[0]  # as Pipeline.step hands it over
         _, state = pipeline.denoise(_inputs(frame, color=color), state)
         served.append(state.previous)
-        planes.append(rae_planes(color, frame["albedo"], frame["normal"], frame["depth"], frame.get("roughness"),
-                                 background=~surface_hit(frame["normal"])))
+        planes.append(rae_planes(clamp_outliers(color), frame["albedo"], frame["normal"], frame["depth"],
+                                 frame.get("roughness"), background=~surface_hit(frame["normal"])))
     planes = torch.from_numpy(np.stack(planes))[None]
     moves = np.stack([f["motionDual" if motion == "dual" else "motion"].transpose(2, 0, 1) for f in frames[:3]])
     with torch.no_grad():
