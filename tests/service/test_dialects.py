@@ -209,7 +209,7 @@ def test_a_blender_sequence_denoises_through_the_cli(tmp_path, capsys):
     """Every pipeline whose layers one Blender render feeds, below half the noisy relL2 (BLENDER_GAPS:
     those that are not yet)."""
     assert main(["denoise", str(BLENDER / "noisy"), str(tmp_path / "auto")]) == 0
-    assert "pipeline: auto -> flr" in capsys.readouterr().out
+    assert "pipeline: auto -> kpn" in capsys.readouterr().out
     references = [f["color"] for f in _frames(BLENDER / "reference")]
     noisy = _frames(BLENDER / "noisy")
     noisy_error = _mean_error([f["color"] for f in noisy], references)
