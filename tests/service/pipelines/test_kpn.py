@@ -2,6 +2,8 @@
 output) against its training twin (models/train/kpn.py) over a few frames; with the shipped weights: contract,
 denoising, the history is used and reset per sequence, the motion option, constants, errors."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -153,20 +155,6 @@ def test_missing_motion_and_a_frame_of_another_size_are_refused(frames):
         pipeline.step(small, state)
 
 
-def test_a_non_finite_network_output_resets_the_state_and_the_sequence_goes_on(frames, monkeypatch):
-    pipeline = pipelines.get("kpn")
-    state = pipeline.start(120, 120)
-    _, state = pipeline.step(frames[0], state)
-    model = pipeline.model()
-    real = model.run
-    monkeypatch.setattr(model, "run", lambda feeds: {k: v * np.nan for k, v in real(feeds).items()})
-    with pytest.raises(FloatingPointError, match="recurrent state was reset"):
-        pipeline.step(frames[1], state)
-    assert state.previous is None
-    monkeypatch.setattr(model, "run", real)
-    out, state = pipeline.step(frames[2], state)
-    assert np.isfinite(out["color"]).all() and state.previous is not None
-
 
 def test_auto_motion_follows_what_the_weights_were_trained_with(frames, tmp_path, monkeypatch):
     """Weights whose metadata says they were trained with plain motion: `auto` warps by `motion`, as `plain`
@@ -189,3 +177,22 @@ def test_auto_motion_follows_what_the_weights_were_trained_with(frames, tmp_path
     np.testing.assert_array_equal(third(weights="plain"), third(weights="plain", motion="plain"))
     np.testing.assert_array_equal(third(weights="dual"), third(weights="dual", motion="dual"))
     assert not np.array_equal(third(weights="plain"), third(weights="plain", motion="dual"))
+
+
+def test_weights_whose_coarse_outputs_are_not_at_scales_2_and_4_are_refused_at_the_start(tmp_path, monkeypatch):
+    """The filter reads the coarse outputs by their `scale`: a file that lists others is refused when a sequence
+    starts, naming the option, and not on a frame."""
+    onnx = pytest.importorskip("onnx")
+    from export.kpn import export_bytes
+    from models.nets.kpn import KpnConfig, make_kpn
+    from service.runtime import METADATA_KEY, WEIGHTS_DIR_ENV
+
+    model = onnx.load_from_string(export_bytes(make_kpn(KpnConfig(widths=(6, 8, 10, 12)), seed=4).eval()))
+    entry = next(p for p in model.metadata_props if p.key == METADATA_KEY)
+    metadata = json.loads(entry.value)
+    metadata["coarse"][1]["scale"] = 8
+    entry.value = json.dumps(metadata)
+    onnx.save(model, str(tmp_path / "odd.onnx"))
+    monkeypatch.setenv(WEIGHTS_DIR_ENV, str(tmp_path))
+    with pytest.raises(OptionError, match=r"weights 'odd' have coarse outputs at scales \[2, 8\]"):
+        pipelines.get("kpn", weights="odd").start(120, 120)
