@@ -332,7 +332,21 @@ def clamp_outlier_planes(planes: np.ndarray, firefly_k: float | None = FIREFLY_K
     return planes
 
 
-def clamp_outliers(image: np.ndarray, firefly_k: float = FIREFLY_K) -> np.ndarray:
+def clamp_outliers(image: np.ndarray, firefly_k: float = FIREFLY_K,
+                   halves: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """`image` ((H, W, C) float32 linear radiance, any sign) through `clamp_outlier_planes` with both clamps.
-    Returns (H, W, C) float32."""
-    return from_planes(clamp_outlier_planes(to_planes(image), firefly_k))
+
+    halves: None, or (A, B), each (H, W, C) float32, the two half-sample estimates whose mean is `image`
+    (less the same emission). A firefly is one rare sample, so it is in one half only; a value both halves
+    show (a small glint, seen again by the other half's samples) is signal. With the halves, a value
+    clipped below min(A, B) is brought back up to it (never above `image`), per channel: the glint survives
+    at the level both halves vouch for, a one-half firefly is clipped as before. Returns (H, W, C) float32.
+    """
+    clamped = from_planes(clamp_outlier_planes(to_planes(image), firefly_k))
+    if halves is None:
+        return clamped
+    color_a, color_b = halves
+    if color_a.shape != image.shape or color_b.shape != image.shape:
+        raise ValueError(f"clamp_outliers: the halves {color_a.shape}, {color_b.shape} must match {image.shape}")
+    shown = np.minimum(np.minimum(color_a, color_b), image)
+    return np.maximum(clamped, shown, out=clamped)

@@ -68,11 +68,12 @@ def test_served_pipeline_matches_the_training_twin(frames, tmp_path, monkeypatch
     state = pipeline.start(frames[0].height, frames[0].width)
     served, planes = [], []
     for frame in frames[:3]:
-        color = subtract_emission([frame["color"]], frame["emission"])[0]  # as Pipeline.step hands it over
-        _, state = pipeline.denoise(_inputs(frame, color=color), state)
+        # as Pipeline.step hands them over: the emission out of the radiance and its halves
+        color, *halves = subtract_emission([frame[k] for k in ("color", "colorA", "colorB")], frame["emission"])
+        _, state = pipeline.denoise(_inputs(frame, color=color, colorA=halves[0], colorB=halves[1]), state)
         served.append(state.previous)
-        planes.append(rae_planes(clamp_outliers(color), frame["albedo"], frame["normal"], frame["depth"],
-                                 frame.get("roughness"), background=~surface_hit(frame["normal"])))
+        planes.append(rae_planes(clamp_outliers(color, halves=tuple(halves)), frame["albedo"], frame["normal"],
+                                 frame["depth"], frame.get("roughness"), background=~surface_hit(frame["normal"])))
     planes = torch.from_numpy(np.stack(planes))[None]
     moves = np.stack([f["motionDual" if motion == "dual" else "motion"].transpose(2, 0, 1) for f in frames[:3]])
     with torch.no_grad():

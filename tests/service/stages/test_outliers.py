@@ -1,7 +1,8 @@
 """clamp_outliers (service/stages/outliers.py): a firefly and a small cluster are clipped, a constant image,
-a smooth gradient and an edge are not."""
+a smooth gradient and an edge are not; with the halves, what both show is kept."""
 
 import numpy as np
+import pytest
 
 from service.stages.outliers import clamp_outliers
 
@@ -23,3 +24,28 @@ def test_constant_gradient_and_edge_are_unchanged():
     edge = np.ones((17, 23, 3), np.float32)
     edge[:, 12:] = 50.0  # half the frame: signal, not an outlier
     np.testing.assert_array_equal(clamp_outliers(edge), edge)
+
+
+def test_with_the_halves_a_glint_both_show_survives_and_a_one_half_firefly_does_not():
+    """At 2 samples per half: a glint of 400 is seen by a sample of each half (A 300, B 500); a firefly of 2000
+    by one sample of one half (A 1, B 4000). The glint comes back at min(A, B), never above the image."""
+    a = np.ones((32, 32, 3), np.float32)
+    b = a.copy()
+    a[5, 5], b[5, 5] = 300.0, 500.0  # a glint
+    b[20, 20] = 4000.0  # a firefly
+    image = (a + b) / 2
+    plain = clamp_outliers(image)
+    assert plain[5, 5].max() < 10.0 and plain[20, 20].max() < 10.0  # both clipped without the halves
+    out = clamp_outliers(image, halves=(a, b))
+    np.testing.assert_array_equal(out[5, 5], [300.0] * 3)
+    np.testing.assert_array_equal(out[20, 20], plain[20, 20])
+    mask = np.ones((32, 32), bool)
+    mask[5, 5] = False
+    np.testing.assert_array_equal(out[mask], plain[mask])  # elsewhere as without them
+    assert (out <= image).all()
+
+
+def test_halves_of_another_shape_are_refused():
+    image = np.ones((8, 8, 3), np.float32)
+    with pytest.raises(ValueError, match="halves"):
+        clamp_outliers(image, halves=(image, image[:4]))
