@@ -1,16 +1,17 @@
 """`python -m bench.error_estimate --sequences DIR... [--pipelines NAME...] [--tile 32]`: how well the
 reference-free error estimate (service/stages/error_estimate.py) ranks denoisers, tile by tile.
 
-Per sequence, every candidate runs three times through its own state: on the frames as they are, giving
-f(C), and on frames whose `color` is half A alone or half B alone (the halves removed), giving f(A) and
-f(B). Per frame and tile, with scale the median of the candidates' f(A) and f(B):
+Per sequence, every candidate runs through its own state on the frames as they are, giving f(C), and at
+every frame, from a copy of that state before the frame, on the frame whose `color` is half A alone or
+half B alone (the halves removed), giving f(A) and f(B): as `auto` evaluates a candidate it runs, here at
+every frame. Per frame and tile, with scale the median of the candidates' f(A) and f(B):
 - one way: `tile_error(f(A), colorA, colorB, scale, cap=FIREFLY_CAP)`;
 - both ways: `cross_tile_error(f(A), f(B), ...)`, the estimate auto's is made of
   (service/pipelines/tiled.py);
 - averaged: both ways, averaged with the previous frame's average (weights 1/2, 1/2), as auto averages an
-  evaluation with the previous one. Not auto's exact estimate: here the candidates run every frame
-  through their own states (a temporal candidate with its history), while auto runs them from fresh
-  states every `every` frames;
+  evaluation with the previous one. Not auto's exact estimate: here every candidate runs, and is
+  evaluated, at every frame, while auto evaluates every `every` frames and a candidate it does not run
+  from a fresh state;
 - the truth: the tile's relL2 of f(C) against the reference (what a per-tile choice would serve), and of
   f(A) (what the one-way estimate estimates).
 Printed per sequence: Spearman's rank correlation between each estimate and the truth over the (frame,
@@ -32,7 +33,7 @@ import numpy as np
 from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import rel_l2, rel_l2_map
-from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP, one_half
+from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP, HALVES, one_half, run_half
 from service.process import configure
 from service.stages.error_estimate import TILE, cross_tile_error, tile_error, tile_means
 
@@ -73,9 +74,8 @@ def evaluate(folder: Path, names: list[str], tile: int = TILE) -> SequenceReport
     frames = [read_frame(p) for p in list_sequence(folder)]
     if not all("reference" in f and "colorA" in f and "colorB" in f for f in frames):
         raise ValueError(f"{folder}: frames need 'reference', 'colorA' and 'colorB'")
-    full = {n: _run(pipelines.get(n), frames) for n in names}
-    half_a = {n: _run(pipelines.get(n), [one_half(f, "colorA") for f in frames]) for n in names}
-    half_b = {n: _run(pipelines.get(n), [one_half(f, "colorB") for f in frames]) for n in names}
+    runs = {n: _run(pipelines.get(n), frames) for n in names}
+    full, half_a, half_b = ({n: run[k] for n, run in runs.items()} for k in range(3))
     one, both, avg, truth, truth_half = [], [], [], [], []
     chosen, oracle, single = [], [], {n: [] for n in names}
     for i, frame in enumerate(frames):
@@ -109,12 +109,16 @@ def evaluate(folder: Path, names: list[str], tile: int = TILE) -> SequenceReport
     )
 
 
-def _run(pipeline, frames: list[Frame]) -> list[np.ndarray]:
+def _run(pipeline, frames: list[Frame]) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """The pipeline's outputs f(C), f(A), f(B) per frame, each (H, W, 3): f(C) through its own state, f(A) and
+    f(B) each from a copy of that state before the frame (as `auto` evaluates a running candidate)."""
     state = pipeline.start(frames[0].height, frames[0].width)
-    outs = []
+    outs: tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]] = ([], [], [])
     for frame in frames:
+        for half, kept in zip(HALVES, outs[1:], strict=True):
+            kept.append(run_half(pipeline, one_half(frame, half), state))
         out, state = pipeline.step(frame, state)
-        outs.append(out["color"])
+        outs[0].append(out["color"])
     state.close()
     return outs
 

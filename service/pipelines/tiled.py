@@ -2,12 +2,12 @@
 a tolerance of the best one's.
 
 Every `every` frames (and at the first), each candidate (CANDIDATES whose layers the frame has) denoises
-half A alone and half B alone from fresh states (`both_halves`; else half A only);
+half A alone and half B alone (`both_halves`; else half A only), from a copy of its state where it is
+running (a temporal candidate judged with its history, as it will run), else from a fresh state;
 `service.stages.error_estimate` gives its per-tile relL2 estimate from the halves, both ways
 (`cross_tile_error`: half the variance of one way), normalised by the median of the candidates' outputs
 (the same for all; halves clipped at FIREFLY_CAP times that level, so that fireflies do not decide),
-averaged with the previous evaluation's where there is one (steadier, but older; a temporal candidate is
-judged without its history). Per tile
+averaged with the previous evaluation's where there is one (steadier, but older). Per tile
 the cheapest candidate (CANDIDATES is in order of cost) whose estimate is within `tolerance` of the
 tile's lowest is chosen. Every frame, the chosen candidates denoise the frame from their own states (a
 temporal one keeps its history while it stays chosen, and starts afresh when chosen again) and their
@@ -16,7 +16,7 @@ without seams.
 
 Outputs: `color`, and `error` (H, W, 1): the chosen tiles' estimates from the last evaluation (up to
 `every` - 1 frames old, at fixed tile positions) interpolated the same way: the estimated relL2 of the
-chosen candidates run on half the samples from a fresh state without the guards (FRAME_FORMAT.md's
+chosen candidates run on half the samples without the guards (FRAME_FORMAT.md's
 `error`: a relative scale to send more samples by, not the error of `color` itself). Without
 `colorA`/`colorB`, or with no candidate the frame can feed, the sequence goes to
 `service.pipelines.auto(layers)`'s choice whole, as the CLI did before this pipeline, and there is no
@@ -25,6 +25,7 @@ chosen candidates run on half the samples from a fresh state without the guards 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,7 +47,7 @@ FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (
 @dataclass(frozen=True)
 class AutoOptions:
     tile: int = option(TILE, low=8, high=256)  # side of the tiles chosen for, pixels
-    every: int = option(8, low=1, high=1000)  # frames between two evaluations of the candidates
+    every: int = option(4, low=1, high=1000)  # frames between two evaluations of the candidates
     # a candidate is eligible in a tile when its estimate is at most (1 + tolerance) x the tile's best
     tolerance: float = option(0.05, low=0.0, high=10.0)
     # run every candidate on both halves at an evaluation (twice its cost, half the estimate's variance)
@@ -139,10 +140,10 @@ class AutoPipeline(Pipeline):
         state.candidates = {n: pipelines.get(n) for n in names}
 
     def _evaluate(self, frame: Frame, state: AutoState) -> None:
-        """Estimate every candidate's per-tile error on half A (fresh states) and choose per tile."""
+        """Estimate every candidate's per-tile error on the halves (`run_half`) and choose per tile."""
         halves = HALVES if self.options.both_halves else HALVES[:1]
-        outputs = {h: [self._run_fresh(pipeline, one_half(frame, h)) for pipeline in state.candidates.values()]
-                   for h in halves}
+        outputs = {h: [run_half(pipeline, one_half(frame, h), state.states.get(name))
+                       for name, pipeline in state.candidates.items()] for h in halves}
         # robust to one candidate blowing up (a sky through a window)
         scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
         a, b, tile = frame["colorA"], frame["colorB"], self.options.tile
@@ -162,12 +163,14 @@ class AutoPipeline(Pipeline):
         state.error = np.maximum(interpolate_tiles(chosen, tile, height, width), 0.0)[..., None].astype(np.float32)
 
 
-    @staticmethod
-    def _run_fresh(pipeline: Pipeline, frame: Frame) -> np.ndarray:
-        """(H, W, 3) float32: `pipeline`'s output for `frame` from a fresh state."""
-        out, sub = pipeline.step(frame, pipeline.start(frame.height, frame.width))
-        sub.close()
-        return out["color"]
+def run_half(pipeline: Pipeline, frame: Frame, running: SequenceState | None) -> np.ndarray:
+    """(H, W, 3) float32: `pipeline`'s output for `frame` (one half, `one_half`) from a copy of its running
+    state (its history is made of earlier frames' samples, independent of this frame's halves, so the
+    estimate stays unbiased), or from a fresh state when it has none."""
+    sub = copy.deepcopy(running) if running is not None else pipeline.start(frame.height, frame.width)
+    out, sub = pipeline.step(frame, sub)
+    sub.close()
+    return out["color"]
 
 
 def one_half(frame: Frame, half: str = "colorA") -> Frame:

@@ -1,5 +1,7 @@
 """`auto`: the per-tile choice by the reference-free error estimate, its blend, its fallback and its error layer."""
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -7,7 +9,7 @@ from bench.synthetic import synthetic_sequence
 from service import pipelines
 from service.frame import Frame
 from service.pipelines import tiled
-from service.pipelines.tiled import CANDIDATES, choose, one_half, tile_weights
+from service.pipelines.tiled import CANDIDATES, choose, one_half, run_half, tile_weights
 from service.stages.error_estimate import interpolate_tiles
 
 
@@ -148,8 +150,8 @@ def test_each_evaluation_averages_with_the_previous_estimate(frames, monkeypatch
 
 
 def test_the_estimate_both_ways_compares_each_candidate_on_half_a_and_on_half_b(frames, monkeypatch):
-    """Each candidate's f(A) and f(B) (from fresh states) go to `cross_tile_error` with the halves, and the
-    estimate is what it returns."""
+    """At the first frame each candidate's f(A) and f(B) (from fresh states) go to `cross_tile_error` with the
+    halves, and the estimate is what it returns."""
     from service.stages.error_estimate import cross_tile_error
 
     seen = []
@@ -171,3 +173,31 @@ def test_the_estimate_both_ways_compares_each_candidate_on_half_a_and_on_half_b(
         expected = cross_tile_error(out_a, out_b, frame["colorA"], frame["colorB"], scale, 16,
                                     cap=tiled.FIREFLY_CAP).mean
         np.testing.assert_array_equal(state.estimate[k], expected)
+
+
+def test_a_running_candidate_is_judged_from_a_copy_of_its_state(frames, monkeypatch):
+    """At a later evaluation a chosen temporal candidate (svgf) denoises each half from a copy of its running
+    state, with its history: what that state gives, not what a fresh state gives, and the running state
+    itself is left as it was."""
+    monkeypatch.setattr(tiled, "choose", lambda estimate, tolerance: np.full(estimate.shape[1:], 2, np.int64))
+    assert CANDIDATES[2] == "svgf"
+    seen = []
+
+    def spy(pipeline, frame, running):
+        before = copy.deepcopy(running)
+        out = run_half(pipeline, frame, running)
+        if pipeline.name == "svgf":
+            seen.append((frame, before, out))
+            if running is not None:  # untouched by the evaluation
+                assert running.frame_index == before.frame_index
+                np.testing.assert_array_equal(running.history, before.history)
+        return out
+
+    monkeypatch.setattr(tiled, "run_half", spy)
+    _run(pipelines.get("auto", tile=16, every=2), frames[:3])  # evaluations at frames 0 and 2
+    assert [running is None for _, running, _ in seen] == [True, True, False, False]
+    svgf = pipelines.get("svgf")
+    for frame, running, out in seen[2:]:
+        assert running.frame_index == 2
+        np.testing.assert_array_equal(out, svgf.step(frame, copy.deepcopy(running))[0]["color"])
+        assert not np.allclose(out, run_half(svgf, frame, None))  # the history is used
