@@ -12,13 +12,18 @@ where it is worse than the input (a bright ring blurred into a black shadow, a m
 the void it reflects) goes back toward the input, and with the per-pixel optimum the blend would be no
 worse than either in expectation (per tile, with an estimated t and the clipped input below, it is close).
 The sums run over TILE x TILE tiles, weighted like relL2 (service.metrics.rel_l2_map) by
-1 / (p^2 + REL_L2_EPS) with p, a stand-in for the unknown reference, the smaller of o's and the 5x5 box
+1 / (p^2 + REL_L2_EPS) with p, a stand-in for the unknown reference, the smaller of o's and the 3x3 box
 mean of c's channel means: where o lifts a region whose samples say dark, its error weighs as the
 reference's darkness makes it weigh. With Eo and Ec the tile's weighted sums of e and v,
 
     t = Ec / (max(Eo, 0) + Ec)    (1 where both are 0),
 
-interpolated between tile centres (no seams). The result is c' + t (o - c'), with c' the input with its
+interpolated between tile centres (no seams). A small region the output got wrong (a mirror sphere's
+reflection blurred, a caustic smeared) can hide in a tile the output got right elsewhere, so t is also
+taken over half tiles, and where a half tile's t is below WORSE (its Eo above its Ec: the output
+estimated worse than the input there) the smaller of the two, each interpolated, is the weight; a half
+tile's estimate is noisier, and it only ever takes more of the input back where it says the output is
+worse, which an ordinary tile rarely says by chance. The result is c' + t (o - c'), with c' the input with its
 fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in one half only,
 while a light seen directly is in both): the part of the input the blend takes back should not bring them
 with it. A value the denoiser left as it came (an exact pixel, a background passed through) stays so; a
@@ -47,7 +52,8 @@ from service.stages.svgf import box_mean
 
 TILE = 16  # tile side, pixels: the hard-case criterion's tile (bench/hard_cases.py)
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # a blend of values near it stays finite
-LEVEL_RADIUS = 2  # the box mean of c that stands in for the reference's level: 5x5 pixels
+LEVEL_RADIUS = 1  # the box mean of c that stands in for the reference's level: 3x3 pixels
+WORSE = 0.5  # a half tile whose weight is below this (its output estimated worse than its input) overrides
 
 
 def blend_weights(error_out: np.ndarray, error_in: np.ndarray) -> np.ndarray:
@@ -82,14 +88,22 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     height, width = arrays[0].shape[:2]
     level = np.empty((height, width), np.float32)
     _level_kernel(arrays[1], e, emission is not None, LEVEL_RADIUS, level)
-    rows, cols = -(-height // tile), -(-width // tile)
-    sums = np.zeros((2, rows, cols), np.float64)
-    _tile_kernel(*arrays[:4], e, emission is not None, level, tile, REL_L2_EPS, sums)
-    t = blend_weights(sums[0], sums[1]).astype(np.float32)
+    weights = []
+    for side in (tile, half_tile(tile)):
+        sums = np.zeros((2, -(-height // side), -(-width // side)), np.float64)
+        _tile_kernel(*arrays[:4], e, emission is not None, level, side, REL_L2_EPS, sums)
+        weights.append(blend_weights(sums[0], sums[1]).astype(np.float32))
+    fine = np.where(weights[1] < WORSE, weights[1], np.float32(1))
     result = np.empty_like(arrays[0])
-    _blend_kernel(*arrays[:4], e, emission is not None, t, np.float32(FIREFLY_K), *_interpolation(height, tile),
-                  *_interpolation(width, tile), result)
+    _blend_kernel(*arrays[:4], e, emission is not None, np.float32(FIREFLY_K), weights[0],
+                  *_interpolation(height, tile), *_interpolation(width, tile), fine,
+                  *_interpolation(height, half_tile(tile)), *_interpolation(width, half_tile(tile)), result)
     return result
+
+
+def half_tile(tile: int) -> int:
+    """The side of the finer tiles whose weight overrides where it says the output is worse (module docstring)."""
+    return max(tile // 2, 1)
 
 
 @functools.lru_cache(maxsize=32)
@@ -115,9 +129,13 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     proxy = np.maximum(np.minimum(o.mean(axis=-1), level), 0.0)
     weight = 1.0 / (proxy * proxy + REL_L2_EPS)
     variance = ((a - b) * 0.5) ** 2
-    error_out, _ = tile_sums(weight * ((o - c) ** 2 - variance).mean(axis=-1), tile)
-    error_in, _ = tile_sums(weight * variance.mean(axis=-1), tile)
-    t = interpolate_tiles(blend_weights(error_out, error_in), tile, height, width)[..., None]
+    pixel_out, pixel_in = weight * ((o - c) ** 2 - variance).mean(axis=-1), weight * variance.mean(axis=-1)
+    t = []
+    for side in (tile, half_tile(tile)):
+        t.append(blend_weights(tile_sums(pixel_out, side)[0], tile_sums(pixel_in, side)[0]))
+    fine = np.where(t[1] < WORSE, t[1], 1.0)
+    t = np.minimum(interpolate_tiles(t[0], tile, height, width),
+                   interpolate_tiles(fine, half_tile(tile), height, width))[..., None]
     t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
     planes = np.ascontiguousarray(c.astype(np.float32).transpose(2, 0, 1))
     clipped = clamp_fireflies_reference(planes).transpose(1, 2, 0)
@@ -185,12 +203,13 @@ def _radiance_row(color, e, has_emission, y):  # pragma: no cover - jitted
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _blend_kernel(out, color, a, b, e, has_emission, t, k, row0, row1, row_w, col0, col1, col_w,
-                  result):  # pragma: no cover - jitted
-    """result = c' + w (out - c'), w bilinear in t between tile centres (the `_interpolation` tables), c' the
-    colour clipped like `outliers.clamp_fireflies` (k) where the halves differ, on the colour less the
-    emission e (with `has_emission`), which is added back. t: (th, tw) float32 tile weights; row0, row1,
-    row_w (H,) and col0, col1, col_w (W,): `_interpolation`'s tables. A task per row: the 3x3 neighbour
+def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, col0, col1, col_w,
+                  tf, frow0, frow1, frow_w, fcol0, fcol1, fcol_w, result):  # pragma: no cover - jitted
+    """result = c' + w (out - c'), w the smaller of t and tf, each bilinear between its tiles' centres (the
+    `_interpolation` tables), c' the colour clipped like `outliers.clamp_fireflies` (k) where the halves
+    differ, on the colour less the emission e (with `has_emission`), which is added back. t: (th, tw) and
+    tf: (th', tw') float32 weights of the tiles and of the half tiles; row0, row1, row_w (H,) and col0,
+    col1, col_w (W,): `_interpolation`'s tables for t, the f-prefixed ones for tf. A task per row: the 3x3 neighbour
     range of every value of the interleaved (W * C) row, then the blend (float64, within float32's range).
     The range is `outliers.clamp_fireflies`' 3x3 range, taken here on the (H, W, C) rows: through its
     (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
@@ -226,6 +245,10 @@ def _blend_kernel(out, color, a, b, e, has_emission, t, k, row0, row1, row_w, co
             top = t[row0[y], col0[x]] + fx * (t[row0[y], col1[x]] - t[row0[y], col0[x]])
             bottom = t[row1[y], col0[x]] + fx * (t[row1[y], col1[x]] - t[row1[y], col0[x]])
             w = top + fy * (bottom - top)
+            gx, gy = fcol_w[x], frow_w[y]
+            top = tf[frow0[y], fcol0[x]] + gx * (tf[frow0[y], fcol1[x]] - tf[frow0[y], fcol0[x]])
+            bottom = tf[frow1[y], fcol0[x]] + gx * (tf[frow1[y], fcol1[x]] - tf[frow1[y], fcol0[x]])
+            w = min(w, top + gy * (bottom - top))
             if has_emission:  # a pixel with emission keeps the output, as the noise clamp leaves it
                 for c in range(channels):
                     if e[y, x, c] != 0:
