@@ -88,11 +88,16 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     height, width = arrays[0].shape[:2]
     level = np.empty((height, width), np.float32)
     _level_kernel(arrays[1], e, emission is not None, LEVEL_RADIUS, level)
-    weights = []
-    for side in (tile, half_tile(tile)):
-        sums = np.zeros((2, -(-height // side), -(-width // side)), np.float64)
-        _tile_kernel(*arrays[:4], e, emission is not None, level, side, REL_L2_EPS, sums)
-        weights.append(blend_weights(sums[0], sums[1]).astype(np.float32))
+    sums = {}
+    for side in (half_tile(tile), tile):
+        if side == 2 * half_tile(tile):  # an even tile: its sums are those of its 2x2 half tiles
+            fine = sums[half_tile(tile)]
+            padded = np.pad(fine, ((0, 0), (0, fine.shape[1] % 2), (0, fine.shape[2] % 2)))
+            sums[side] = padded.reshape(2, padded.shape[1] // 2, 2, padded.shape[2] // 2, 2).sum(axis=(2, 4))
+        else:
+            sums[side] = np.zeros((2, -(-height // side), -(-width // side)), np.float64)
+            _tile_kernel(*arrays[:4], e, emission is not None, level, side, REL_L2_EPS, sums[side])
+    weights = [blend_weights(sums[side][0], sums[side][1]).astype(np.float32) for side in (tile, half_tile(tile))]
     fine = np.where(weights[1] < WORSE, weights[1], np.float32(1))
     result = np.empty_like(arrays[0])
     _blend_kernel(*arrays[:4], e, emission is not None, np.float32(FIREFLY_K), weights[0],
