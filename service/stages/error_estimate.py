@@ -58,11 +58,15 @@ class TileError:
 def tile_sums(values: np.ndarray, tile: int) -> tuple[np.ndarray, np.ndarray]:
     """(sums, counts) of (H, W) float64 `values` over tile x tile tiles: ((th, tw) float64, (th, tw) int64)."""
     height, width = values.shape
-    rows = np.arange(0, height, tile)
-    cols = np.arange(0, width, tile)
-    sums = np.add.reduceat(np.add.reduceat(values, rows, axis=0), cols, axis=1)
-    counts = np.outer(np.diff(np.append(rows, height)), np.diff(np.append(cols, width)))
-    return sums, counts
+    sums = np.add.reduceat(np.add.reduceat(values, np.arange(0, height, tile), axis=0), np.arange(0, width, tile),
+                           axis=1)
+    return sums, tile_counts(height, width, tile)
+
+
+def tile_counts(height: int, width: int, tile: int) -> np.ndarray:
+    """(ceil(H / tile), ceil(W / tile)) int64: the pixels of each tile x tile tile of an H x W frame."""
+    rows, cols = np.arange(0, height, tile), np.arange(0, width, tile)
+    return np.outer(np.diff(np.append(rows, height)), np.diff(np.append(cols, width)))
 
 
 def tile_means(values: np.ndarray, tile: int) -> np.ndarray:

@@ -23,18 +23,23 @@ reflection blurred, a caustic smeared) can hide in a tile the output got right e
 taken over half tiles, and where a half tile's t is below WORSE (its Eo above its Ec: the output
 estimated worse than the input there) the smaller of the two, each interpolated, is the weight; a half
 tile's estimate is noisier, and it only ever takes more of the input back where it says the output is
-worse, which an ordinary tile rarely says by chance. The result is c' + t (o - c'), with c' the input with its
+worse, which an ordinary tile rarely says by chance. It needs NOISY_SHARE of its pixels to have halves
+that differ: where both halves of most pixels saw nothing (a dim region at 1 spp per half), Ec is about
+0 because the samples are few, not because the input is right. The result is c' + t (o - c'), with c' the input with its
 fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in one half only,
 while a light seen directly is in both): the part of the input the blend takes back should not bring them
 with it. A value the denoiser left as it came (an exact pixel, a background passed through) stays so; a
 frame whose halves agree everywhere comes back as its input. Interpolation lets a tile's neighbours lend
-it their t at its border, so a region the halves reject keeps some of the output within ~half a tile of
-its edge.
+it their t at its border, so a region the halves reject keeps some of the output within ~half a tile (a
+half tile's, where one overrides) of its edge.
 
 What it costs and gains on ordinary frames (`make bench`, 128x128, 4 spp; docs/benchmarks.md, "Noise
-blend"): relL2 lower for every pipeline overall (crossreg 0.0280 -> 0.0232) and at most 2.5% higher on
-any one sequence; 1-SSIM 1-12% higher (noise taken back where the output was biased); temporal error
-higher on `shadows` (4-15%). numba kernels; `noise_blend_reference` is the numpy twin.
+blend"): against no blend, relL2 lower for every pipeline overall and at most 1.5% higher on any one
+sequence; 1-SSIM higher (noise taken back where the output was biased); temporal error higher on
+`shadows`. On a frame with one sample per half that hits light with probability 0.3 (a 0/1 signal), the
+blend of an output within 10% of the truth has relL2 0.026 (0.015 with a 5x5 level and no half tiles):
+the 3x3 level weighs each pixel by a mean that its own noise moves more. numba kernels;
+`noise_blend_reference` is the numpy twin.
 """
 
 from __future__ import annotations
@@ -46,7 +51,7 @@ import numpy as np
 
 from service.kernels.fill import filled
 from service.metrics import REL_L2_EPS
-from service.stages.error_estimate import interpolate_tiles, interpolation_matrix, tile_sums
+from service.stages.error_estimate import interpolate_tiles, interpolation_matrix, tile_counts, tile_sums
 from service.stages.outliers import FIREFLY_K, clamp_fireflies_reference
 from service.stages.svgf import box_mean
 
@@ -54,6 +59,7 @@ TILE = 16  # tile side, pixels: the hard-case criterion's tile (bench/hard_cases
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # a blend of values near it stays finite
 LEVEL_RADIUS = 1  # the box mean of c that stands in for the reference's level: 3x3 pixels
 WORSE = 0.5  # a half tile whose weight is below this (its output estimated worse than its input) overrides
+NOISY_SHARE = 0.25  # ... where at least this share of its pixels have halves that differ (module docstring)
 
 
 def blend_weights(error_out: np.ndarray, error_in: np.ndarray) -> np.ndarray:
@@ -88,22 +94,30 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     height, width = arrays[0].shape[:2]
     level = np.empty((height, width), np.float32)
     _level_kernel(arrays[1], e, emission is not None, LEVEL_RADIUS, level)
+    half = half_tile(tile)
     sums = {}
-    for side in (half_tile(tile), tile):
-        if side == 2 * half_tile(tile):  # an even tile: its sums are those of its 2x2 half tiles
-            fine = sums[half_tile(tile)]
-            padded = np.pad(fine, ((0, 0), (0, fine.shape[1] % 2), (0, fine.shape[2] % 2)))
-            sums[side] = padded.reshape(2, padded.shape[1] // 2, 2, padded.shape[2] // 2, 2).sum(axis=(2, 4))
-        else:
-            sums[side] = np.zeros((2, -(-height // side), -(-width // side)), np.float64)
+    for side in (half, tile):
+        if side == 2 * half:  # an even tile: its sums are those of its 2x2 half tiles
+            halves = np.pad(sums[half], ((0, 0), (0, sums[half].shape[1] % 2), (0, sums[half].shape[2] % 2)))
+            sums[side] = halves.reshape(3, halves.shape[1] // 2, 2, halves.shape[2] // 2, 2).sum(axis=(2, 4))
+        elif side not in sums:
+            sums[side] = np.zeros((3, -(-height // side), -(-width // side)), np.float64)
             _tile_kernel(*arrays[:4], e, emission is not None, level, side, REL_L2_EPS, sums[side])
-    weights = [blend_weights(sums[side][0], sums[side][1]).astype(np.float32) for side in (tile, half_tile(tile))]
-    fine = np.where(weights[1] < WORSE, weights[1], np.float32(1))
+    t = blend_weights(sums[tile][0], sums[tile][1]).astype(np.float32)
+    t_half = half_tile_weights(*sums[half], tile_counts(height, width, half)).astype(np.float32)
     result = np.empty_like(arrays[0])
-    _blend_kernel(*arrays[:4], e, emission is not None, np.float32(FIREFLY_K), weights[0],
-                  *_interpolation(height, tile), *_interpolation(width, tile), fine,
-                  *_interpolation(height, half_tile(tile)), *_interpolation(width, half_tile(tile)), result)
+    _blend_kernel(*arrays[:4], e, emission is not None, np.float32(FIREFLY_K), t, *_interpolation(height, tile),
+                  *_interpolation(width, tile), t_half, *_interpolation(height, half), *_interpolation(width, half),
+                  result)
     return result
+
+
+def half_tile_weights(error_out: np.ndarray, error_in: np.ndarray, noisy: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Per half tile the weight that overrides the tile's (module docstring): `blend_weights`' where it is below
+    WORSE and at least NOISY_SHARE of the half tile's `pixels` are `noisy` (their halves differ), else 1.
+    All (th', tw') float64 (`pixels` int64); returns float64 in [0, 1]."""
+    weights = blend_weights(error_out, error_in)
+    return np.where((weights < WORSE) & (noisy >= NOISY_SHARE * pixels), weights, 1.0)
 
 
 def half_tile(tile: int) -> int:
@@ -135,12 +149,11 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     weight = 1.0 / (proxy * proxy + REL_L2_EPS)
     variance = ((a - b) * 0.5) ** 2
     pixel_out, pixel_in = weight * ((o - c) ** 2 - variance).mean(axis=-1), weight * variance.mean(axis=-1)
-    t = []
-    for side in (tile, half_tile(tile)):
-        t.append(blend_weights(tile_sums(pixel_out, side)[0], tile_sums(pixel_in, side)[0]))
-    fine = np.where(t[1] < WORSE, t[1], 1.0)
-    t = np.minimum(interpolate_tiles(t[0], tile, height, width),
-                   interpolate_tiles(fine, half_tile(tile), height, width))[..., None]
+    half = half_tile(tile)
+    t = blend_weights(tile_sums(pixel_out, tile)[0], tile_sums(pixel_in, tile)[0])
+    noisy, pixels = tile_sums((variance > 0).any(axis=-1).astype(np.float64), half)
+    t_half = half_tile_weights(tile_sums(pixel_out, half)[0], tile_sums(pixel_in, half)[0], noisy, pixels)
+    t = np.minimum(interpolate_tiles(t, tile, height, width), interpolate_tiles(t_half, half, height, width))[..., None]
     t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
     planes = np.ascontiguousarray(c.astype(np.float32).transpose(2, 0, 1))
     clipped = clamp_fireflies_reference(planes).transpose(1, 2, 0)
@@ -179,8 +192,9 @@ def _level_kernel(color, e, has_emission, radius, level):  # pragma: no cover - 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _tile_kernel(out, color, a, b, e, has_emission, level, tile, eps, sums):  # pragma: no cover - jitted
-    """sums (2, th, tw): per tile the weighted sums of e and v (module docstring), in float64, the proxy from
-    out less the emission e (with `has_emission`). A task per row of tiles."""
+    """sums (3, th, tw): per tile the weighted sums of e and v (module docstring) and the count of pixels whose
+    halves differ, in float64, the proxy from out less the emission e (with `has_emission`). A task per row
+    of tiles."""
     height, width, channels = out.shape
     for ty in numba.prange(sums.shape[1]):
         for y in range(ty * tile, min((ty + 1) * tile, height)):
@@ -198,6 +212,7 @@ def _tile_kernel(out, color, a, b, e, has_emission, level, tile, eps, sums):  # 
                 w = 1.0 / ((proxy * proxy + eps) * channels)
                 sums[0, ty, x // tile] += w * err
                 sums[1, ty, x // tile] += w * var
+                sums[2, ty, x // tile] += 1.0 if var > 0 else 0.0
 
 
 @numba.njit(inline="always", cache=True, error_model="numpy")

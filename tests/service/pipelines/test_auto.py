@@ -201,3 +201,17 @@ def test_a_running_candidate_is_judged_from_a_copy_of_its_state(frames, monkeypa
         assert running.frame_index == 2
         np.testing.assert_array_equal(out, svgf.step(frame, copy.deepcopy(running))[0]["color"])
         assert not np.allclose(out, run_half(svgf, frame, None))  # the history is used
+
+
+@pytest.mark.parametrize("name", CANDIDATES)
+def test_every_candidates_running_state_can_be_copied_for_its_evaluation(frames, name):
+    """`run_half` deep-copies a running candidate's state: it must hold arrays and numbers only (no ONNX
+    session, no online worker), and the copy must not share an array with the running state."""
+    pipeline = pipelines.get(name)
+    _, state = pipeline.step(frames[0], pipeline.start(frames[0].height, frames[0].width))
+    forked = copy.deepcopy(state)
+    for key, value in vars(state).items():
+        if isinstance(value, np.ndarray):
+            assert not np.shares_memory(value, getattr(forked, key)), key
+        else:
+            assert value is None or isinstance(value, int | float | str | bool | list), (key, type(value))

@@ -40,7 +40,7 @@ def _run(pipeline, frames, *, fresh_each_frame=False):
 def test_contract():
     info = pipelines.get("kpn").describe()
     assert info["temporal"] and set(info["requires"]) == {"color", "albedo", "normal", "depth", "motion"}
-    assert {"motionDual", "roughness", "emission"} <= set(info["optional"])
+    assert {"motionDual", "roughness", "emission", "colorA", "colorB"} <= set(info["optional"])
     assert info["option_specs"]["weights"]["enum"] == ["kpn"]
     assert info["option_specs"]["motion"]["enum"] == ["auto", "dual", "plain"]
 
@@ -82,6 +82,26 @@ def test_served_pipeline_matches_the_training_twin(frames, tmp_path, monkeypatch
     assert (moves[1:] != 0).any() and (served[2] != served[1]).any()
     for t in range(3):
         np.testing.assert_allclose(served[t], ours[t].numpy(), atol=2e-4, rtol=1e-4, err_msg=f"frame {t}")
+
+
+def test_the_input_clamp_gets_the_halves_less_the_emission(frames, monkeypatch):
+    """Pipeline.step hands kpn's input clamp the halves with the emission taken out, as the radiance it clamps
+    (the halves are declared, so the emission split covers them)."""
+    import service.pipelines.kpn as module
+
+    seen = []
+    clamp = module.clamp_outliers
+    monkeypatch.setattr(module, "clamp_outliers", lambda color, halves=None: (seen.append((color, halves)),
+                                                                              clamp(color, halves=halves))[1])
+    frame = _inputs(frames[0])
+    assert float(frame["emission"].max()) > 0
+    pipeline = pipelines.get("kpn")
+    pipeline.step(frame, pipeline.start(frame.height, frame.width))
+    (color, halves), = seen
+    expected = subtract_emission([frame[k] for k in ("color", "colorA", "colorB")], frame["emission"])
+    np.testing.assert_array_equal(color, expected[0])
+    np.testing.assert_array_equal(halves[0], expected[1])
+    np.testing.assert_array_equal(halves[1], expected[2])
 
 
 def test_denoises_the_sample_and_history_lowers_the_temporal_error(frames):

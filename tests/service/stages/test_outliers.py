@@ -43,6 +43,9 @@ def test_with_the_halves_a_glint_both_show_survives_and_a_one_half_firefly_does_
     mask[5, 5] = False
     np.testing.assert_array_equal(out[mask], plain[mask])  # elsewhere as without them
     assert (out <= image).all()
+    lower = image.copy()
+    lower[5, 5] = 100.0  # an image below what both halves show there (the caller's rounding): never above it
+    np.testing.assert_array_equal(clamp_outliers(lower, halves=(a, b))[5, 5], [100.0] * 3)
 
 
 def test_halves_of_another_shape_are_refused():
