@@ -8,13 +8,13 @@ c's own noise, and per pixel and channel
     y = c + t (o - c)          the blend, whose squared error is about  v - 2 t v + t^2 (e + v),
 
 least at t = v / (e + v): a tile where the denoiser is much better than its input keeps it (t ~ 1), one
-where it is worse than the input (a bright ring blurred into a black shadow, a mirror's glint smeared over
-the void it reflects) goes back toward the input, and with the per-pixel optimum the blend would be no
-worse than either in expectation (per tile, with an estimated t and the clipped input below, it is close).
-The sums run over TILE x TILE tiles, weighted like relL2 (service.metrics.rel_l2_map) by
-1 / (p^2 + REL_L2_EPS) with p, a stand-in for the unknown reference, the smaller of o's and the 3x3 box
-mean of c's channel means: where o lifts a region whose samples say dark, its error weighs as the
-reference's darkness makes it weigh. With Eo and Ec the tile's weighted sums of e and v,
+where it is worse than the input (a bright ring blurred into a black shadow, a mirror's glint smeared
+over the void it reflects) goes back toward the input, and with the per-pixel optimum the blend would be
+no worse than either in expectation (per tile, with an estimated t and the clipped input below, it is
+close). The sums run over TILE x TILE tiles, weighted like relL2 (service.metrics.rel_l2_map) by
+1 / (p^2 + REL_L2_EPS) with p, a stand-in for the unknown reference, the smaller of o's and the 3x3 box mean of
+c's channel means: where o lifts a region whose samples say dark, its error weighs as the reference's
+darkness makes it weigh. With Eo and Ec the tile's weighted sums of e and v,
 
     t = Ec / (max(Eo, 0) + Ec)    (1 where both are 0),
 
@@ -24,22 +24,22 @@ taken over half tiles, and where a half tile's t is below WORSE (its Eo above it
 estimated worse than the input there) the smaller of the two, each interpolated, is the weight; a half
 tile's estimate is noisier, and it only ever takes more of the input back where it says the output is
 worse, which an ordinary tile rarely says by chance. It needs NOISY_SHARE of its pixels to have halves
-that differ: where both halves of most pixels saw nothing (a dim region at 1 spp per half), Ec is about
-0 because the samples are few, not because the input is right. The result is c' + t (o - c'), with c' the input with its
-fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in one half only,
-while a light seen directly is in both): the part of the input the blend takes back should not bring them
-with it. A value the denoiser left as it came (an exact pixel, a background passed through) stays so; a
-frame whose halves agree everywhere comes back as its input. Interpolation lets a tile's neighbours lend
-it their t at its border, so a region the halves reject keeps some of the output within ~half a tile (a
-half tile's, where one overrides) of its edge.
+that differ: where both halves of most pixels saw nothing (a dim region at 1 spp per half), Ec is about 0
+because the samples are few, not because the input is right. The result is c' + t (o - c'), with c' the
+input with its fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in
+one half only, while a light seen directly is in both): the part of the input the blend takes back should
+not bring them with it. A value the denoiser left as it came (an exact pixel, a background passed
+through) stays so; a frame whose halves agree everywhere comes back as its input. Interpolation lets a
+tile's neighbours lend it their t at its border, so a region the halves reject keeps some of the output
+within ~half a tile (a half tile's, where one overrides) of its edge.
 
 What it costs and gains on ordinary frames (`make bench`, 128x128, 4 spp; docs/benchmarks.md, "Noise
-blend"): against no blend, relL2 lower for every pipeline overall and at most 1.5% higher on any one
-sequence; 1-SSIM higher (noise taken back where the output was biased); temporal error higher on
-`shadows`. On a frame with one sample per half that hits light with probability 0.3 (a 0/1 signal), the
-blend of an output within 10% of the truth has relL2 0.026 (0.015 with a 5x5 level and no half tiles):
-the 3x3 level weighs each pixel by a mean that its own noise moves more. numba kernels;
-`noise_blend_reference` is the numpy twin.
+blend"): the blend itself lowered every pipeline's relL2 overall; the 3x3 level and the half tiles,
+against a 5x5 level and whole tiles only, lowered it further (up to 20% on one sequence) or raised it by
+at most 1.5%, and raised the temporal error on `shadows` by 3-17% and 1-SSIM by up to 3%. On a frame with
+one sample per half that hits light with probability 0.3 (a 0/1 signal), the blend of an output within
+10% of the truth has relL2 0.026 (0.015 with a 5x5 level and no half tiles): the 3x3 level weighs each
+pixel by a mean that its own noise moves more. numba kernels; `noise_blend_reference` is the numpy twin.
 """
 
 from __future__ import annotations
