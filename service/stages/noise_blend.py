@@ -95,16 +95,20 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     level = np.empty((height, width), np.float32)
     _level_kernel(arrays[1], e, emission is not None, LEVEL_RADIUS, level)
     half = half_tile(tile)
-    sums = {}
-    for side in (half, tile):
-        if side == 2 * half:  # an even tile: its sums are those of its 2x2 half tiles
-            halves = np.pad(sums[half], ((0, 0), (0, sums[half].shape[1] % 2), (0, sums[half].shape[2] % 2)))
-            sums[side] = halves.reshape(3, halves.shape[1] // 2, 2, halves.shape[2] // 2, 2).sum(axis=(2, 4))
-        elif side not in sums:
-            sums[side] = np.zeros((3, -(-height // side), -(-width // side)), np.float64)
-            _tile_kernel(*arrays[:4], e, emission is not None, level, side, REL_L2_EPS, sums[side])
-    t = blend_weights(sums[tile][0], sums[tile][1]).astype(np.float32)
-    t_half = half_tile_weights(*sums[half], tile_counts(height, width, half)).astype(np.float32)
+
+    def sums(side: int) -> np.ndarray:  # (3, th, tw): the weighted sums of e and v, the pixels whose halves differ
+        out = np.zeros((3, -(-height // side), -(-width // side)), np.float64)
+        _tile_kernel(*arrays[:4], e, emission is not None, level, side, REL_L2_EPS, out)
+        return out
+
+    fine = sums(half)
+    if tile == 2 * half:  # an even tile: its sums are those of its 2x2 half tiles
+        padded = np.pad(fine, ((0, 0), (0, fine.shape[1] % 2), (0, fine.shape[2] % 2)))
+        coarse = padded.reshape(3, padded.shape[1] // 2, 2, padded.shape[2] // 2, 2).sum(axis=(2, 4))
+    else:
+        coarse = fine if tile == half else sums(tile)
+    t = blend_weights(coarse[0], coarse[1]).astype(np.float32)
+    t_half = half_tile_weights(*fine, tile_counts(height, width, half)).astype(np.float32)
     result = np.empty_like(arrays[0])
     _blend_kernel(*arrays[:4], e, emission is not None, np.float32(FIREFLY_K), t, *_interpolation(height, tile),
                   *_interpolation(width, tile), t_half, *_interpolation(height, half), *_interpolation(width, half),

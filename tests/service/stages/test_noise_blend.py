@@ -24,7 +24,7 @@ def _halves(rng, truth, sd):
     return a, b, ((a + b) / 2).astype(np.float32)
 
 
-@pytest.mark.parametrize("tile", [16, 7])
+@pytest.mark.parametrize("tile", [16, 7, 2, 1])  # pooled, two passes, pooled to 1, one size
 @pytest.mark.parametrize("shape", [(1, 1, 3), (1, 37, 3), (37, 1, 3), (3, 2, 3), (16, 16, 3), (17, 33, 3),
                                    (41, 29, 3), (70, 9, 3)])
 def test_matches_the_numpy_twin(shape, tile):
