@@ -10,8 +10,8 @@ every frame. Per frame and tile, with scale the median of the candidates' f(A) a
   (service/pipelines/tiled.py);
 - averaged: both ways, averaged with the previous frame's average (weights 1/2, 1/2), as auto averages an
   evaluation with the previous one. Not auto's exact estimate: here every candidate runs, and is
-  evaluated, at every frame, while auto evaluates every `every` frames and a candidate it does not run
-  from a fresh state;
+  evaluated, at every frame, while auto evaluates at the first two frames and every `every` frames, a
+  temporal candidate it does not run from a state stepped through the previous frame only;
 - the truth: the tile's relL2 of f(C) against the reference (what a per-tile choice would serve), and of
   f(A) (what the one-way estimate estimates).
 Printed per sequence: Spearman's rank correlation between each estimate and the truth over the (frame,

@@ -1,18 +1,21 @@
-"""`auto`: per tile, the cheapest of several denoisers whose error, estimated without a reference, is within
-a tolerance of the best one's.
+"""`auto`: a main denoiser and, per tile, others where their error, estimated without a reference, is lower
+by a margin, within a cost budget.
 
-Every `every` frames (and at the first), each candidate (CANDIDATES whose layers the frame has) denoises
-half A alone and half B alone (`both_halves`; else half A only), from a copy of its state where it is
-running (a temporal candidate judged with its history, as it will run), else from a fresh state;
-`service.stages.error_estimate` gives its per-tile relL2 estimate from the halves, both ways
-(`cross_tile_error`: half the variance of one way), normalised by the median of the candidates' outputs
-(the same for all; halves clipped at FIREFLY_CAP times that level, so that fireflies do not decide),
-averaged with the previous evaluation's where there is one (steadier, but older). Per tile
-the cheapest candidate (CANDIDATES is in order of cost) whose estimate is within `tolerance` of the
-tile's lowest is chosen. Every frame, the chosen candidates denoise the frame from their own states (a
-temporal one keeps its history while it stays chosen, and starts afresh when chosen again) and their
-outputs are blended with per-candidate weights interpolated between tile centres, so that tiles meet
-without seams.
+At the first two frames and every `every` frames, each candidate (CANDIDATES whose layers the frame has)
+denoises half A alone and half B alone (`both_halves`; else half A only), with a history where it is
+temporal: from a copy of its running state, or, where it is not running, from a state stepped through the
+previous frame (`_history`; the first frame has none: all start fresh), so that a temporal candidate is
+judged as it would run; `service.stages.error_estimate` gives its per-tile relL2 estimate from the halves,
+both ways (`cross_tile_error`: half the variance of one way), normalised by the median of the candidates'
+outputs (the same for all; halves clipped at FIREFLY_CAP times that level, so that fireflies do not
+decide), averaged with the previous evaluation's except the first frame's (made without history).
+`choose` then names the main candidate (the last one while its estimate over the frame stays within
+`tolerance` of the lowest, else the cheapest that is) and gives a tile to another where that one's
+estimate is lower by more than `tolerance`, with as many others as fit in `budget` times the main one's
+cost (COSTS): a frame costs about what its main candidate costs. Every frame, the chosen candidates
+denoise the frame from their own states (a temporal one keeps its history while it stays chosen, and
+starts afresh when chosen again) and their outputs are blended with per-candidate weights interpolated
+between tile centres, so that tiles meet without seams.
 
 Outputs: `color`, and `error` (H, W, 1): the chosen tiles' estimates from the last evaluation (up to
 `every` - 1 frames old, at fixed tile positions) interpolated the same way: the estimated relL2 of the
@@ -37,9 +40,12 @@ from service.pipelines.base import Pipeline, SequenceState, Split
 from service.pipelines.options import option
 from service.stages.error_estimate import TILE, cross_tile_error, interpolate_tiles, interpolation_matrix, tile_error
 
-# Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest at
-# 1280x720 first (README): flr, bmfr, svgf, kpn
-CANDIDATES = ("flr", "bmfr", "svgf", "kpn")
+# Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest first,
+# with their cost: median ms a 1280x720 frame on 2 cores (README, `python -m bench.classical_speed`). Only the
+# ratios matter (`choose`); at 128x128 they are closer (kpn ~4x flr, not 7.5x), which `budget`'s default
+# leaves room for.
+COSTS = {"flr": 54.0, "bmfr": 61.0, "svgf": 206.0, "kpn": 404.0}
+CANDIDATES = tuple(COSTS)
 HALVES = ("colorA", "colorB")
 FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (error_estimate `cap`)
 
@@ -48,10 +54,12 @@ FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (
 class AutoOptions:
     tile: int = option(TILE, low=8, high=256)  # side of the tiles chosen for, pixels
     every: int = option(4, low=1, high=1000)  # frames between two evaluations of the candidates
-    # a candidate is eligible in a tile when its estimate is at most (1 + tolerance) x the tile's best
+    # the main candidate is within (1 + tolerance) x the lowest estimate; another takes a tile by that margin
     tolerance: float = option(0.05, low=0.0, high=10.0)
     # run every candidate on both halves at an evaluation (twice its cost, half the estimate's variance)
     both_halves: bool = option(True)
+    # the candidates run on a frame cost at most this times the main one (COSTS)
+    budget: float = option(1.25, low=1.0, high=100.0)
 
 
 @dataclass
@@ -66,6 +74,8 @@ class AutoState(SequenceState):
     choice: np.ndarray | None = None  # (th, tw) int64 index into `candidates`
     weights: np.ndarray | None = None  # (K, H, W) float32 blend weights of `choice`
     error: np.ndarray | None = None  # (H, W, 1) float32 the chosen tiles' estimates, interpolated
+    main: int | None = None  # index of the main candidate
+    previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
 
     def close(self) -> None:
         for state in (*self.states.values(), self.fallback_state):
@@ -76,8 +86,8 @@ class AutoState(SequenceState):
 @register
 class AutoPipeline(Pipeline):
     name = pipelines.AUTO
-    summary = ("per tile, the cheapest of flr, bmfr, svgf and kpn within a tolerance of the lowest error estimated "
-               "from the half buffers; also outputs that estimate (`error`)")
+    summary = ("one of flr, bmfr, svgf and kpn, with others on the tiles where their error, estimated from the half "
+               "buffers, is lower, within a cost budget; also outputs that estimate (`error`)")
     requires = ("color",)
     optional = tuple(k for k in LAYERS if k not in ("color", "reference", "error"))  # any candidate or fallback reads
     temporal = True
@@ -110,7 +120,7 @@ class AutoPipeline(Pipeline):
         if state.fallback is not None:
             out, state.fallback_state = state.fallback.step(frame, state.fallback_state)
             return {"color": out["color"]}, state
-        if state.frame_index % self.options.every == 0:
+        if state.frame_index % self.options.every == 0 or state.frame_index == 1:
             self._evaluate(frame, state)
         names = list(state.candidates)
         chosen = sorted(set(state.choice.ravel().tolist()))
@@ -125,11 +135,12 @@ class AutoPipeline(Pipeline):
             sub = state.states.get(name) or pipeline.start(frame.height, frame.width)
             out, state.states[name] = pipeline.step(frame, sub)
             color += weights[index][..., None] * out["color"]
+        state.previous = frame
         return {"color": color, "error": state.error.copy()}, state
 
     def _setup(self, frame: Frame, state: AutoState) -> None:
         state.close()  # a first frame that failed may have set some of it
-        state.fallback = state.fallback_state = state.estimate = state.choice = None
+        state.fallback = state.fallback_state = state.estimate = state.choice = state.previous = state.main = None
         state.candidates, state.states = {}, {}
         layers = set(frame.buffers)
         names = [n for n in CANDIDATES if set(pipelines.pipeline_class(n).requires) <= layers]
@@ -142,8 +153,12 @@ class AutoPipeline(Pipeline):
     def _evaluate(self, frame: Frame, state: AutoState) -> None:
         """Estimate every candidate's per-tile error on the halves (`run_half`) and choose per tile."""
         halves = HALVES if self.options.both_halves else HALVES[:1]
-        outputs = {h: [run_half(pipeline, one_half(frame, h), state.states.get(name))
+        histories = {name: self._history(name, state) for name in state.candidates}
+        outputs = {h: [run_half(pipeline, one_half(frame, h), histories[name])
                        for name, pipeline in state.candidates.items()] for h in halves}
+        for name, history in histories.items():
+            if history is not None and history is not state.states.get(name):
+                history.close()
         # robust to one candidate blowing up (a sky through a window)
         scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
         a, b, tile = frame["colorA"], frame["colorB"], self.options.tile
@@ -153,14 +168,29 @@ class AutoPipeline(Pipeline):
         else:
             estimate = np.stack([tile_error(out_a, a, b, scale, tile, cap=FIREFLY_CAP).mean
                                  for out_a in outputs["colorA"]])
-        if state.estimate is not None:
+        if state.estimate is not None and state.frame_index > 1:  # not with the first frame's, made without history
             estimate = 0.5 * (state.estimate + estimate)
         state.estimate = estimate
-        state.choice = choose(estimate, self.options.tolerance)
+        costs = np.array([COSTS[name] for name in state.candidates])
+        state.choice, state.main = choose(estimate, costs, self.options.tolerance, self.options.budget, state.main)
         height, width = frame.height, frame.width
         state.weights = tile_weights(state.choice, len(state.candidates), tile, height, width)
         chosen = np.take_along_axis(estimate, state.choice[None], axis=0)[0]
         state.error = np.maximum(interpolate_tiles(chosen, tile, height, width), 0.0)[..., None].astype(np.float32)
+
+
+    @staticmethod
+    def _history(name: str, state: AutoState) -> SequenceState | None:
+        """The state candidate `name` is judged from: its running one; for a temporal candidate not running, one
+        made by a step through the previous frame (whose samples are independent of this frame's halves), so
+        that it is judged with a history as it would run; else None (a fresh state)."""
+        if name in state.states:
+            return state.states[name]
+        pipeline = state.candidates[name]
+        if not pipeline.temporal or state.previous is None:
+            return None
+        _, history = pipeline.step(state.previous, pipeline.start(state.previous.height, state.previous.width))
+        return history
 
 
 def run_half(pipeline: Pipeline, frame: Frame, running: SequenceState | None) -> np.ndarray:
@@ -180,13 +210,33 @@ def one_half(frame: Frame, half: str = "colorA") -> Frame:
     return Frame({**buffers, "color": frame[half]}, dict(frame.nonfinite))
 
 
-def choose(estimate: np.ndarray, tolerance: float) -> np.ndarray:
-    """Per tile, the index of the first (cheapest: candidates come cheapest first) candidate whose estimate is
-    at most the tile's lowest plus `tolerance` times its magnitude. estimate: (K, th, tw). Returns (th, tw)
-    int64."""
-    best = estimate.min(axis=0)
-    eligible = estimate <= best + tolerance * np.abs(best)
-    return eligible.argmax(axis=0)
+def choose(estimate: np.ndarray, costs: np.ndarray, tolerance: float, budget: float,
+           previous: int | None = None) -> tuple[np.ndarray, int]:
+    """Per tile, the index of the candidate that denoises it, and the main candidate's index. estimate: (K, th,
+    tw) per-tile error estimates, candidates cheapest first; costs: (K,) their relative costs; tolerance >= 0;
+    budget >= 1; previous: the last evaluation's main candidate, or None. Returns ((th, tw) int64, int).
+
+    Near-best candidates are those whose estimate summed over the frame is within `tolerance` (times its
+    magnitude) of the lowest sum. The main one is `previous` if it is near-best (a switch costs a temporal
+    candidate its history, and the estimates are noisy), else the cheapest near-best one: it runs on every
+    frame, so a tile it does well enough costs nothing more. Another candidate takes a tile where its
+    estimate is below the main one's by more than `tolerance` times the main one's magnitude, the lowest of
+    them there; they are kept in order of what they gain (the sum of those margins) while the candidates
+    kept cost at most `budget` times the main one."""
+    count = len(costs)
+    totals = estimate.reshape(count, -1).sum(axis=1)
+    best = totals.min()
+    near = totals <= best + tolerance * abs(best)
+    main = previous if previous is not None and near[previous] else int(np.argmax(near))
+    bar = estimate[main] - tolerance * np.abs(estimate[main])  # (th, tw): what another must beat
+    gains = np.maximum(bar[None] - estimate, 0.0).reshape(count, -1).sum(axis=1)
+    kept, total = np.zeros(count, bool), costs[main]
+    kept[main] = True
+    for k in np.argsort(-gains, kind="stable"):
+        if gains[k] > 0 and total + costs[k] <= budget * costs[main] * (1 + 1e-9):
+            kept[k], total = True, total + costs[k]
+    others = np.where(kept[:, None, None] & (estimate < bar[None]), estimate, np.inf)
+    return np.where(np.isfinite(others.min(axis=0)), others.argmin(axis=0), main), main
 
 
 def tile_weights(choice: np.ndarray, count: int, tile: int, height: int, width: int) -> np.ndarray:

@@ -27,14 +27,49 @@ def _run(pipeline, frames):
     return outs, state
 
 
-def test_choice_is_the_cheapest_candidate_within_the_tolerance_of_the_best():
-    estimate = np.array([[[1.04, 2.0]], [[1.00, 1.0]], [[1.50, 1.2]]])  # (K=3, 1, 2), cheapest first
-    np.testing.assert_array_equal(choose(estimate, 0.05), [[0, 1]])  # 1.04 is within 5% of 1.00
-    np.testing.assert_array_equal(choose(estimate, 0.0), [[1, 1]])
-    np.testing.assert_array_equal(choose(estimate, 0.5), [[0, 1]])
-    np.testing.assert_array_equal(choose(estimate, 1.0), [[0, 0]])
-    negative = np.array([[[0.02]], [[-0.01]]])  # a noisy estimate below zero: only the best is eligible
-    np.testing.assert_array_equal(choose(negative, 0.05), [[1]])
+COSTS = np.array([1.0, 1.1, 4.0, 7.0])  # flr, bmfr, svgf, kpn (tiled.COSTS' ratios, rounded)
+
+
+def test_the_main_candidate_is_the_cheapest_near_the_lowest_total_and_others_take_tiles_by_a_margin():
+    # (K=4, 1, 3): totals 3.3, 3.12, 3.6, 3.0; near the lowest (3.0) within 5%: kpn and bmfr (3.12) -> bmfr
+    estimate = np.array([[[1.1, 1.1, 1.1]], [[1.04, 1.04, 1.04]], [[1.2, 1.2, 1.2]], [[1.0, 1.0, 1.0]]])
+    choice, main = choose(estimate, COSTS, 0.05, 100.0)
+    assert main == 1
+    np.testing.assert_array_equal(choice, [[1, 1, 1]])  # kpn is lower, but not by more than 5% of 1.04
+    choice, main = choose(estimate, COSTS, 0.0, 100.0)
+    assert main == 3
+    np.testing.assert_array_equal(choice, [[3, 3, 3]])
+    # one tile where svgf is much better: it takes it, the lowest of those that beat the main one there
+    estimate[2] = [[1.6, 1.6, 0.5]]
+    choice, main = choose(estimate, COSTS, 0.05, 100.0)
+    assert main == 1
+    np.testing.assert_array_equal(choice, [[1, 1, 2]])
+    negative = np.array([[[0.02]], [[-0.01]]])  # a noisy estimate below zero: only the best is near it
+    assert choose(negative, COSTS[:2], 0.05, 100.0)[1] == 1
+
+
+def test_the_budget_keeps_the_others_that_gain_most_while_their_cost_fits():
+    # main flr (cost 1); bmfr gains a little on tile 0, svgf and kpn a lot on tiles 1 and 2
+    estimate = np.array([[[1.0, 1.0, 1.0, 1.0]], [[0.8, 1.0, 1.0, 1.0]], [[1.0, 0.3, 1.0, 1.0]],
+                         [[1.0, 1.0, 0.2, 1.0]]])
+    estimate[0, 0, 3] = -2.0  # flr's total is the lowest
+    everything, main = choose(estimate, COSTS, 0.05, 100.0)
+    assert main == 0
+    np.testing.assert_array_equal(everything, [[1, 2, 3, 0]])
+    np.testing.assert_array_equal(choose(estimate, COSTS, 0.05, 1.0)[0], [[0, 0, 0, 0]])  # the main one alone
+    np.testing.assert_array_equal(choose(estimate, COSTS, 0.05, 2.1)[0], [[1, 0, 0, 0]])  # bmfr fits, svgf not
+    np.testing.assert_array_equal(choose(estimate, COSTS, 0.05, 8.0)[0], [[0, 0, 3, 0]])  # kpn gains most, fits
+    np.testing.assert_array_equal(choose(estimate, COSTS, 0.05, 12.1)[0], [[0, 2, 3, 0]])  # then svgf
+    for budget in (1.0, 2.1, 8.0, 12.1, 100.0):
+        chosen = np.unique(choose(estimate, COSTS, 0.05, budget)[0])
+        assert COSTS[chosen].sum() <= budget * COSTS[main]
+
+
+def test_the_last_main_candidate_stays_while_it_is_near_the_lowest():
+    estimate = np.array([[[1.04]], [[1.0]], [[1.2]]])  # flr within 5% of bmfr
+    assert choose(estimate, COSTS[:3], 0.05, 1.0)[1] == 0
+    assert choose(estimate, COSTS[:3], 0.05, 1.0, previous=1)[1] == 1  # bmfr ran: it stays
+    assert choose(estimate, COSTS[:3], 0.05, 1.0, previous=2)[1] == 0  # svgf is not near: the cheapest near one
 
 
 def test_blend_weights_sum_to_one_without_seams_and_are_pure_inside_uniform_regions():
@@ -64,7 +99,7 @@ def test_with_halves_it_chooses_per_tile_reevaluates_every_k_frames_and_outputs_
     monkeypatch.setattr(tiled.AutoPipeline, "_evaluate", lambda self, f, s: (calls.append(s.frame_index),
                                                                                 evaluate(self, f, s)))
     outs, state = _run(pipelines.get("auto", tile=16, every=2), frames)
-    assert calls == [0, 2, 4]
+    assert calls == [0, 1, 2, 4]
     assert list(state.candidates) == list(CANDIDATES) and state.choice.shape == (3, 5)
     for out in outs:
         assert out["color"].shape == (40, 72, 3) and np.isfinite(out["color"]).all()
@@ -78,7 +113,7 @@ def test_with_halves_it_chooses_per_tile_reevaluates_every_k_frames_and_outputs_
 
 
 def test_a_candidate_alone_is_served_exactly_when_every_tile_chooses_it(frames, monkeypatch):
-    monkeypatch.setattr(tiled, "choose", lambda estimate, tolerance: np.zeros(estimate.shape[1:], np.int64))
+    monkeypatch.setattr(tiled, "choose", lambda estimate, *args: (np.zeros(estimate.shape[1:], np.int64), 0))
     outs, _ = _run(pipelines.get("auto"), frames)
     expected, _ = _run(pipelines.get(CANDIDATES[0]), frames)
     for out, ref in zip(outs, expected, strict=True):
@@ -116,10 +151,10 @@ def test_two_chosen_candidates_are_blended_by_their_tile_weights(frames, monkeyp
     """Left tiles to the first candidate, the rest to the second: every frame is their outputs (each run
     alone from the sequence's start) weighted by `tile_weights`."""
 
-    def split(estimate, tolerance):
+    def split(estimate, *args):
         choice = np.ones(estimate.shape[1:], np.int64)
         choice[:, :2] = 0
-        return choice
+        return choice, 1
 
     monkeypatch.setattr(tiled, "choose", split)
     outs, state = _run(pipelines.get("auto", tile=16), frames)
@@ -131,7 +166,7 @@ def test_two_chosen_candidates_are_blended_by_their_tile_weights(frames, monkeyp
 
 
 @pytest.mark.parametrize("both_halves", [True, False])
-def test_each_evaluation_averages_with_the_previous_estimate(frames, monkeypatch, both_halves):
+def test_each_evaluation_averages_with_the_previous_one_but_the_first(frames, monkeypatch, both_halves):
     from service.stages.error_estimate import TileError
 
     calls = []
@@ -142,11 +177,15 @@ def test_each_evaluation_averages_with_the_previous_estimate(frames, monkeypatch
         return TileError(value, np.zeros_like(value), 16)
 
     monkeypatch.setattr(tiled, "cross_tile_error" if both_halves else "tile_error", fake)
-    _, state = _run(pipelines.get("auto", tile=16, every=2, both_halves=both_halves), frames[:3])  # frames 0, 2
+    pipeline = pipelines.get("auto", tile=16, every=2, both_halves=both_halves)
+    state = pipeline.start(40, 72)
     k = len(CANDIDATES)
-    first = np.arange(1, k + 1, dtype=float)
-    second = np.arange(k + 1, 2 * k + 1, dtype=float)
-    np.testing.assert_allclose(state.estimate[:, 0, 0], 0.5 * (first + second))
+    for index, frame in enumerate(frames[:3]):  # evaluations at frames 0, 1 and 2
+        _, state = pipeline.step(frame, state)
+        calls_so_far = np.arange(index * k + 1, (index + 1) * k + 1, dtype=float)
+        if index < 2:  # the first frame's, made without history, is not averaged into the second's
+            np.testing.assert_allclose(state.estimate[:, 0, 0], calls_so_far)
+    np.testing.assert_allclose(state.estimate[:, 0, 0], 0.5 * (calls_so_far - k + calls_so_far))
 
 
 def test_the_estimate_both_ways_compares_each_candidate_on_half_a_and_on_half_b(frames, monkeypatch):
@@ -179,7 +218,7 @@ def test_a_running_candidate_is_judged_from_a_copy_of_its_state(frames, monkeypa
     """At a later evaluation a chosen temporal candidate (svgf) denoises each half from a copy of its running
     state, with its history: what that state gives, not what a fresh state gives, and the running state
     itself is left as it was."""
-    monkeypatch.setattr(tiled, "choose", lambda estimate, tolerance: np.full(estimate.shape[1:], 2, np.int64))
+    monkeypatch.setattr(tiled, "choose", lambda estimate, *args: (np.full(estimate.shape[1:], 2, np.int64), 2))
     assert CANDIDATES[2] == "svgf"
     seen = []
 
@@ -194,13 +233,36 @@ def test_a_running_candidate_is_judged_from_a_copy_of_its_state(frames, monkeypa
         return out
 
     monkeypatch.setattr(tiled, "run_half", spy)
-    _run(pipelines.get("auto", tile=16, every=2), frames[:3])  # evaluations at frames 0 and 2
-    assert [running is None for _, running, _ in seen] == [True, True, False, False]
+    _run(pipelines.get("auto", tile=16, every=2), frames[:3])  # evaluations at frames 0, 1 and 2
+    assert [running is None for _, running, _ in seen] == [True, True, False, False, False, False]
     svgf = pipelines.get("svgf")
-    for frame, running, out in seen[2:]:
-        assert running.frame_index == 2
+    for (frame, running, out), index in zip(seen[2:], (1, 1, 2, 2), strict=True):
+        assert running.frame_index == index
         np.testing.assert_array_equal(out, svgf.step(frame, copy.deepcopy(running))[0]["color"])
         assert not np.allclose(out, run_half(svgf, frame, None))  # the history is used
+
+
+def test_a_temporal_candidate_not_running_is_judged_with_a_history_through_the_previous_frame(frames, monkeypatch):
+    """flr alone is chosen, so svgf never runs; at the second frame's evaluation svgf denoises each half from a
+    state stepped through the first frame, bmfr from a fresh one (it keeps no history; flr runs: its own state)."""
+    monkeypatch.setattr(tiled, "choose", lambda estimate, *args: (np.zeros(estimate.shape[1:], np.int64), 0))
+    seen = []
+
+    def spy(pipeline, frame, running):
+        seen.append((pipeline.name, frame, None if running is None else copy.deepcopy(running)))
+        return run_half(pipeline, frame, running)
+
+    monkeypatch.setattr(tiled, "run_half", spy)
+    _, state = _run(pipelines.get("auto", tile=16, every=4), frames[:2])
+    assert list(state.states) == ["flr"]
+    second = seen[2 * len(CANDIDATES):]
+    svgf = pipelines.get("svgf")
+    _, history = svgf.step(frames[0], svgf.start(40, 72))
+    assert {name for name, _, running in second if running is None} == {"bmfr"}  # not temporal, not running
+    for name, _, running in second:
+        if name == "svgf":
+            assert running.frame_index == 1
+            np.testing.assert_array_equal(running.history, history.history)
 
 
 @pytest.mark.parametrize("name", CANDIDATES)
