@@ -97,7 +97,21 @@ def sequence_table(seq: dict[str, Any]) -> str:
             continue
         summary = record["summary"]
         lines.append(f"| {name} | " + " | ".join(_fmt(summary[k], f) for k, _, f in COLUMNS) + " |")
+        if "shares" in record:
+            notes.append(shares_note(name, record, seq["results"]))
     return "\n".join(lines + ([""] + notes if notes else []))
+
+
+def shares_note(name: str, record: dict[str, Any], results: dict[str, dict[str, Any]]) -> str:
+    """One line on what `auto` (`name`) chose: each candidate's share of tiles (mean over frames), and its time
+    per frame against that of the one it chose most, where that one ran in the same benchmark."""
+    shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in record["shares"].items())
+    line = f"- `{name}` chose (share of tiles, mean over frames): {shares}"
+    most = next(iter(record["shares"]))
+    if results.get(most, {}).get("status") == "ok":
+        ratio = record["summary"]["ms_per_frame"] / results[most]["summary"]["ms_per_frame"]
+        line += f"; its time is {ratio:.2f}x {most}'s"
+    return line
 
 
 def markdown(results: dict[str, Any]) -> str:

@@ -28,6 +28,7 @@ from bench.scoring import SequenceScore, disoccluded_mask, score_frame
 from service.exr import list_sequence, read_frame
 from service.metrics import TRIM_FRACTION
 from service.pipelines.base import Pipeline
+from service.pipelines.tiled import AutoState
 
 TIMING_REPEATS = 3  # timed passes over each sequence per method; ms per frame is the median of all of them
 WARMUP_FRAMES = 2  # steps on a discarded state before the timed pass: the first frame and one with history
@@ -148,6 +149,7 @@ def run_method(
     y0, x0, ch, cw = crop
     score = SequenceScore()
     out_crop = None
+    shares: dict[str, float] = {}  # auto's candidates: share of tiles, mean over frames
     try:
         pipeline = method.make()
         warm = pipeline.start(seq.height, seq.width)
@@ -161,6 +163,9 @@ def run_method(
             start = time.perf_counter()
             out, state = pipeline.step(frame, state)
             score.ms.append(1e3 * (time.perf_counter() - start))
+            if isinstance(state, AutoState):
+                for name, share in state.shares().items():
+                    shares[name] = shares.get(name, 0.0) + share / len(seq.frames)
             image, reference = out["color"], frame["reference"]
             score.frames.append(score_frame(image, reference, prev, masks[index], flip=flip))
             prev = (image, reference)
@@ -179,6 +184,7 @@ def run_method(
         "summary": score.summary(seq.megapixels),
         "ms": score.ms,
         "per_frame": [f.as_dict() for f in score.frames],
+        **({"shares": dict(sorted(shares.items(), key=lambda kv: -kv[1]))} if shares else {}),
     }, out_crop
 
 

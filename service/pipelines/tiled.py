@@ -77,6 +77,14 @@ class AutoState(SequenceState):
     main: int | None = None  # index of the main candidate
     previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
 
+    def shares(self) -> dict[str, float]:
+        """Per candidate in the current choice, the share of tiles it denoises (empty before a choice or with the
+        fallback)."""
+        if self.choice is None:
+            return {}
+        counts = np.bincount(self.choice.ravel(), minlength=len(self.candidates)) / self.choice.size
+        return {name: float(c) for name, c in zip(self.candidates, counts, strict=True) if c > 0}
+
     def close(self) -> None:
         for state in (*self.states.values(), self.fallback_state):
             if state is not None:

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 
 from bench.methods import ANCHORS, Method, anchor_method, pipeline_method, select
-from bench.report import pareto_front, write_all
+from bench.report import pareto_front, shares_note, write_all
 from bench.run import benchmark, choose_crop, unique_names
 from bench.scaling import measure
 from service import pipelines
 from service.exr import write_frame
+from service.pipelines import tiled
 
 
 def test_benchmark_writes_all_four_outputs(tiny_sequence_dir: Path, tmp_path: Path) -> None:
@@ -113,3 +114,18 @@ def test_a_method_may_name_pipeline_options_and_bad_ones_are_refused_up_front() 
         pipeline_method("bilateral:radiu=1")
     with pytest.raises(ValueError, match="radius"):
         pipeline_method("bilateral:radius=99")
+
+
+def test_autos_choice_is_recorded_and_its_time_set_against_the_candidate_it_chose_most(tiny_sequence_dir: Path) -> None:
+    results, _ = benchmark([tiny_sequence_dir], [pipeline_method("auto"), pipeline_method("flr")], flip=False,
+                           progress=False, command=["test"], repeats=1)
+    records = results["sequences"][0]["results"]
+    shares = records["auto"]["shares"]
+    assert set(shares) <= set(tiled.CANDIDATES) and sum(shares.values()) == pytest.approx(1.0)
+    assert list(shares.values()) == sorted(shares.values(), reverse=True)  # the most chosen first
+    assert "shares" not in records["flr"]
+    record = {"shares": {"kpn": 0.75, "flr": 0.25}, "summary": {"ms_per_frame": 12.0}}
+    ran = {"kpn": {"status": "ok", "summary": {"ms_per_frame": 10.0}}}
+    assert shares_note("auto", record, ran) == ("- `auto` chose (share of tiles, mean over frames): kpn 75%, flr 25%; "
+                                                "its time is 1.20x kpn's")
+    assert shares_note("auto", record, {}).endswith("flr 25%")
