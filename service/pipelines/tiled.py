@@ -53,7 +53,7 @@ FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (
 @dataclass(frozen=True)
 class AutoOptions:
     tile: int = option(TILE, low=8, high=256)  # side of the tiles chosen for, pixels
-    every: int = option(4, low=1, high=1000)  # frames between two evaluations of the candidates
+    every: int = option(8, low=1, high=1000)  # frames between two evaluations of the candidates
     # the main candidate is within (1 + tolerance) x the lowest estimate; another takes a tile by that margin
     tolerance: float = option(0.05, low=0.0, high=10.0)
     # run every candidate on both halves at an evaluation (twice its cost, half the estimate's variance)
