@@ -41,9 +41,9 @@ from service.pipelines.options import option
 from service.stages.error_estimate import TILE, cross_tile_error, interpolate_tiles, interpolation_matrix, tile_error
 
 # Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest first,
-# with their cost: median ms a 1280x720 frame on 2 cores (README, `python -m bench.classical_speed`). Only the
-# ratios matter (`choose`); at 128x128 they are closer (kpn ~4x flr, not 7.5x), which `budget`'s default
-# leaves room for.
+# with their cost: median ms a 1280x720 frame on 2 cores (`python -m bench.classical_speed`, 2026-11-27; runs
+# differ by ~10%). Only the ratios matter (`choose`). At 128x128 they are closer (kpn ~4x flr, not 7.5x):
+# the default `budget` lets kpn take one of flr and bmfr beside it, not both, and svgf none (1.26x with flr).
 COSTS = {"flr": 54.0, "bmfr": 61.0, "svgf": 206.0, "kpn": 404.0}
 CANDIDATES = tuple(COSTS)
 HALVES = ("colorA", "colorB")
@@ -54,7 +54,8 @@ FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (
 class AutoOptions:
     tile: int = option(TILE, low=8, high=256)  # side of the tiles chosen for, pixels
     every: int = option(8, low=1, high=1000)  # frames between two evaluations of the candidates
-    # the main candidate is within (1 + tolerance) x the lowest estimate; another takes a tile by that margin
+    # the main candidate's summed estimate is within tolerance x |lowest| of the lowest; another takes a tile by
+    # that margin
     tolerance: float = option(0.05, low=0.0, high=10.0)
     # run every candidate on both halves at an evaluation (twice its cost, half the estimate's variance)
     both_halves: bool = option(True)
@@ -86,6 +87,7 @@ class AutoState(SequenceState):
         return {name: float(c) for name, c in zip(self.candidates, counts, strict=True) if c > 0}
 
     def close(self) -> None:
+        self.previous = None
         for state in (*self.states.values(), self.fallback_state):
             if state is not None:
                 state.close()
@@ -143,7 +145,8 @@ class AutoPipeline(Pipeline):
             sub = state.states.get(name) or pipeline.start(frame.height, frame.width)
             out, state.states[name] = pipeline.step(frame, sub)
             color += weights[index][..., None] * out["color"]
-        state.previous = frame
+        upcoming = state.frame_index + 1  # kept only for an evaluation at the next frame
+        state.previous = frame if upcoming == 1 or upcoming % self.options.every == 0 else None
         return {"color": color, "error": state.error.copy()}, state
 
     def _setup(self, frame: Frame, state: AutoState) -> None:
@@ -162,11 +165,13 @@ class AutoPipeline(Pipeline):
         """Estimate every candidate's per-tile error on the halves (`run_half`) and choose per tile."""
         halves = HALVES if self.options.both_halves else HALVES[:1]
         histories = {name: self._history(name, state) for name in state.candidates}
-        outputs = {h: [run_half(pipeline, one_half(frame, h), histories[name])
-                       for name, pipeline in state.candidates.items()] for h in halves}
-        for name, history in histories.items():
-            if history is not None and history is not state.states.get(name):
-                history.close()
+        try:
+            outputs = {h: [run_half(pipeline, one_half(frame, h), histories[name])
+                           for name, pipeline in state.candidates.items()] for h in halves}
+        finally:
+            for name, history in histories.items():
+                if history is not None and history is not state.states.get(name):
+                    history.close()
         # robust to one candidate blowing up (a sky through a window)
         scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
         a, b, tile = frame["colorA"], frame["colorB"], self.options.tile
@@ -180,12 +185,13 @@ class AutoPipeline(Pipeline):
             estimate = 0.5 * (state.estimate + estimate)
         state.estimate = estimate
         costs = np.array([COSTS[name] for name in state.candidates])
+        # frame 0's main stays at frame 1 while near the lowest: made without history, it still tells (fireflies:
+        # kpn, fresh, best at frame 0, svgf within 1% at frame 1; kpn 0.0220 against svgf's 0.0327 over the sequence)
         state.choice, state.main = choose(estimate, costs, self.options.tolerance, self.options.budget, state.main)
         height, width = frame.height, frame.width
         state.weights = tile_weights(state.choice, len(state.candidates), tile, height, width)
         chosen = np.take_along_axis(estimate, state.choice[None], axis=0)[0]
         state.error = np.maximum(interpolate_tiles(chosen, tile, height, width), 0.0)[..., None].astype(np.float32)
-
 
     @staticmethod
     def _history(name: str, state: AutoState) -> SequenceState | None:
@@ -221,21 +227,23 @@ def one_half(frame: Frame, half: str = "colorA") -> Frame:
 def choose(estimate: np.ndarray, costs: np.ndarray, tolerance: float, budget: float,
            previous: int | None = None) -> tuple[np.ndarray, int]:
     """Per tile, the index of the candidate that denoises it, and the main candidate's index. estimate: (K, th,
-    tw) per-tile error estimates, candidates cheapest first; costs: (K,) their relative costs; tolerance >= 0;
-    budget >= 1; previous: the last evaluation's main candidate, or None. Returns ((th, tw) int64, int).
+    tw) finite per-tile error estimates (below zero where noise says so); costs: (K,) the candidates' relative
+    costs; tolerance >= 0; budget >= 1; previous: the last evaluation's main candidate, or None. Returns
+    ((th, tw) int64, int).
 
     Near-best candidates are those whose estimate summed over the frame is within `tolerance` (times its
     magnitude) of the lowest sum. The main one is `previous` if it is near-best (a switch costs a temporal
     candidate its history, and the estimates are noisy), else the cheapest near-best one: it runs on every
     frame, so a tile it does well enough costs nothing more. Another candidate takes a tile where its
     estimate is below the main one's by more than `tolerance` times the main one's magnitude, the lowest of
-    them there; they are kept in order of what they gain (the sum of those margins) while the candidates
-    kept cost at most `budget` times the main one."""
+    those kept there; in order of what they gain (the sum of those margins), each is kept if it still fits:
+    the candidates kept cost at most `budget` times the main one. Where the others take every tile (estimates
+    below zero), the one that serves most tiles is returned as main."""
     count = len(costs)
     totals = estimate.reshape(count, -1).sum(axis=1)
     best = totals.min()
     near = totals <= best + tolerance * abs(best)
-    main = previous if previous is not None and near[previous] else int(np.argmax(near))
+    main = previous if previous is not None and near[previous] else int(np.argmin(np.where(near, costs, np.inf)))
     bar = estimate[main] - tolerance * np.abs(estimate[main])  # (th, tw): what another must beat
     gains = np.maximum(bar[None] - estimate, 0.0).reshape(count, -1).sum(axis=1)
     kept, total = np.zeros(count, bool), costs[main]
@@ -244,7 +252,10 @@ def choose(estimate: np.ndarray, costs: np.ndarray, tolerance: float, budget: fl
         if gains[k] > 0 and total + costs[k] <= budget * costs[main] * (1 + 1e-9):
             kept[k], total = True, total + costs[k]
     others = np.where(kept[:, None, None] & (estimate < bar[None]), estimate, np.inf)
-    return np.where(np.isfinite(others.min(axis=0)), others.argmin(axis=0), main), main
+    choice = np.where(np.isfinite(others.min(axis=0)), others.argmin(axis=0), main)
+    if not (choice == main).any():  # others beat it everywhere (estimates below zero): the one most chosen is main
+        main = int(np.argmax(np.bincount(choice.ravel(), minlength=count)))
+    return choice, main
 
 
 def tile_weights(choice: np.ndarray, count: int, tile: int, height: int, width: int) -> np.ndarray:

@@ -48,6 +48,18 @@ def test_the_main_candidate_is_the_cheapest_near_the_lowest_total_and_others_tak
     assert choose(negative, COSTS[:2], 0.05, 100.0)[1] == 1
 
 
+def test_where_several_beat_the_main_one_the_lowest_takes_the_tile_and_a_main_with_no_tile_gives_way():
+    estimate = np.array([[[1.0, 1.0, 1.0]], [[0.8, 1.0, 1.0]], [[0.6, 1.0, 1.0]], [[0.9, 0.5, 1.0]]])
+    estimate[0, 0, 2] = -1.0  # flr's total is the lowest: it is main
+    choice, main = choose(estimate, COSTS, 0.05, 100.0)
+    assert main == 0
+    np.testing.assert_array_equal(choice, [[2, 3, 0]])  # svgf (0.6) over bmfr (0.8) and kpn (0.9)
+    below = np.array([[[-1.0, -1.0]], [[-1.3, -1.3]]])  # bmfr beats flr by more than 5% everywhere
+    choice, main = choose(below, COSTS[:2], 0.2, 100.0, previous=0)  # flr stays near (within 20%) ...
+    np.testing.assert_array_equal(choice, [[1, 1]])
+    assert main == 1  # ... but serves no tile: bmfr is main
+
+
 def test_the_budget_keeps_the_others_that_gain_most_while_their_cost_fits():
     # main flr (cost 1); bmfr gains a little on tile 0, svgf and kpn a lot on tiles 1 and 2
     estimate = np.array([[[1.0, 1.0, 1.0, 1.0]], [[0.8, 1.0, 1.0, 1.0]], [[1.0, 0.3, 1.0, 1.0]],
@@ -277,3 +289,25 @@ def test_every_candidates_running_state_can_be_copied_for_its_evaluation(frames,
             assert not np.shares_memory(value, getattr(forked, key)), key
         else:
             assert value is None or isinstance(value, int | float | str | bool | list), (key, type(value))
+
+
+def test_the_main_candidate_is_handed_to_the_next_evaluation(frames, monkeypatch):
+    """choose gets the last main candidate as `previous` (none at the first evaluation); the previous frame is kept
+    only where an evaluation comes next."""
+    seen = []
+
+    def spy(estimate, costs, tolerance, budget, previous=None):
+        seen.append(previous)
+        return np.full(estimate.shape[1:], 2, np.int64), 2
+
+    monkeypatch.setattr(tiled, "choose", spy)
+    pipeline = pipelines.get("auto", tile=16, every=3)
+    state = pipeline.start(40, 72)
+    kept = []
+    for frame in frames[:4]:  # evaluations at frames 0, 1 and 3
+        _, state = pipeline.step(frame, state)
+        kept.append(state.previous is frame)
+    assert seen == [None, 2, 2]
+    assert kept == [True, False, True, False]  # after frames 0 and 2: frames 1 and 3 evaluate
+    state.close()
+    assert state.previous is None
