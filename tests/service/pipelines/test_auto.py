@@ -117,8 +117,9 @@ def test_with_halves_it_chooses_per_tile_reevaluates_every_k_frames_and_outputs_
         assert out["color"].shape == (40, 72, 3) and np.isfinite(out["color"]).all()
         assert out["error"].shape == (40, 72, 1) and out["error"].dtype == np.float32
     np.testing.assert_array_equal(outs[3]["error"], outs[2]["error"])  # frame 3 keeps frame 2's evaluation
-    chosen = np.take_along_axis(state.estimate, state.choice[None], axis=0)[0]
-    np.testing.assert_allclose(outs[-1]["error"][0, 0, 0], max(chosen[0, 0], 0.0), rtol=1e-6)  # before the 1st centre
+    chosen, spread = (np.take_along_axis(x, state.choice[None], axis=0)[0] for x in (state.estimate, state.variance))
+    floored = max(chosen[0, 0], np.sqrt(spread[0, 0]))  # an estimate at least its standard error
+    np.testing.assert_allclose(outs[-1]["error"][0, 0, 0], floored, rtol=1e-6)  # before the first tile centre
     # each frame is the weighted blend of the chosen candidates, each stepped on the frame from its own state
     chosen = sorted(set(state.choice.ravel().tolist()))
     assert set(state.states) == {CANDIDATES[i] for i in chosen}
@@ -186,7 +187,7 @@ def test_each_evaluation_averages_with_the_previous_one_but_the_first(frames, mo
     def fake(*args, **kwargs):
         calls.append(len(calls))
         value = np.full((3, 5), float(len(calls)))  # 1, 2, 3, ... per candidate call
-        return TileError(value, np.zeros_like(value), 16)
+        return TileError(value, 2 * value, 16)
 
     monkeypatch.setattr(tiled, "cross_tile_error" if both_halves else "tile_error", fake)
     pipeline = pipelines.get("auto", tile=16, every=2, both_halves=both_halves)
@@ -198,6 +199,7 @@ def test_each_evaluation_averages_with_the_previous_one_but_the_first(frames, mo
         if index < 2:  # the first frame's, made without history, is not averaged into the second's
             np.testing.assert_allclose(state.estimate[:, 0, 0], calls_so_far)
     np.testing.assert_allclose(state.estimate[:, 0, 0], 0.5 * (calls_so_far - k + calls_so_far))
+    np.testing.assert_allclose(state.variance[:, 0, 0], 0.25 * 2 * (calls_so_far - k + calls_so_far))
 
 
 def test_the_estimate_both_ways_compares_each_candidate_on_half_a_and_on_half_b(frames, monkeypatch):
