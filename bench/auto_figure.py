@@ -3,8 +3,9 @@
 
 `auto` runs over the sequence (every frame up to N, the last by default, in order, as it would be served);
 the figure shows, for frame N: the reference and `auto`'s output (tone-mapped x / (1 + x)), the candidate
-each tile went to, the `error` layer (the reference-free estimate, FRAME_FORMAT.md) and the true relL2 of
-`auto`'s output per tile (`service.metrics.rel_l2_map` averaged over the same tiles), both on one log scale.
+each tile went to and the `error` layer (the reference-free estimate, FRAME_FORMAT.md), both from the last
+evaluation up to frame N (named in the panels), and the true relL2 of `auto`'s output per tile
+(`service.metrics.rel_l2_map` averaged over the same tiles), the last two on one log scale.
 The sequence's frames need `colorA`, `colorB` and `reference`.
 """
 
@@ -31,23 +32,28 @@ from service.stages.error_estimate import tile_means  # noqa: E402
 def run_auto(folder: Path, frame_index: int | None = None) -> dict:
     """`auto` over `folder`'s frames up to `frame_index` (the last when None). Returns a dict: `reference`,
     `color` (H, W, 3) float32, `error` (H, W) float32 (the estimate), `truth` (th, tw) float64 (the true relL2
-    of `color` per tile), `choice` (th, tw) int64 into `candidates` (names), `tile` (pixels), `frame`."""
+    of `color` per tile), `choice` (th, tw) int64 into `candidates` (names), `tile` (pixels), `frame`, and
+    `evaluated`, the frame whose evaluation gave the choice and the estimate."""
     paths = list_sequence(folder)
     index = len(paths) - 1 if frame_index is None else frame_index
     if not 0 <= index < len(paths):
         raise ValueError(f"{folder}: frame {index} is not in 0..{len(paths) - 1}")
     pipeline = pipelines.get(pipelines.AUTO)
-    frames = [read_frame(path) for path in paths[: index + 1]]
-    state = pipeline.start(frames[0].height, frames[0].width)
-    for frame in frames:
-        frame.require(("colorA", "colorB", "reference"), who="bench.auto_figure")
-        out, state = pipeline.step(frame, state)
-    tile = pipeline.options.tile
-    result = {"reference": frame["reference"], "color": out["color"], "error": out["error"][..., 0],
-              "truth": tile_means(rel_l2_map(out["color"], frame["reference"]), tile), "choice": state.choice,
-              "candidates": list(state.candidates), "tile": tile, "frame": index}
-    state.close()
-    return result
+    evaluated = max(i for i in range(index + 1) if i <= 1 or i % pipeline.options.every == 0)
+    state = None
+    try:
+        for path in paths[: index + 1]:
+            frame = read_frame(path)
+            frame.require(("colorA", "colorB", "reference"), who="bench.auto_figure")
+            state = state if state is not None else pipeline.start(frame.height, frame.width)
+            out, state = pipeline.step(frame, state)
+        tile = pipeline.options.tile
+        return {"reference": frame["reference"], "color": out["color"], "error": out["error"][..., 0],
+                "truth": tile_means(rel_l2_map(out["color"], frame["reference"]), tile), "choice": state.choice,
+                "candidates": list(state.candidates), "tile": tile, "frame": index, "evaluated": evaluated}
+    finally:
+        if state is not None:
+            state.close()
 
 
 def _tone(x: np.ndarray) -> np.ndarray:
@@ -64,7 +70,7 @@ def write_figure(result: dict, out: Path, title: str) -> None:
     axes[0].imshow(_tone(result["reference"]))
     axes[0].set_title("reference", fontsize=9)
     axes[1].imshow(_tone(result["color"]))
-    axes[1].set_title(f"auto, frame {result['frame']}", fontsize=9)
+    axes[1].set_title(f"auto, frame {result['frame']} (choice from frame {result['evaluated']})", fontsize=9)
     palette = plt.get_cmap("tab10").colors[: len(names)]
     cmap = matplotlib.colors.ListedColormap(palette)
     axes[2].imshow(result["choice"], cmap=cmap, vmin=-0.5, vmax=len(names) - 0.5, extent=extent,
@@ -78,7 +84,7 @@ def write_figure(result: dict, out: Path, title: str) -> None:
     norm = matplotlib.colors.LogNorm(vmin=max(min(truth.min(), estimate.min()), floor),
                                      vmax=max(truth.max(), estimate.max(), 2 * floor))
     axes[3].imshow(estimate, norm=norm, cmap="magma")
-    axes[3].set_title("`error` layer (estimate, half spp)", fontsize=9)
+    axes[3].set_title(f"`error` layer (frame {result['evaluated']}'s estimate)", fontsize=9)
     shown = axes[4].imshow(truth, norm=norm, cmap="magma", extent=extent, interpolation="nearest")
     axes[4].set_title("true relL2 of the output per tile", fontsize=9)
     fig.colorbar(shown, ax=axes[3:], fraction=0.03)

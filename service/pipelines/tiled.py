@@ -23,11 +23,10 @@ same way: the estimated relL2 of the chosen candidates run on half the samples w
 (FRAME_FORMAT.md's `error`: a relative scale to send more samples by, not the error of `color` itself).
 The floor keeps a tile whose estimate fell to zero or below by chance (at 2 spp per half, 10-22% of 32x32
 tiles) from reading as error-free: on the benchmark sequences the log of max(estimate, its sd) follows the
-log of the true error more closely than the estimate clipped at zero (kpn and bmfr, frames 0-3, all four
-sequences but kpn on shadows). Without
-`colorA`/`colorB`, or with no candidate the frame can feed, the sequence goes to
-`service.pipelines.auto(layers)`'s choice whole, as the CLI did before this pipeline, and there is no
-`error` layer.
+log of the true error more closely than the estimate clipped at 1e-6 (kpn and bmfr, frames 0-3, all four
+sequences but kpn on shadows). Without `colorA`/`colorB`, or with no candidate the frame can feed, the
+sequence goes to `service.pipelines.auto(layers)`'s choice whole, as the CLI did before this pipeline, and
+there is no `error` layer.
 """
 
 from __future__ import annotations
@@ -79,7 +78,7 @@ class AutoState(SequenceState):
     variance: np.ndarray | None = None  # (K, th, tw) float64 their variances
     choice: np.ndarray | None = None  # (th, tw) int64 index into `candidates`
     weights: np.ndarray | None = None  # (K, H, W) float32 blend weights of `choice`
-    error: np.ndarray | None = None  # (H, W, 1) float32 the chosen tiles' estimates, interpolated
+    error: np.ndarray | None = None  # (H, W, 1) float32 the chosen tiles' estimates, at least their sd, interpolated
     main: int | None = None  # index of the main candidate
     previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
 
@@ -197,8 +196,8 @@ class AutoPipeline(Pipeline):
         height, width = frame.height, frame.width
         state.weights = tile_weights(state.choice, len(state.candidates), tile, height, width)
         chosen, spread = (np.take_along_axis(x, state.choice[None], axis=0)[0] for x in (estimate, variance))
-        floored = np.maximum(chosen, np.sqrt(spread))
-        state.error = np.maximum(interpolate_tiles(floored, tile, height, width), 0.0)[..., None].astype(np.float32)
+        floored = np.maximum(chosen, np.sqrt(spread))  # >= 0, and so is its interpolation (convex weights)
+        state.error = interpolate_tiles(floored, tile, height, width)[..., None].astype(np.float32)
 
     @staticmethod
     def _history(name: str, state: AutoState) -> SequenceState | None:

@@ -203,8 +203,9 @@ def _level_kernel(color, e, has_emission, radius, level):  # pragma: no cover - 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _tile_kernel(out, color, a, b, e, has_emission, level, tile, eps, floor, sums):  # pragma: no cover - jitted
     """sums (3, th, tw): per tile the weighted sums of e and v (module docstring) and the count of pixels whose
-    halves differ, in float64, the proxy from out less the emission e (with `has_emission`). A task per row
-    of tiles."""
+    halves differ, in float64, the proxy from out less the emission e (with `has_emission`), at least `floor`
+    (PROXY_FLOOR) times `level` ((H, W) float32, the 3x3 box mean of the colour less e); weights 1 / (proxy^2
+    + eps), eps = REL_L2_EPS (radiance^2); tile: side in pixels. A task per row of tiles."""
     height, width, channels = out.shape
     for ty in numba.prange(sums.shape[1]):
         for y in range(ty * tile, min((ty + 1) * tile, height)):

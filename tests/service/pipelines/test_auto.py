@@ -313,3 +313,20 @@ def test_the_main_candidate_is_handed_to_the_next_evaluation(frames, monkeypatch
     assert kept == [True, False, True, False]  # after frames 0 and 2: frames 1 and 3 evaluate
     state.close()
     assert state.previous is None
+
+
+def test_the_error_layer_is_at_least_the_estimates_standard_error(frames, monkeypatch):
+    """A tile whose estimate fell below zero by chance reads as its standard error, not as error-free; one
+    above it reads as itself."""
+    from service.stages.error_estimate import TileError
+
+    def fake(*args, **kwargs):
+        mean = np.full((3, 5), -1.0)
+        mean[:, 3:] = 5.0
+        return TileError(mean, np.full((3, 5), 4.0), 16)
+
+    monkeypatch.setattr(tiled, "cross_tile_error", fake)
+    outs, _ = _run(pipelines.get("auto", tile=16), frames[:1])
+    error = outs[0]["error"][..., 0]
+    np.testing.assert_allclose(error[:, :16], 2.0, rtol=1e-6)  # sqrt(4), interpolated between equal tiles
+    np.testing.assert_allclose(error[:, 60:], 5.0, rtol=1e-6)

@@ -241,31 +241,37 @@ def test_a_small_wrong_region_inside_a_good_tile_goes_back_by_its_half_tile(monk
     assert float(rel_l2_map(blended, truth)[:, 48:].mean()) < 0.1 * float(rel_l2_map(color, truth)[:, 48:].mean())
 
 
-
 def test_pixels_darkened_to_zero_do_not_hide_a_row_lifted_beside_a_window(monkeypatch):
-    """A dark room (truth 10) under a window (1000 in both halves): 15% of the room's pixels have one bright half
-    (a sky sample) and the output darkened them to 0, while it lifted the row under the window to 200. With the
-    stand-in level at least PROXY_FLOOR of the box mean the lifted row weighs as it should and the blend takes
-    it back; without it each darkened pixel weighs 1 / REL_L2_EPS and the tile keeps the lifted row."""
+    """The top-left tile of a 32x32 frame: a dim room under a window (1000 in both halves), where 15% of the
+    pixels have one bright half (a sky sample; the truth is their mean, 3.75) and the output darkened those
+    to 0, while it lifted the row under the window to 200. With the stand-in level at least PROXY_FLOOR of
+    the box mean the lifted row weighs as it should and the blend takes it back; without it each darkened
+    pixel weighs 1 / REL_L2_EPS and the tile keeps the lifted row. The tile far from it keeps the output."""
     from service.stages import noise_blend as module
 
     rng = np.random.default_rng(0)
-    truth = np.full((16, 16, 3), 10.0, np.float32)
-    truth[:3] = 1000.0
-    a, b = np.zeros_like(truth), np.zeros_like(truth)
-    a[:3] = b[:3] = 1000.0
+    truth = np.full((32, 32, 3), 10.0, np.float32)
+    truth[:16, :16] = 3.75
+    truth[:3, :16] = 1000.0
+    a = (truth + rng.normal(0, 2, truth.shape)).astype(np.float32)
+    b = (truth + rng.normal(0, 2, truth.shape)).astype(np.float32)
+    a[:3, :16] = b[:3, :16] = 1000.0
+    a[3:16, :16] = b[3:16, :16] = 0.0
     hits = [(y, x) for y in range(4, 16) for x in range(16) if rng.random() < 0.15]
     for i, (y, x) in enumerate(hits):
         (a if i % 2 else b)[y, x] = rng.uniform(20, 80)
     color = (a + b) / 2
     out = truth.copy()
-    out[3] = 200.0
+    out[3, :16] = 200.0
     for y, x in hits:
         out[y, x] = 0.0
     blended = noise_blend(out, color, a, b)
     np.testing.assert_allclose(blended, noise_blend_reference(out, color, a, b), rtol=1e-5, atol=1e-6)
     monkeypatch.setattr(module, "PROXY_FLOOR", 0.0)
     unfloored = noise_blend(out, color, a, b)
-    assert float(blended[3].mean()) < 20.0 and float(unfloored[3].mean()) > 150.0
-    room = (slice(3, 16), slice(None))
-    assert float(rel_l2_map(blended, truth)[room].mean()) < 0.2 * float(rel_l2_map(unfloored, truth)[room].mean())
+    row = (slice(3, 4), slice(0, 16))
+    assert float(blended[row].mean()) < 100.0 and float(unfloored[row].mean()) > 150.0  # (the next tile keeps it)
+    room = (slice(3, 16), slice(0, 16))
+    assert float(rel_l2_map(blended, truth)[room].mean()) < 0.25 * float(rel_l2_map(unfloored, truth)[room].mean())
+    far = (slice(20, 32), slice(20, 32))
+    assert float(rel_l2_map(blended, out)[far].mean()) < 0.01 * float(rel_l2_map(color, truth)[far].mean())
