@@ -33,13 +33,12 @@ def run_auto(folder: Path, frame_index: int | None = None) -> dict:
     """`auto` over `folder`'s frames up to `frame_index` (the last when None). Returns a dict: `reference`,
     `color` (H, W, 3) float32, `error` (H, W) float32 (the estimate), `truth` (th, tw) float64 (the true relL2
     of `color` per tile), `choice` (th, tw) int64 into `candidates` (names), `tile` (pixels), `frame`, and
-    `evaluated`, the frame whose evaluation gave the choice and the estimate."""
+    `evaluated`, the frame whose evaluation gave the choice and the estimate, and `shares` (AutoState.shares)."""
     paths = list_sequence(folder)
     index = len(paths) - 1 if frame_index is None else frame_index
     if not 0 <= index < len(paths):
         raise ValueError(f"{folder}: frame {index} is not in 0..{len(paths) - 1}")
     pipeline = pipelines.get(pipelines.AUTO)
-    evaluated = max(i for i in range(index + 1) if i <= 1 or i % pipeline.options.every == 0)
     state = None
     try:
         for path in paths[: index + 1]:
@@ -50,7 +49,8 @@ def run_auto(folder: Path, frame_index: int | None = None) -> dict:
         tile = pipeline.options.tile
         return {"reference": frame["reference"], "color": out["color"], "error": out["error"][..., 0],
                 "truth": tile_means(rel_l2_map(out["color"], frame["reference"]), tile), "choice": state.choice,
-                "candidates": list(state.candidates), "tile": tile, "frame": index, "evaluated": evaluated}
+                "candidates": list(state.candidates), "tile": tile, "frame": index, "evaluated": state.evaluated,
+                "shares": state.shares()}
     finally:
         if state is not None:
             state.close()
@@ -105,9 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     result = run_auto(args.sequence, args.frame)
     write_figure(result, args.out, f"{args.sequence.name}: auto's choice, its error estimate and the true error")
-    counts = np.bincount(result["choice"].ravel(), minlength=len(result["candidates"])) / result["choice"].size
-    print(", ".join(f"{n} {100 * c:.0f}%" for n, c in zip(result["candidates"], counts, strict=True) if c > 0)
-          + f"; written {args.out}")
+    print(", ".join(f"{n} {100 * c:.0f}%" for n, c in result["shares"].items()) + f"; written {args.out}")
     return 0
 
 

@@ -91,9 +91,10 @@ class KpnPipeline(NetworkPipeline):
     def model(self) -> OnnxModel:
         """NetworkPipeline.model, and, when it loads, OptionError on `weights` unless its coarse outputs are at
         scales 2 and 4."""
-        loading = self._model is None
+        if self._model is not None:  # checked when it loaded
+            return self._model
         model = super().model()
-        scales = sorted(c.get("scale") for c in model.info.metadata.get("coarse", [])) if loading else [2, 4]
+        scales = sorted(c.get("scale") for c in model.info.metadata.get("coarse", []))
         if scales != [2, 4]:
             self._model = None
             raise OptionError(f"weights '{self.options.weights}' have coarse outputs at scales {scales}, not 2 and 4",

@@ -21,7 +21,7 @@ Outputs: `color`, and `error` (H, W, 1): the chosen tiles' estimates from the la
 `every` - 1 frames old, at fixed tile positions), each at least its own standard error, interpolated the
 same way: the estimated relL2 of the chosen candidates run on half the samples without the guards
 (FRAME_FORMAT.md's `error`: a relative scale to send more samples by, not the error of `color` itself).
-The floor keeps a tile whose estimate fell to zero or below by chance (at 2 spp per half, 10-22% of 32x32
+The floor keeps a tile whose estimate fell to zero or below by chance (at 2 spp per half, 5-22% of 32x32
 tiles) from reading as error-free: on the benchmark sequences the log of max(estimate, its sd) follows the
 log of the true error more closely than the estimate clipped at 1e-6 (kpn and bmfr, frames 0-3, all four
 sequences but kpn on shadows). Without `colorA`/`colorB`, or with no candidate the frame can feed, the
@@ -80,6 +80,7 @@ class AutoState(SequenceState):
     weights: np.ndarray | None = None  # (K, H, W) float32 blend weights of `choice`
     error: np.ndarray | None = None  # (H, W, 1) float32 the chosen tiles' estimates, at least their sd, interpolated
     main: int | None = None  # index of the main candidate
+    evaluated: int | None = None  # the frame index of the last evaluation
     previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
 
     def shares(self) -> dict[str, float]:
@@ -134,7 +135,7 @@ class AutoPipeline(Pipeline):
         if state.fallback is not None:
             out, state.fallback_state = state.fallback.step(frame, state.fallback_state)
             return {"color": out["color"]}, state
-        if state.frame_index % self.options.every == 0 or state.frame_index == 1:
+        if self.evaluates(state.frame_index):
             self._evaluate(frame, state)
         names = list(state.candidates)
         chosen = sorted(set(state.choice.ravel().tolist()))
@@ -149,14 +150,17 @@ class AutoPipeline(Pipeline):
             sub = state.states.get(name) or pipeline.start(frame.height, frame.width)
             out, state.states[name] = pipeline.step(frame, sub)
             color += weights[index][..., None] * out["color"]
-        upcoming = state.frame_index + 1  # kept only for an evaluation at the next frame
-        state.previous = frame if upcoming == 1 or upcoming % self.options.every == 0 else None
+        state.previous = frame if self.evaluates(state.frame_index + 1) else None  # for the next evaluation only
         return {"color": color, "error": state.error.copy()}, state
+
+    def evaluates(self, index: int) -> bool:
+        """Whether frame `index` (0-based) of a sequence evaluates the candidates: the first two and every `every`."""
+        return index <= 1 or index % self.options.every == 0
 
     def _setup(self, frame: Frame, state: AutoState) -> None:
         state.close()  # a first frame that failed may have set some of it
         state.fallback = state.fallback_state = state.estimate = state.variance = state.choice = None
-        state.previous = state.main = None
+        state.previous = state.main = state.evaluated = None
         state.candidates, state.states = {}, {}
         layers = set(frame.buffers)
         names = [n for n in CANDIDATES if set(pipelines.pipeline_class(n).requires) <= layers]
@@ -188,7 +192,7 @@ class AutoPipeline(Pipeline):
         estimate, variance = np.stack([e.mean for e in errors]), np.stack([e.variance for e in errors])
         if state.estimate is not None and state.frame_index > 1:  # not with the first frame's, made without history
             estimate, variance = 0.5 * (state.estimate + estimate), 0.25 * (state.variance + variance)
-        state.estimate, state.variance = estimate, variance
+        state.estimate, state.variance, state.evaluated = estimate, variance, state.frame_index
         costs = np.array([COSTS[name] for name in state.candidates])
         # frame 0's main stays at frame 1 while near the lowest: made without history, it still tells (fireflies:
         # kpn, fresh, best at frame 0, svgf within 1% at frame 1; kpn 0.0220 against svgf's 0.0327 over the sequence)

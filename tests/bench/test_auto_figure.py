@@ -28,6 +28,7 @@ def test_the_frame_auto_served_with_its_choice_estimate_and_truth(tiny_sequence_
     np.testing.assert_array_equal(result["error"], served["error"][..., 0])
     np.testing.assert_array_equal(result["choice"], state.choice)
     assert result["candidates"] == list(state.candidates) and result["evaluated"] == 1
+    assert result["shares"] == state.shares() and sum(result["shares"].values()) == pytest.approx(1.0)
     np.testing.assert_array_equal(result["truth"], tile_means(rel_l2_map(served["color"], frames[1]["reference"]),
                                                               result["tile"]))
     out = tmp_path / "auto.png"
