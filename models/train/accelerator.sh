@@ -2,7 +2,7 @@
 # Render a training set with Mitsuba's cuda_ad_rgb variant and train the offline networks on one CUDA GPU, in
 # a fixed time.
 #
-# usage: [NETS="rae flnr kpn"] models/train/accelerator.sh OUT RENDER_SECONDS TRAIN_MINUTES [WORKERS]
+# usage: [NETS="rae flnr kpn"] [INIT_<NET>=CKPT] [LR=0.001] models/train/accelerator.sh OUT RENDER_SECONDS TRAIN_MINUTES [WORKERS]
 #
 # 1. Renders, for at most RENDER_SECONDS, WORKERS `python -m models.data dataset` processes side by side on
 #    the one GPU: worker 0 renders make data's training seeds (2-5), worker k > 0 the seeds 7 + 4(k-1) ..
@@ -10,9 +10,10 @@
 #    references). Seeds 0 (benchmark), 1 (hard cases) and 6 (validation) are never trained on. A sequence
 #    cut off by the time limit has no sequence.json and is not used. The validation set (seed 6, one
 #    sequence per scene, as make data's) renders beside them.
-# 2. Trains one run per network in $NETS (default: all of them), one after the other, TRAIN_MINUTES each:
-#    OUT/rae (with the hidden-state warp, as the shipped weights), OUT/flnr, OUT/kpn (dual motion).
-#    `python -m export NET OUT/NET/best.pt OUT/NET.onnx` exports each.
+# 2. Trains one run per network in $NETS (default: all of them), side by side on the one GPU (the CPU
+#    threads shared out), TRAIN_MINUTES each: OUT/rae (with the hidden-state warp, as the shipped weights),
+#    OUT/flnr, OUT/kpn (dual motion); with INIT_<NET> set (INIT_rae=CKPT), a fine-tune of that checkpoint
+#    (`--init`). Peak learning rate LR. `python -m export NET OUT/NET/best.pt OUT/NET.onnx` exports each.
 #
 # Needs: a CUDA GPU, torch with CUDA, mitsuba (cuda_ad_rgb), OpenEXR, numba, tqdm, matplotlib (or DEVICE=cpu
 # and MCDENOISE_MI_VARIANT=llvm_ad_rgb or scalar_rgb, slowly).
@@ -38,13 +39,22 @@ wait
 echo "rendered: $(ls "$out"/data/train/*/sequence.json 2>/dev/null | wc -l) training and" \
   "$(ls "$out"/data/val/*/sequence.json 2>/dev/null | wc -l) validation sequences in ${render_s} s or less"
 
+nets=(${NETS:-rae flnr kpn})
+threads=$(( $(nproc) / ${#nets[@]} > 0 ? $(nproc) / ${#nets[@]} : 1 ))
 common=(--data "$out/data/train" --val "$out/data/val" --device "$device" --steps 1000000 --minutes "$train_min"
-        --batch 16 --lr 0.001 --warmup 200 --seed 0 --val-every 500 --log-every 50 --checkpoint-every 500
-        --ema 0.999)
+        --batch 16 --lr "${LR:-0.001}" --warmup 200 --seed 0 --val-every 250 --log-every 50 --checkpoint-every 250
+        --ema 0.999 --threads "$threads")
 # kpn: its occlusion loss term joins at a share of --steps (1e6 here, never reached in TRAIN_MINUTES): step 1000
 declare -A extra=([rae]="--warp" [flnr]="" [kpn]="--motion dual --occlusion-from 0.001")
-for net in ${NETS:-rae flnr kpn}; do
-  # shellcheck disable=SC2086  # the extra options are words
-  $py -m models.train "$net" "${common[@]}" ${extra[$net]} --out "$out/$net" >"$out/logs/train_$net.log" 2>&1
-  $py -m export "$net" "$out/$net/best.pt" "$out/$net.onnx" >>"$out/logs/train_$net.log" 2>&1
+for net in "${nets[@]}"; do
+  init=()
+  start="INIT_$net"
+  if [ -n "${!start:-}" ]; then init=(--init "${!start}"); fi
+  (
+    # shellcheck disable=SC2086  # the extra options are words
+    $py -m models.train "$net" "${common[@]}" ${extra[$net]} "${init[@]}" --out "$out/$net" \
+      >"$out/logs/train_$net.log" 2>&1
+    $py -m export "$net" "$out/$net/best.pt" "$out/$net.onnx" >>"$out/logs/train_$net.log" 2>&1
+  ) &
 done
+wait

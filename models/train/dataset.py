@@ -35,6 +35,7 @@ NOISY = ("color", "colorA", "colorB")  # the estimates a window may take its noi
 NOISY_P = (0.5, 0.25, 0.25)
 ROUGHNESS_DROP = 0.2  # share of windows that see no roughness
 WINDOW_FIELDS = ("noisy", "target", "guides", "motion", "motion_dual")
+SAMPLED = WINDOW_FIELDS  # the Sequence planes windows are cut from (same names)
 
 
 @dataclass
@@ -109,38 +110,41 @@ class Window:
     motion: torch.Tensor  # (T, 2, S, S) backward motion in pixels, in the window's orientation
     motion_dual: torch.Tensor  # (T, 2, S, S) dual motion vectors (`motionDual`), the same way
 
-    def to(self, device: str | torch.device) -> Window:
-        """The same window with every tensor on `device` (copied without blocking from the CPU)."""
-        return Window(*(getattr(self, f).to(device, non_blocking=True) for f in WINDOW_FIELDS))
 
-
-def _rotate_motion(motion: np.ndarray, k: int) -> np.ndarray:
-    """(..., 2, S, S) motion (x right, y down) of an image rotated by np.rot90(k) (counter-clockwise)."""
+def _rotate_motion(motion: torch.Tensor, k: int) -> torch.Tensor:
+    """(..., 2, S, S) motion (x right, y down) of an image rotated by torch.rot90(k) (counter-clockwise)."""
     mx, my = motion[..., 0, :, :], motion[..., 1, :, :]
     for _ in range(k % 4):  # a CCW quarter turn maps the displacement (x, y) to (y, -x) in image axes
         mx, my = my, -mx
-    return np.stack([mx, my], axis=-3)
+    return torch.stack([mx, my], dim=-3)
 
 
 class SequenceBank:
-    """The sequences of a training set in memory, with the window sampler of the module docstring."""
+    """The sequences of a training set in memory, with the window sampler of the module docstring. The planes
+    windows are cut from also sit on `device` as torch tensors (shared with the numpy arrays on the CPU), so
+    that on a GPU a window is cut there and no batch crosses the bus."""
 
-    def __init__(self, sequences: list[Sequence]):
+    def __init__(self, sequences: list[Sequence], device: str | torch.device = "cpu"):
         if not sequences:
             raise ValueError("no sequences")
         self.sequences = sequences
+        self.device = torch.device(device)
+        self._planes = [{f: torch.from_numpy(getattr(s, f)).to(self.device)
+                         for f in SAMPLED} for s in sequences]
 
     @classmethod
-    def from_root(cls, root: str | Path) -> SequenceBank:
+    def from_root(cls, root: str | Path, device: str | torch.device = "cpu") -> SequenceBank:
         folders = sequence_folders(root)
         if not folders:
             raise ValueError(f"{root}: no sequence folders (folders with sequence.json)")
-        return cls([load_sequence(f) for f in folders])
+        return cls([load_sequence(f) for f in folders], device)
 
     def sample(self, rng: np.random.Generator, frames: int, crop: int, *, reverse: bool = True) -> Window:
-        """One random window of `frames` frames and a `crop` x `crop` square (module docstring). `reverse`:
-        allow backward playback (then the window's motion is zero: only backward motion is stored)."""
-        seq = self.sequences[rng.integers(len(self.sequences))]
+        """One random window of `frames` frames and a `crop` x `crop` square (module docstring), its tensors on
+        the bank's device. `reverse`: allow backward playback (then the window's motion is zero: only backward
+        motion is stored)."""
+        index = int(rng.integers(len(self.sequences)))
+        seq, planes = self.sequences[index], self._planes[index]
         if seq.frames < frames:
             raise ValueError(f"sequence {seq.name} has {seq.frames} frames; windows need {frames}")
         h, w = seq.target.shape[-2:]
@@ -151,22 +155,22 @@ class SequenceBank:
         if reverse and rng.random() < 0.5:
             order = order[::-1]
         y, x = int(rng.integers(h - crop + 1)), int(rng.integers(w - crop + 1))
-        window = (order, slice(None), slice(y, y + crop), slice(x, x + crop))
+        frames_at = torch.from_numpy(order.copy()).to(self.device)
+        window = (frames_at, slice(None), slice(y, y + crop), slice(x, x + crop))
         source = int(rng.choice(len(NOISY), p=NOISY_P))
-        scale = rng.uniform(0.0, 2.0, size=(1, 3, 1, 1)).astype(np.float32)
+        scale = torch.from_numpy(rng.uniform(0.0, 2.0, size=(1, 3, 1, 1)).astype(np.float32)).to(self.device)
         k = int(rng.integers(4))
-        guides = seq.guides[window]
+        guides = planes["guides"][window]  # advanced indexing: a copy
         if rng.random() < ROUGHNESS_DROP:
-            guides = guides.copy()
             guides[:, GUIDE_PLANES["roughness"]] = ROUGHNESS_ABSENT
-        motion, dual = seq.motion[window], seq.motion_dual[window]
+        motion, dual = planes["motion"][window], planes["motion_dual"][window]
         if order[0] > order[-1]:  # played backwards: no forward motion is stored, so none is given
-            motion, dual = np.zeros_like(motion), np.zeros_like(dual)
+            motion, dual = torch.zeros_like(motion), torch.zeros_like(dual)
 
-        def turn(a: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(np.ascontiguousarray(np.rot90(a, k, axes=(-2, -1))))
+        def turn(a: torch.Tensor) -> torch.Tensor:
+            return torch.rot90(a, k, dims=(-2, -1)).contiguous()
 
-        return Window(turn(seq.noisy[source][window] * scale), turn(seq.target[window] * scale),
+        return Window(turn(planes["noisy"][source][window] * scale), turn(planes["target"][window] * scale),
                       turn(guides), turn(_rotate_motion(motion, k)), turn(_rotate_motion(dual, k)))
 
 

@@ -73,7 +73,7 @@ class TrainOptions:
     init: str = ""  # start from this checkpoint's weights (a fine-tune; a fresh optimiser and step 0)
     ema: float = 0.999  # decay of the exponential moving average of the weights that is validated and
     # exported (Polyak averaging; 0: the raw weights). Batches of 4 windows make single steps noisy.
-    device: str = "cpu"  # where the network trains: "cpu" or "cuda" (windows are cut on the CPU either way)
+    device: str = "cpu"  # where the network trains and its windows are cut: "cpu" or "cuda"
     # kpn: the motion that warps the previous output, "dual" (motionDual) or "plain" (motion)
     motion: str = KPN_ONLY["motion"]
     # kpn: share of `steps` after which the motion-occlusion loss term joins (Zeng 2023 sec. 5: half), in [0, 1]
@@ -257,7 +257,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
     recipe = make_recipe(opts)
-    bank, held_out = SequenceBank.from_root(opts.data), SequenceBank.from_root(opts.val)
+    bank, held_out = SequenceBank.from_root(opts.data, opts.device), SequenceBank.from_root(opts.val)
     ckpt_path, log_path = out / CHECKPOINT, out / LOG
     net, ema, optimizer, step, best, rng, elapsed = _start(opts, recipe, ckpt_path, resume)
     if step == 0:
@@ -272,7 +272,7 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(step, opts.lr, opts.warmup)
         batch = collate([bank.sample(rng, recipe.frames, recipe.crop, reverse=recipe.reverse)
-                         for _ in range(opts.batch)]).to(opts.device)
+                         for _ in range(opts.batch)])
         terms = recipe.loss(net, batch, step)
         optimizer.zero_grad(set_to_none=True)
         terms.total.backward()

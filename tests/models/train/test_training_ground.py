@@ -86,11 +86,11 @@ def test_forward_only_windows_keep_their_motion(bank):
 
 def test_rotating_motion_with_the_image_keeps_it_pointing_at_the_same_content():
     """A pixel that moved right (+x) moves up (-y) after a counter-clockwise quarter turn (np.rot90)."""
-    motion = np.zeros((2, 4, 4), np.float32)
+    motion = torch.zeros((2, 4, 4))
     motion[0] = 1.0
     turned = _rotate_motion(motion, 1)
     assert (turned[0] == 0).all() and (turned[1] == -1).all()
-    assert np.array_equal(_rotate_motion(motion, 4), motion)
+    assert torch.equal(_rotate_motion(motion, 4), motion)
 
 
 def test_with_warp_each_level_moves_by_the_motion_over_its_scale():
