@@ -26,6 +26,8 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--" + name.replace("_", "-"), type=int, default=defaults[name])
     p.add_argument("--lr", type=float, default=defaults["lr"])
     p.add_argument("--ema", type=float, default=defaults["ema"], help="weight-average decay (0: raw weights)")
+    p.add_argument("--clip-grad", type=float, default=defaults["clip_grad"],
+                   help="largest global gradient norm a step applies, 0..1000 (0: no clipping)")
     p.add_argument("--minutes", type=float, default=defaults["minutes"], help="wall-time limit (0: none)")
     p.add_argument("--warp", action="store_true", help="warp the recurrent state by motion between frames")
     p.add_argument("--device", choices=DEVICES, default=defaults["device"], help="where the network trains")

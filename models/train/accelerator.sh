@@ -43,7 +43,7 @@ nets=(${NETS:-rae flnr kpn})
 threads=$(( $(nproc) / ${#nets[@]} > 0 ? $(nproc) / ${#nets[@]} : 1 ))
 common=(--data "$out/data/train" --val "$out/data/val" --device "$device" --steps 1000000 --minutes "$train_min"
         --batch 16 --lr "${LR:-0.001}" --warmup 200 --seed 0 --val-every 250 --log-every 50 --checkpoint-every 250
-        --ema 0.999 --threads "$threads")
+        --ema 0.999 --threads "$threads" --clip-grad 1.0)
 # kpn: its occlusion loss term joins at a share of --steps (1e6 here, never reached in TRAIN_MINUTES): step 1000
 declare -A extra=([rae]="--warp" [flnr]="" [kpn]="--motion dual --occlusion-from 0.001")
 for net in "${nets[@]}"; do
