@@ -16,6 +16,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("net", choices=["flnr", "kpn", "rae"], help="the network (a models.train checkpoint)")
     parser.add_argument("checkpoint", type=Path)
     parser.add_argument("out", type=Path)
+    parser.add_argument("--made-by", default="", metavar="COMMAND",
+                        help="the command that rendered the data of the checkpoint's run and ran it, where that "
+                             "was not `make data` and the run's own command (models/train/accelerator.sh ...)")
     args = parser.parse_args(argv)
     from export.checkpoint import export_checkpoint  # torch: imported once the arguments are good
     from service.process import configure
@@ -23,7 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     configure()  # an entry point that reaches the service's kernels (service/process.py)
 
     try:
-        path = export_checkpoint(args.net, args.checkpoint, args.out)
+        path = export_checkpoint(args.net, args.checkpoint, args.out, made_by=args.made_by)
     except ValueError as err:
         raise SystemExit(f"python -m export: {err}") from None
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")

@@ -45,8 +45,9 @@ def train_command(opts: dict[str, Any], step: int) -> str:
 
 
 def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_path: Path,
-             network: str) -> dict[str, Any]:
-    """The manifest of the module docstring."""
+             network: str, made_by: str = "") -> dict[str, Any]:
+    """The manifest of the module docstring. `made_by`: the command that rendered the last run's data and ran
+    it (listed before that run's command), where it was not `make data`."""
     opts = ckpt.get("options") or {}
     runs, base, init = [train_command(opts, ckpt["step"])], [], opts.get("init")
     while init and Path(init).is_file():  # the runs this one fine-tuned, oldest first
@@ -65,7 +66,9 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
         "bytes": onnx_path.stat().st_size,
         "parameters": count_parameters(net),
         "config": ckpt["config"],
-        "commands": ["make data", *runs, f"python -m export {network} {checkpoint} {onnx_path}"],
+        "commands": ["make data", *runs[:-1], *[made_by] * bool(made_by), runs[-1],
+                     f"python -m export {network} {checkpoint} {onnx_path}"
+                     + f" --made-by '{made_by}'" * bool(made_by)],
         "seed": opts.get("seed"),
         "step": ckpt.get("step"),
         "data": ckpt.get("data"),
@@ -83,7 +86,7 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
     }
 
 
-def export_checkpoint(network: str, checkpoint: str | Path, out: str | Path) -> Path:
+def export_checkpoint(network: str, checkpoint: str | Path, out: str | Path, made_by: str = "") -> Path:
     """Export a models.train checkpoint of `network` (a NETWORKS key) to `out` (.onnx) and its manifest to `out`
     with .json. The training options, step and validation score also go into the ONNX metadata under
     `training`. ValueError if the checkpoint was trained for another network."""
@@ -97,5 +100,6 @@ def export_checkpoint(network: str, checkpoint: str | Path, out: str | Path) -> 
                 "best_val_rel_l2": ckpt.get("best_val_rel_l2"), "machine": ckpt.get("machine")}
     net = load(inference_state(ckpt))
     path = onnx_export.write(export_bytes(net, extra={"training": training}), out)
-    path.with_suffix(".json").write_text(json.dumps(manifest(ckpt, net, checkpoint, path, network), indent=1) + "\n")
+    info = manifest(ckpt, net, checkpoint, path, network, made_by)
+    path.with_suffix(".json").write_text(json.dumps(info, indent=1) + "\n")
     return path

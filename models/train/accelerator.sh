@@ -2,7 +2,8 @@
 # Render a training set with Mitsuba's cuda_ad_rgb variant and train the offline networks on one CUDA GPU, in
 # a fixed time.
 #
-# usage: [NETS="rae flnr kpn"] [INIT_<NET>=CKPT] [LR=0.001] models/train/accelerator.sh OUT RENDER_SECONDS TRAIN_MINUTES [WORKERS]
+# usage: [NETS="rae flnr kpn"] [INIT_<NET>=CKPT] [LR=0.001] [CLIP=0] \
+#          models/train/accelerator.sh OUT RENDER_SECONDS TRAIN_MINUTES [WORKERS]
 #
 # 1. Renders, for at most RENDER_SECONDS, WORKERS `python -m models.data dataset` processes side by side on
 #    the one GPU: worker 0 renders make data's training seeds (2-5), worker k > 0 the seeds 7 + 4(k-1) ..
@@ -13,7 +14,8 @@
 # 2. Trains one run per network in $NETS (default: all of them), side by side on the one GPU (the CPU
 #    threads shared out), TRAIN_MINUTES each: OUT/rae (with the hidden-state warp, as the shipped weights),
 #    OUT/flnr, OUT/kpn (dual motion); with INIT_<NET> set (INIT_rae=CKPT), a fine-tune of that checkpoint
-#    (`--init`). Peak learning rate LR. `python -m export NET OUT/NET/best.pt OUT/NET.onnx` exports each.
+#    (`--init`). Peak learning rate LR; CLIP: --clip-grad (0: none).
+#    `python -m export NET OUT/NET/best.pt OUT/NET.onnx` exports each.
 #
 # Needs: a CUDA GPU, torch with CUDA, mitsuba (cuda_ad_rgb), OpenEXR, numba, tqdm, matplotlib (or DEVICE=cpu
 # and MCDENOISE_MI_VARIANT=llvm_ad_rgb or scalar_rgb, slowly).
@@ -43,7 +45,7 @@ nets=(${NETS:-rae flnr kpn})
 threads=$(( $(nproc) / ${#nets[@]} > 0 ? $(nproc) / ${#nets[@]} : 1 ))
 common=(--data "$out/data/train" --val "$out/data/val" --device "$device" --steps 1000000 --minutes "$train_min"
         --batch 16 --lr "${LR:-0.001}" --warmup 200 --seed 0 --val-every 250 --log-every 50 --checkpoint-every 250
-        --ema 0.999 --threads "$threads" --clip-grad 1.0)
+        --ema 0.999 --threads "$threads" --clip-grad "${CLIP:-0}")
 # kpn: its occlusion loss term joins at a share of --steps (1e6 here, never reached in TRAIN_MINUTES): step 1000
 declare -A extra=([rae]="--warp" [flnr]="" [kpn]="--motion dual --occlusion-from 0.001")
 for net in "${nets[@]}"; do

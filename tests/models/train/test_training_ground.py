@@ -193,7 +193,12 @@ def test_export_writes_the_model_and_a_manifest_of_how_it_was_made(tmp_path):
     path = export_checkpoint("rae", tmp_path / "run" / BEST, tmp_path / "weights" / "rae.onnx")
     info = json.loads(path.with_suffix(".json").read_text())
     assert info["step"] == 2 and info["seed"] == 0 and info["data"] == [SAMPLE.name]
-    assert info["commands"][1].startswith("python -m models.train rae --data ")
+    assert info["commands"][1].startswith("python -m models.train rae --data ") and len(info["commands"]) == 3
+    script = "models/train/accelerator.sh OUT 130 5.0 8"  # a run whose data that script rendered
+    made = export_checkpoint("rae", tmp_path / "run" / BEST, tmp_path / "weights" / "rae.onnx", made_by=script)
+    commands = json.loads(made.with_suffix(".json").read_text())["commands"]
+    assert commands[1] == script and commands[2] == info["commands"][1]
+    assert commands[3] == f"{info['commands'][2]} --made-by '{script}'"
     assert info["machine"]["device"] == "cpu" and info["final_train_loss"]["loss"] > 0
     assert [v["step"] for v in info["validation_curve"]] == [2]
     model = OnnxModel.from_file(path, swappable=False)
@@ -214,6 +219,27 @@ def test_the_three_commands_chain(tmp_path, capsys):
     assert (tmp_path / "rae.onnx").is_file() and (tmp_path / "rae.json").is_file()
     with pytest.raises(SystemExit, match="steps must be >= 1"):
         train_main(["rae", "--data", "d", "--val", "v", "--out", "o", "--steps", "0"])
+
+
+def test_clip_grad_bounds_the_gradient_norm_each_step_applies(tmp_path, monkeypatch):
+    """The optimiser sees gradients of global norm at most --clip-grad; without it, larger ones (so the bound
+    is not met by chance)."""
+    seen = []
+    adam_step = torch.optim.Adam.step
+
+    def spy(self, *args, **kwargs):
+        grads = [p.grad for group in self.param_groups for p in group["params"] if p.grad is not None]
+        seen.append(float(torch.nn.utils.get_total_norm(grads)))
+        return adam_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", spy)
+    train(_opts(tmp_path, 2, "free"), progress=False)
+    assert len(seen) == 2 and min(seen) > 1e-3
+    seen.clear()
+    train(TrainOptions(**{**_opts(tmp_path, 2, "clipped").__dict__, "clip_grad": 1e-3}), progress=False)
+    assert len(seen) == 2 and max(seen) <= 1e-3 * (1 + 1e-5)
+    with pytest.raises(ValueError, match="clip_grad must be in"):
+        TrainOptions(**{**_opts(tmp_path, 2).__dict__, "clip_grad": -1.0})
 
 
 def test_weight_average_follows_the_weights_and_is_what_a_checkpoint_serves():
