@@ -5,7 +5,14 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
      padded by edge replication to the network's alignment
   2. optional (`warp`): each level's hidden state moved by the frame's motion (service/stages/hidden_warp.py)
   3. the network in ONNX Runtime: (features, hidden states) -> (log1p demodulated radiance, next hidden states)
-  4. expm1 and remodulation by the albedo, cropped back to the frame
+  4. expm1 (demodulated radiance), cropped back to the frame
+  5. optional (`history`, on by default; frames with `motion`): blended with the previous frame's output of
+     this step, reprojected by `motion` and clipped to the range of this frame's output over a small window
+     (service/stages/history_blend.py).
+     Beyond the paper, whose recurrence alone carries history: the network's output still flickers where it
+     is unsure, and the clipped average steadies it. Demodulated, so that texture is not blurred by the
+     bilinear reprojection; without `motion` nothing is blended (an absent motion is not a still camera).
+  6. remodulation by the albedo
 The background (pixels where nothing was hit: zero normal) passes through as it came, and the network sees
 zero radiance there. Our training renders carry the directly seen environment in their `emission` layer,
 so the network learned radiance without it; a frame whose renderer writes no `emission` layer, or one
@@ -31,11 +38,14 @@ from service.pipelines.base import SequenceState
 from service.pipelines.networks import NetworkPipeline, frame_planes
 from service.pipelines.options import MAX_THREADS, option
 from service.runtime import OnnxModel, weight_names
+from service.stages.albedo import remodulate
 from service.stages.hidden_warp import warp_states
-from service.stages.rae_inputs import radiance_from_output
+from service.stages.history_blend import blend_history
+from service.stages.rae_inputs import lighting_from_output
 
 NETWORK = "rae"  # the network a `weights` file must hold (its ONNX metadata)
 DEFAULT_WEIGHTS = "rae"  # models/weights/rae.onnx (manifest: rae.json)
+HISTORY = 0.3  # default weight of the previous output (`make bench`: docs/training.md)
 
 
 @dataclass(frozen=True)
@@ -47,6 +57,10 @@ class RaeOptions:
     warp: bool | None = option(None)
     # ONNX Runtime intra-op threads (0: $MCDENOISE_ORT_THREADS or ORT's default)
     threads: int = option(0, low=0, high=MAX_THREADS)
+    # weight of the previous output, reprojected by `motion` and clipped to the range of this output over a
+    # (2 history_radius + 1)^2 window, in each output where reprojection holds (module docstring; 0: off)
+    history: float = option(HISTORY, low=0, high=0.95)
+    history_radius: int = option(1, low=1, high=8)
 
 
 @dataclass
@@ -55,6 +69,9 @@ class RaeState(SequenceState):
     order; empty before the first frame."""
 
     hidden: list[np.ndarray] = field(default_factory=list)
+    previous: np.ndarray | None = None  # (H, W, 3) float32 last step-5 output (module docstring), demodulated
+    depth: np.ndarray | None = None  # (H, W, 1) float32 last frame's depth, for reprojection
+    normal: np.ndarray | None = None  # (H, W, 3) float32 last frame's normal
 
 
 def trained_with_warp(model: OnnxModel) -> bool:
@@ -86,6 +103,7 @@ class RaePipeline(NetworkPipeline):
         if self.warps:
             frame.require(("motion",), who=f"pipeline '{self.name}' with warp")
 
+
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         model = self.model()
         info = model.info
@@ -109,6 +127,21 @@ class RaePipeline(NetworkPipeline):
             raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite values; "
                                      "its recurrent state was reset")
         state.hidden = [outputs[spec.output] for spec in info.state]
-        radiance = radiance_from_output(outputs[info.output_name][0, :, : frame.height, : frame.width],
-                                        frame["albedo"])
+        lighting = lighting_from_output(outputs[info.output_name][0, :, : frame.height, : frame.width])
+        if self.options.history:
+            lighting = self._accumulate(lighting, frame, state)
+        radiance = remodulate(lighting, frame["albedo"])
         return {"color": np.where(background[..., None], frame["color"], radiance)}, state
+
+    def _accumulate(self, lighting: np.ndarray, frame: Frame, state: RaeState) -> np.ndarray:
+        """(H, W, 3) float32 demodulated output blended with the previous one (option `history`), which is kept;
+        a frame without `motion` is not blended and starts the history afresh."""
+        if "motion" not in frame:
+            state.previous = None
+            return lighting
+        depth, normal = frame["depth"], frame["normal"]
+        if state.previous is not None:
+            lighting = blend_history(lighting, state.previous, frame["motion"], depth, state.depth, normal,
+                                     state.normal, self.options.history, self.options.history_radius)
+        state.previous, state.depth, state.normal = lighting, depth, normal
+        return lighting

@@ -79,9 +79,13 @@ def rae_planes(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray, depth:
     return out
 
 
-def radiance_from_output(planes: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+def lighting_from_output(planes: np.ndarray) -> np.ndarray:
     """planes: (3, H, W) float32 finite network output (log1p demodulated radiance; the pipeline refuses a
-    non-finite one); albedo: (H, W, 3) float32. Returns (H, W, 3) float32 linear radiance (without emission),
-    >= 0 and finite."""
-    log = np.clip(planes.transpose(1, 2, 0), 0.0, LOG_RADIANCE_MAX)
-    return remodulate(np.expm1(log), albedo)
+    non-finite one). Returns (H, W, 3) float32 linear demodulated radiance, >= 0 and finite."""
+    return np.expm1(np.clip(planes.transpose(1, 2, 0), 0.0, LOG_RADIANCE_MAX))
+
+
+def radiance_from_output(planes: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """planes as `lighting_from_output`; albedo: (H, W, 3) float32. Returns (H, W, 3) float32 linear radiance
+    (without emission), >= 0 and finite."""
+    return remodulate(lighting_from_output(planes), albedo)

@@ -1,6 +1,6 @@
 """Pipeline `rae` with the shipped weights: contract, the recurrent state carries information (the output
 depends on the history, and temporal error falls with it), the state resets per sequence, the warp
-option."""
+option, the clipped output history."""
 
 import numpy as np
 import pytest
@@ -38,7 +38,8 @@ def test_contract():
 
 
 def test_denoises_the_sample_and_history_lowers_the_temporal_error(frames):
-    pipeline = pipelines.get("rae")
+    """The network's recurrent state alone (no output history)."""
+    pipeline = pipelines.get("rae", history=0)
     with_history, state = _run(pipeline, frames)
     without, _ = _run(pipeline, frames, fresh_each_frame=True)
     refs = [f["reference"] for f in frames]
@@ -107,6 +108,29 @@ def test_warp_defaults_to_how_the_weights_were_trained(frames, tmp_path, monkeyp
     np.testing.assert_array_equal(third_output(weights="rae_still"), plain)
     assert not np.allclose(shipped, plain)
     assert RaePipeline(weights="rae_still", warp=True).warps and not RaePipeline(weights="rae_still").warps
+
+
+def test_output_history_lowers_the_temporal_error_without_raising_the_error(frames):
+    refs = [f["reference"] for f in frames]
+    plain, _ = _run(pipelines.get("rae", history=0), frames)
+    steadied, _ = _run(pipelines.get("rae", history=0.3), frames)
+
+    def errors(outs):
+        spatial = np.mean([rel_l2(o, r) for o, r in zip(outs, refs, strict=True)])
+        return spatial, np.mean([temporal_rel_l2(outs[i - 1], outs[i], refs[i - 1], refs[i])
+                                 for i in range(1, len(outs))])
+
+    (error, temporal), (plain_error, plain_temporal) = errors(steadied), errors(plain)
+    assert temporal < 0.98 * plain_temporal and error < plain_error
+    np.testing.assert_array_equal(steadied[0], plain[0])  # nothing to blend at the first frame
+
+
+def test_a_frame_without_motion_is_not_blended_and_restarts_the_output_history(frames):
+    gap = [frames[0], Frame({k: v for k, v in frames[1].buffers.items() if k != "motion"}, {}), frames[2]]
+    plain, _ = _run(pipelines.get("rae", history=0, warp=False), gap)
+    steadied, _ = _run(pipelines.get("rae", history=0.5, warp=False), gap)
+    for a, b in zip(plain, steadied, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_warping_needs_motion(frames):
