@@ -2,14 +2,16 @@
 and its manifest, for every offline-trained network (export/rae.py, export/flnr.py, export/kpn.py make the ONNX bytes).
 
 The manifest (OUT.json) says what the shipped weights are and how they were made: the network, the training
-run (its options as a command line, preceded by the runs it fine-tuned, oldest first), data, seed, steps,
-losses, validation curve, time and machine, from the checkpoint and the log.csv beside it.
+run (its options as a command line, preceded by the runs it fine-tuned, oldest first, and by `make data` or
+the command that rendered its data and ran it, `--made-by`), data, seed, steps, losses, validation curve,
+time and machine, from the checkpoint and the log.csv beside it.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import shlex
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -66,9 +68,9 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
         "bytes": onnx_path.stat().st_size,
         "parameters": count_parameters(net),
         "config": ckpt["config"],
-        "commands": ["make data", *runs[:-1], *[made_by] * bool(made_by), runs[-1],
-                     f"python -m export {network} {checkpoint} {onnx_path}"
-                     + f" --made-by '{made_by}'" * bool(made_by)],
+        "commands": [*["make data"] * bool(runs[:-1] or not made_by), *runs[:-1], *[made_by] * bool(made_by),
+                     runs[-1], shlex.join(["python", "-m", "export", network, str(checkpoint), str(onnx_path),
+                                           *["--made-by", made_by] * bool(made_by)])],
         "seed": opts.get("seed"),
         "step": ckpt.get("step"),
         "data": ckpt.get("data"),

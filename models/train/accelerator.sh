@@ -20,7 +20,9 @@
 # Needs: a CUDA GPU, torch with CUDA, mitsuba (cuda_ad_rgb), OpenEXR, numba, tqdm, matplotlib (or DEVICE=cpu
 # and MCDENOISE_MI_VARIANT=llvm_ad_rgb or scalar_rgb, slowly).
 # Logs: OUT/logs/. Time it took on an H100: models/weights/rae.json (`machine`, `training_seconds`).
+# Exit status: 1 if any network's training or export failed (its log says why), else 0.
 set -u
+trap 'kill $(jobs -p) 2>/dev/null' INT TERM  # an interrupted run leaves no renderer or trainer on the GPU
 out=${1:?OUT}
 render_s=${2:?RENDER_SECONDS}
 train_min=${3:?TRAIN_MINUTES}
@@ -48,6 +50,7 @@ common=(--data "$out/data/train" --val "$out/data/val" --device "$device" --step
         --ema 0.999 --threads "$threads" --clip-grad "${CLIP:-0}")
 # kpn: its occlusion loss term joins at a share of --steps (1e6 here, never reached in TRAIN_MINUTES): step 1000
 declare -A extra=([rae]="--warp" [flnr]="" [kpn]="--motion dual --occlusion-from 0.001")
+pids=()
 for net in "${nets[@]}"; do
   init=()
   start="INIT_$net"
@@ -55,8 +58,13 @@ for net in "${nets[@]}"; do
   (
     # shellcheck disable=SC2086  # the extra options are words
     $py -m models.train "$net" "${common[@]}" ${extra[$net]} "${init[@]}" --out "$out/$net" \
-      >"$out/logs/train_$net.log" 2>&1
-    $py -m export "$net" "$out/$net/best.pt" "$out/$net.onnx" >>"$out/logs/train_$net.log" 2>&1
+      >"$out/logs/train_$net.log" 2>&1 &&
+      $py -m export "$net" "$out/$net/best.pt" "$out/$net.onnx" >>"$out/logs/train_$net.log" 2>&1
   ) &
+  pids+=($!)
 done
-wait
+status=0
+for pid in "${pids[@]}"; do
+  wait "$pid" || status=1
+done
+exit $status

@@ -55,7 +55,7 @@ def tone(x: torch.Tensor) -> torch.Tensor:
 
 
 def prediction_to_linear(pred: torch.Tensor) -> torch.Tensor:
-    """The network's log1p output -> linear demodulated radiance, clipped as radiance_from_output clips it.
+    """The network's log1p output -> linear demodulated radiance, clipped as lighting_from_output clips it.
     The clip passes gradients straight through, so a prediction below 0 still learns where to go."""
     clipped = pred + (pred.clamp(0.0, LOG_RADIANCE_MAX) - pred).detach()
     return torch.expm1(clipped)

@@ -22,7 +22,7 @@ import math
 import os
 import platform
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -75,8 +75,8 @@ class TrainOptions:
     # exported (Polyak averaging; 0: the raw weights). Batches of 4 windows make single steps noisy.
     device: str = "cpu"  # where the network trains and its windows are cut: "cpu" or "cuda"
     # the largest global gradient norm a step applies (larger ones are scaled down to it), in [0, 1e3]; 0: no
-    # clipping. The rae fine-tune's norms were 0.3-0.6, with outliers of 1.4 (16 steps); one run without
-    # clipping diverged after 2250 steps at batch 16.
+    # clipping. The shipped rae's norms were 0.3-0.6, with outliers of 1.4 (16 steps of batch 16); its H100
+    # runs' loss jumped with and without clipping at 1.0 (docs/training.md), so it stays off by default.
     clip_grad: float = 0.0
     # kpn: the motion that warps the previous output, "dual" (motionDual) or "plain" (motion)
     motion: str = KPN_ONLY["motion"]
@@ -225,7 +225,8 @@ def _start(opts: TrainOptions, recipe: Recipe, ckpt_path: Path, resume: bool):
         if not ckpt_path.is_file():
             raise FileNotFoundError(f"--resume: no {ckpt_path}")
         ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        changed = {k: (v, getattr(opts, k)) for k, v in ckpt["options"].items()
+        stored = {f.name: ckpt["options"].get(f.name, f.default) for f in fields(TrainOptions)}  # older runs:
+        changed = {k: (v, getattr(opts, k)) for k, v in stored.items()  # options added since, at their default
                    if k not in RESUME_MAY_CHANGE and getattr(opts, k) != v}
         if changed:
             raise ValueError("--resume with other options than the run had (was, now): "

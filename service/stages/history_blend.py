@@ -11,8 +11,11 @@ allows: it lowers flicker, not detail. Every output lies within that local range
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from service.frame import Frame
 from service.stages.range_clamp import clamp_to_local_range
 from service.stages.reprojection import reproject
 
@@ -29,4 +32,29 @@ def blend_history(current: np.ndarray, previous: np.ndarray, motion: np.ndarray,
                             prev_normal=prev_normal)
     prev = clamp_to_local_range(prev, current, radius)
     w = np.float32(weight)
-    return np.where(valid[..., None], (1 - w) * current + w * prev, current).astype(np.float32)
+    return np.where(valid[..., None], (1 - w) * current + w * prev, current)
+
+
+@dataclass
+class OutputHistory:
+    """What `blend_history` needs of the previous frame, kept in a pipeline's sequence state: its output
+    (H, W, 3) float32, depth (H, W, 1) and normal (H, W, 3); None before the first frame and after a frame
+    without `motion`."""
+
+    previous: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    normal: np.ndarray | None = None
+
+    def blend(self, current: np.ndarray, frame: Frame, weight: float, radius: int) -> np.ndarray:
+        """`current` (H, W, 3) float32 blended with the kept output (`blend_history`), which it replaces. A
+        frame without `motion` is not blended and starts the history afresh (an absent motion is not a still
+        camera); `frame` needs depth and normal."""
+        if "motion" not in frame:
+            self.previous = self.depth = self.normal = None
+            return current
+        depth, normal = frame["depth"], frame["normal"]
+        if self.previous is not None:
+            current = blend_history(current, self.previous, frame["motion"], depth, self.depth, normal,
+                                    self.normal, weight, radius)
+        self.previous, self.depth, self.normal = current, depth, normal
+        return current

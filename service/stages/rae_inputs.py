@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from service.layout import RAE_INPUTS, channel_slices, total_channels
-from service.stages.albedo import demodulate, remodulate
+from service.stages.albedo import demodulate
 from service.stages.reprojection import surface_hit
 
 DEPTH_CLIP = 16.0  # relative depth above this (misses, far background) reads as this
@@ -84,8 +84,3 @@ def lighting_from_output(planes: np.ndarray) -> np.ndarray:
     non-finite one). Returns (H, W, 3) float32 linear demodulated radiance, >= 0 and finite."""
     return np.expm1(np.clip(planes.transpose(1, 2, 0), 0.0, LOG_RADIANCE_MAX))
 
-
-def radiance_from_output(planes: np.ndarray, albedo: np.ndarray) -> np.ndarray:
-    """planes as `lighting_from_output`; albedo: (H, W, 3) float32. Returns (H, W, 3) float32 linear radiance
-    (without emission), >= 0 and finite."""
-    return remodulate(lighting_from_output(planes), albedo)

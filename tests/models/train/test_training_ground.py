@@ -85,7 +85,7 @@ def test_forward_only_windows_keep_their_motion(bank):
 
 
 def test_rotating_motion_with_the_image_keeps_it_pointing_at_the_same_content():
-    """A pixel that moved right (+x) moves up (-y) after a counter-clockwise quarter turn (np.rot90)."""
+    """A pixel that moved right (+x) moves up (-y) after a counter-clockwise quarter turn (torch.rot90)."""
     motion = torch.zeros((2, 4, 4))
     motion[0] = 1.0
     turned = _rotate_motion(motion, 1)
@@ -197,8 +197,8 @@ def test_export_writes_the_model_and_a_manifest_of_how_it_was_made(tmp_path):
     script = "models/train/accelerator.sh OUT 130 5.0 8"  # a run whose data that script rendered
     made = export_checkpoint("rae", tmp_path / "run" / BEST, tmp_path / "weights" / "rae.onnx", made_by=script)
     commands = json.loads(made.with_suffix(".json").read_text())["commands"]
-    assert commands[1] == script and commands[2] == info["commands"][1]
-    assert commands[3] == f"{info['commands'][2]} --made-by '{script}'"
+    assert commands[:2] == [script, info["commands"][1]]  # its data came from the script, not `make data`
+    assert commands[2] == f"{info['commands'][2]} --made-by '{script}'" and len(commands) == 3
     assert info["machine"]["device"] == "cpu" and info["final_train_loss"]["loss"] > 0
     assert [v["step"] for v in info["validation_curve"]] == [2]
     model = OnnxModel.from_file(path, swappable=False)
@@ -219,6 +219,19 @@ def test_the_three_commands_chain(tmp_path, capsys):
     assert (tmp_path / "rae.onnx").is_file() and (tmp_path / "rae.json").is_file()
     with pytest.raises(SystemExit, match="steps must be >= 1"):
         train_main(["rae", "--data", "d", "--val", "v", "--out", "o", "--steps", "0"])
+
+
+def test_a_resumed_run_keeps_options_its_checkpoint_predates(tmp_path):
+    """A checkpoint written before an option existed ran with its default: resuming with another value is
+    refused, as for any stored option."""
+    train(_opts(tmp_path, 2), progress=False)
+    path = tmp_path / "run" / "checkpoint.pt"
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    del ckpt["options"]["clip_grad"]
+    torch.save(ckpt, path)
+    with pytest.raises(ValueError, match="clip_grad 0.0 -> 0.5"):
+        train(TrainOptions(**{**_opts(tmp_path, 4).__dict__, "clip_grad": 0.5}), resume=True, progress=False)
+    assert train(_opts(tmp_path, 3), resume=True, progress=False)["step"] == 3
 
 
 def test_clip_grad_bounds_the_gradient_norm_each_step_applies(tmp_path, monkeypatch):

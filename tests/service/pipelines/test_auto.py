@@ -1,6 +1,7 @@
 """`auto`: the per-tile choice by the reference-free error estimate, its blend, its fallback and its error layer."""
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -281,16 +282,22 @@ def test_a_temporal_candidate_not_running_is_judged_with_a_history_through_the_p
 
 @pytest.mark.parametrize("name", CANDIDATES)
 def test_every_candidates_running_state_can_be_copied_for_its_evaluation(frames, name):
-    """`run_half` deep-copies a running candidate's state: it must hold arrays and numbers only (no ONNX
-    session, no online worker), and the copy must not share an array with the running state."""
+    """`run_half` deep-copies a running candidate's state: it must hold arrays, numbers and dataclasses of them
+    only (no ONNX session, no online worker), and the copy must not share an array with the running state."""
     pipeline = pipelines.get(name)
     _, state = pipeline.step(frames[0], pipeline.start(frames[0].height, frames[0].width))
-    forked = copy.deepcopy(state)
-    for key, value in vars(state).items():
-        if isinstance(value, np.ndarray):
-            assert not np.shares_memory(value, getattr(forked, key)), key
-        else:
-            assert value is None or isinstance(value, int | float | str | bool | list), (key, type(value))
+    _, state = pipeline.step(frames[1], state)
+
+    def check(original, forked, path):
+        for key, value in vars(original).items():
+            if isinstance(value, np.ndarray):
+                assert not np.shares_memory(value, getattr(forked, key)), path + key
+            elif dataclasses.is_dataclass(value):
+                check(value, getattr(forked, key), f"{path}{key}.")
+            else:
+                assert value is None or isinstance(value, int | float | str | bool | list), (path + key, type(value))
+
+    check(state, copy.deepcopy(state), "")
 
 
 def test_the_main_candidate_is_handed_to_the_next_evaluation(frames, monkeypatch):

@@ -105,7 +105,8 @@ def test_the_input_clamp_gets_the_halves_less_the_emission(frames, monkeypatch):
 
 
 def test_denoises_the_sample_and_history_lowers_the_temporal_error(frames):
-    pipeline = pipelines.get("kpn")
+    """The warped previous output the network reads (no output history)."""
+    pipeline = pipelines.get("kpn", history=0)
     with_history, state = _run(pipeline, frames)
     without, _ = _run(pipeline, frames, fresh_each_frame=True)
     refs = [f["reference"] for f in frames]
@@ -118,6 +119,25 @@ def test_denoises_the_sample_and_history_lowers_the_temporal_error(frames):
         return np.mean([temporal_rel_l2(outs[i - 1], outs[i], refs[i - 1], refs[i]) for i in range(1, len(outs))])
 
     assert temporal(with_history) < temporal(without)
+
+
+def test_output_history_lowers_the_error_and_the_temporal_error(frames):
+    """The clipped output history (step 6) on the sample: both errors fall; the network's own history, what
+    step 2 warps, is its unblended output either way."""
+    refs = [f["reference"] for f in frames]
+    (plain, plain_state), (steadied, state) = _run(pipelines.get("kpn", history=0), frames), \
+        _run(pipelines.get("kpn", history=0.2), frames)
+
+    def errors(outs):
+        spatial = np.mean([rel_l2(o, r) for o, r in zip(outs, refs, strict=True)])
+        return spatial, np.mean([temporal_rel_l2(outs[i - 1], outs[i], refs[i - 1], refs[i])
+                                 for i in range(1, len(outs))])
+
+    (error, temporal), (plain_error, plain_temporal) = errors(steadied), errors(plain)
+    assert temporal < 0.97 * plain_temporal and error < plain_error
+    np.testing.assert_array_equal(steadied[0], plain[0])
+    np.testing.assert_array_equal(state.previous, plain_state.previous)
+    assert plain_state.history.previous is None and state.history.previous is not None
 
 
 def test_frame_two_depends_on_frame_one_and_a_new_sequence_forgets_it(frames):

@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 
 from service.layout import RAE_INPUTS, channel_slices
-from service.stages.albedo import ALBEDO_EPS, demodulate
+from service.stages.albedo import ALBEDO_EPS, demodulate, remodulate
 from service.stages.rae_inputs import (
     DEPTH_CLIP,
     RADIANCE,
     ROUGHNESS_ABSENT,
     demodulated,
     guide_planes,
-    radiance_from_output,
+    lighting_from_output,
     rae_planes,
 )
 from tests.tolerances import TWIN_ATOL
@@ -73,13 +73,13 @@ def test_sky_does_not_move_the_depth_scale():
 def test_output_transform_inverts_the_input_transform():
     color, albedo, *_ = _frame(seed=2)
     planes = np.log1p(demodulated(color, albedo)).transpose(2, 0, 1)
-    np.testing.assert_allclose(radiance_from_output(planes, albedo), color, rtol=1e-5)
+    np.testing.assert_allclose(remodulate(lighting_from_output(planes), albedo), color, rtol=1e-5)
 
 
 def test_output_is_finite_and_non_negative_for_any_network_output():
     albedo = np.full((2, 2, 3), 0.5, np.float32)
     wild = np.array([-1e30, -1.0, 1e3, 3e38], np.float32).reshape(1, 2, 2).repeat(3, axis=0)
-    out = radiance_from_output(wild, albedo)
+    out = remodulate(lighting_from_output(wild), albedo)
     assert np.isfinite(out).all() and (out >= 0).all()
 
 
