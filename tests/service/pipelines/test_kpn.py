@@ -14,6 +14,7 @@ from service.frame import Frame, FrameError
 from service.metrics import TRIM_FRACTION, rel_l2, temporal_rel_l2
 from service.pipelines.options import OptionError
 from service.stages.emission import subtract_emission
+from tests.service.pipelines.sequence_errors import sequence_errors
 
 SAMPLE = SAMPLE_DIRS[0]  # `shadows`, 120x120: not a multiple of the alignment (16), so the pipeline pads
 
@@ -127,13 +128,7 @@ def test_output_history_lowers_the_error_and_the_temporal_error(frames):
     refs = [f["reference"] for f in frames]
     (plain, plain_state), (steadied, state) = _run(pipelines.get("kpn", history=0), frames), \
         _run(pipelines.get("kpn", history=0.2), frames)
-
-    def errors(outs):
-        spatial = np.mean([rel_l2(o, r) for o, r in zip(outs, refs, strict=True)])
-        return spatial, np.mean([temporal_rel_l2(outs[i - 1], outs[i], refs[i - 1], refs[i])
-                                 for i in range(1, len(outs))])
-
-    (error, temporal), (plain_error, plain_temporal) = errors(steadied), errors(plain)
+    (error, temporal), (plain_error, plain_temporal) = (sequence_errors(outs, refs) for outs in (steadied, plain))
     assert temporal < 0.97 * plain_temporal and error < plain_error
     np.testing.assert_array_equal(steadied[0], plain[0])
     np.testing.assert_array_equal(state.previous, plain_state.previous)

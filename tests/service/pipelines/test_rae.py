@@ -11,6 +11,7 @@ from service.exr import read_sequence
 from service.frame import Frame, FrameError
 from service.metrics import rel_l2, temporal_rel_l2
 from service.pipelines.rae import RaePipeline
+from tests.service.pipelines.sequence_errors import sequence_errors
 
 SAMPLE = SAMPLE_DIRS[0]
 
@@ -114,13 +115,7 @@ def test_output_history_lowers_the_temporal_error_without_raising_the_error(fram
     refs = [f["reference"] for f in frames]
     plain, _ = _run(pipelines.get("rae", history=0), frames)
     steadied, _ = _run(pipelines.get("rae", history=0.3), frames)
-
-    def errors(outs):
-        spatial = np.mean([rel_l2(o, r) for o, r in zip(outs, refs, strict=True)])
-        return spatial, np.mean([temporal_rel_l2(outs[i - 1], outs[i], refs[i - 1], refs[i])
-                                 for i in range(1, len(outs))])
-
-    (error, temporal), (plain_error, plain_temporal) = errors(steadied), errors(plain)
+    (error, temporal), (plain_error, plain_temporal) = (sequence_errors(outs, refs) for outs in (steadied, plain))
     assert temporal < 0.98 * plain_temporal and error < plain_error
     np.testing.assert_array_equal(steadied[0], plain[0])  # nothing to blend at the first frame
 
