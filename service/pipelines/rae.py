@@ -104,7 +104,6 @@ class RaePipeline(NetworkPipeline):
         if self.warps:
             frame.require(("motion",), who=f"pipeline '{self.name}' with warp")
 
-
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         model = self.model()
         info = model.info
