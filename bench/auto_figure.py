@@ -2,7 +2,7 @@
 `error` layer and the true error.
 
 `auto` runs over the sequence (every frame up to N, the last by default, in order, as it would be served);
-the figure shows, for frame N: the reference and `auto`'s output (tone-mapped x / (1 + x)), the candidate
+the figure shows, for frame N: the reference and `auto`'s output (service.preview.tonemap), the candidate
 each tile went to and the `error` layer (the reference-free estimate, FRAME_FORMAT.md), both from the last
 evaluation up to frame N (named in the panels), and the true relL2 of `auto`'s output per tile
 (`service.metrics.rel_l2_map` averaged over the same tiles), the last two on one log scale.
@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 from service import pipelines  # noqa: E402
 from service.exr import list_sequence, read_frame  # noqa: E402
 from service.metrics import rel_l2_map  # noqa: E402
+from service.preview import tonemap  # noqa: E402
 from service.process import configure  # noqa: E402
 from service.stages.error_estimate import tile_means  # noqa: E402
 
@@ -56,20 +57,15 @@ def run_auto(folder: Path, frame_index: int | None = None) -> dict:
             state.close()
 
 
-def _tone(x: np.ndarray) -> np.ndarray:
-    x = np.maximum(x, 0.0)
-    return (x / (1.0 + x)) ** (1 / 2.2)
-
-
 def write_figure(result: dict, out: Path, title: str) -> None:
     """The five panels of the module docstring into `out` (PNG)."""
     tile, (height, width) = result["tile"], result["color"].shape[:2]
     extent = (0, width, height, 0)
     names = result["candidates"]
     fig, axes = plt.subplots(1, 5, figsize=(17, 3.8), dpi=100)
-    axes[0].imshow(_tone(result["reference"]))
+    axes[0].imshow(tonemap(result["reference"]))
     axes[0].set_title("reference", fontsize=9)
-    axes[1].imshow(_tone(result["color"]))
+    axes[1].imshow(tonemap(result["color"]))
     axes[1].set_title(f"auto, frame {result['frame']} (choice from frame {result['evaluated']})", fontsize=9)
     palette = plt.get_cmap("tab10").colors[: len(names)]
     cmap = matplotlib.colors.ListedColormap(palette)

@@ -34,8 +34,7 @@ from service.stages.rae_inputs import GUIDE_PLANES, ROUGHNESS_ABSENT, demodulate
 NOISY = ("color", "colorA", "colorB")  # the estimates a window may take its noisy input from
 NOISY_P = (0.5, 0.25, 0.25)
 ROUGHNESS_DROP = 0.2  # share of windows that see no roughness
-WINDOW_FIELDS = ("noisy", "target", "guides", "motion", "motion_dual")
-SAMPLED = WINDOW_FIELDS  # the Sequence planes windows are cut from (same names)
+WINDOW_FIELDS = ("noisy", "target", "guides", "motion", "motion_dual")  # also the Sequence planes they are cut from
 
 
 @dataclass
@@ -130,7 +129,7 @@ class SequenceBank:
         self.sequences = sequences
         self.device = torch.device(device)
         self._planes = [{f: torch.from_numpy(getattr(s, f)).to(self.device)
-                         for f in SAMPLED} for s in sequences]
+                         for f in WINDOW_FIELDS} for s in sequences]
 
     @classmethod
     def from_root(cls, root: str | Path, device: str | torch.device = "cpu") -> SequenceBank:
