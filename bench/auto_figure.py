@@ -1,11 +1,12 @@
-"""`python -m bench.auto_figure SEQUENCE OUT.png [--frame N]`: what `auto` chose on one frame, beside its
-`error` layer and the true error.
+"""`python -m bench.auto_figure SEQUENCE OUT.png [--frame N]`: how `auto` blended its candidates on one frame,
+beside its `error` layer and the true error.
 
 `auto` runs over the sequence (every frame up to N, the last by default, in order, as it would be served);
-the figure shows, for frame N: the reference and `auto`'s output (service.preview.tonemap), the candidate
-each tile went to and the `error` layer (the reference-free estimate, FRAME_FORMAT.md), both from the last
-evaluation up to frame N (named in the panels), and the true relL2 of `auto`'s output per tile
-(`service.metrics.rel_l2_map` averaged over the same tiles), the last two on one log scale.
+the figure shows, for frame N: the reference and `auto`'s output (service.preview.tonemap), each tile's
+blend (the candidates' colours mixed by their weights) and the `error` layer (the reference-free estimate,
+FRAME_FORMAT.md), both from the last evaluation up to frame N (named in the panels), and the true relL2 of
+`auto`'s output per tile (`service.metrics.rel_l2_map` averaged over the same tiles), the last two on one
+log scale.
 The sequence's frames need `colorA`, `colorB` and `reference`.
 """
 
@@ -33,8 +34,8 @@ from service.stages.error_estimate import tile_means  # noqa: E402
 def run_auto(folder: Path, frame_index: int | None = None) -> dict:
     """`auto` over `folder`'s frames up to `frame_index` (the last when None). Returns a dict: `reference`,
     `color` (H, W, 3) float32, `error` (H, W) float32 (the estimate), `truth` (th, tw) float64 (the true relL2
-    of `color` per tile), `choice` (th, tw) int64 into `candidates` (names), `tile` (pixels), `frame`, and
-    `evaluated`, the frame whose evaluation gave the choice and the estimate, and `shares` (AutoState.shares)."""
+    of `color` per tile), `blend` (K, th, tw) float64 weights of `candidates` (names), `tile` (pixels), `frame`,
+    `evaluated`, the frame whose evaluation gave the blend and the estimate, and `shares` (AutoState.shares)."""
     paths = list_sequence(folder)
     index = len(paths) - 1 if frame_index is None else frame_index
     if not 0 <= index < len(paths):
@@ -49,7 +50,7 @@ def run_auto(folder: Path, frame_index: int | None = None) -> dict:
             out, state = pipeline.step(frame, state)
         tile = pipeline.options.tile
         return {"reference": frame["reference"], "color": out["color"], "error": out["error"][..., 0],
-                "truth": tile_means(rel_l2_map(out["color"], frame["reference"]), tile), "choice": state.choice,
+                "truth": tile_means(rel_l2_map(out["color"], frame["reference"]), tile), "blend": state.blend,
                 "candidates": list(state.candidates), "tile": tile, "frame": index, "evaluated": state.evaluated,
                 "shares": state.shares()}
     finally:
@@ -66,14 +67,12 @@ def write_figure(result: dict, out: Path, title: str) -> None:
     axes[0].imshow(tonemap(result["reference"]))
     axes[0].set_title("reference", fontsize=9)
     axes[1].imshow(tonemap(result["color"]))
-    axes[1].set_title(f"auto, frame {result['frame']} (choice from frame {result['evaluated']})", fontsize=9)
-    palette = plt.get_cmap("tab10").colors[: len(names)]
-    cmap = matplotlib.colors.ListedColormap(palette)
-    axes[2].imshow(result["choice"], cmap=cmap, vmin=-0.5, vmax=len(names) - 0.5, extent=extent,
-                   interpolation="nearest")
+    axes[1].set_title(f"auto, frame {result['frame']} (blend from frame {result['evaluated']})", fontsize=9)
+    palette = np.array(plt.get_cmap("tab10").colors[: len(names)])
+    axes[2].imshow(np.einsum("kyx,kc->yxc", result["blend"], palette), extent=extent, interpolation="nearest")
     handles = [matplotlib.patches.Patch(color=c, label=n) for c, n in zip(palette, names, strict=True)]
     axes[2].legend(handles=handles, fontsize=7, loc="lower right")
-    axes[2].set_title(f"candidate per {tile}x{tile} tile", fontsize=9)
+    axes[2].set_title(f"blend per {tile}x{tile} tile (colours mixed by weight)", fontsize=9)
     floor = 1e-5
     truth = np.maximum(result["truth"], floor)
     estimate = np.maximum(result["error"], floor)
@@ -100,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frame", type=int, default=None, help="frame index (default: the last)")
     args = parser.parse_args(argv)
     result = run_auto(args.sequence, args.frame)
-    write_figure(result, args.out, f"{args.sequence.name}: auto's choice, its error estimate and the true error")
+    write_figure(result, args.out, f"{args.sequence.name}: auto's blend, its error estimate and the true error")
     print(", ".join(f"{n} {100 * c:.0f}%" for n, c in result["shares"].items()) + f"; written {args.out}")
     return 0
 

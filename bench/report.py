@@ -103,11 +103,11 @@ def sequence_table(seq: dict[str, Any]) -> str:
 
 
 def shares_note(name: str, record: dict[str, Any], results: dict[str, dict[str, Any]]) -> str:
-    """One line on what `auto` (`name`) chose: each candidate's share of tiles (mean over frames), and its time
-    per frame against that of the one it chose most, where that one ran in the same benchmark: the median
+    """One line on what `auto` (`name`) ran: each candidate's blend weight (mean over tiles and frames), and its
+    time per frame against that of the one of largest weight, where that one ran in the same benchmark: the median
     frame's (which leaves the evaluation frames out while they are fewer than half) and the mean's."""
     shares = ", ".join(f"{k} {100 * v:.0f}%" for k, v in record["shares"].items())
-    line = f"- `{name}` chose (share of tiles, mean over frames): {shares}"
+    line = f"- `{name}` blended (weight, mean over tiles and frames): {shares}"
     most = next(iter(record["shares"]))
     if results.get(most, {}).get("status") == "ok":
         mine, theirs = record["summary"], results[most]["summary"]

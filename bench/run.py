@@ -149,7 +149,7 @@ def run_method(
     y0, x0, ch, cw = crop
     score = SequenceScore()
     out_crop = None
-    shares: dict[str, float] = {}  # auto's candidates: share of tiles, mean over frames
+    shares: dict[str, float] = {}  # auto's candidates: blend weight, mean over tiles and frames
     try:
         pipeline = method.make()
         warm = pipeline.start(seq.height, seq.width)

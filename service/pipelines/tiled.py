@@ -1,32 +1,32 @@
-"""`auto`: a main denoiser and, per tile, others where their error, estimated without a reference, is lower
-by a margin, within a cost budget.
+"""`auto`: a per-tile blend of denoisers whose weights minimise their error, estimated without a reference,
+within a cost budget.
 
 At the first two frames and every `every` frames, each candidate (CANDIDATES whose layers the frame has)
 denoises half A alone and half B alone (`both_halves`; else half A only), with a history where it is
 temporal: from a copy of its running state, or, where it is not running, from a state stepped through the
 previous frame (`_history`; the first frame has none: all start fresh), so that a temporal candidate is
-judged as it would run; `service.stages.error_estimate` gives its per-tile relL2 estimate from the halves,
-both ways (`cross_tile_error`: half the variance of one way), normalised by the median of the candidates'
-outputs (the same for all; halves clipped at FIREFLY_CAP times that level, so that fireflies do not
-decide), averaged with the previous evaluation's except the first frame's (made without history).
-`choose` then names the main candidate (the last one while its estimate over the frame stays within
-`tolerance` of the lowest, else the cheapest that is) and gives a tile to another where that one's
-estimate is lower by more than `tolerance`, with as many others as fit in `budget` times the main one's
-cost (COSTS): a frame costs about what its main candidate costs. Every frame, the chosen candidates
-denoise the frame from their own states (a temporal one keeps its history while it stays chosen, and
-starts afresh when chosen again) and their outputs are blended with per-candidate weights interpolated
-between tile centres, so that tiles meet without seams.
+judged as it would run; `service.stages.error_estimate.tile_covariance` gives, per tile, the covariance of
+their relative errors estimated from the halves, both ways (half the variance of one way), normalised by
+the median of the candidates' outputs (the same for all; halves clipped at FIREFLY_CAP times that level,
+so that fireflies do not decide), averaged with the previous evaluation's except the first frame's (made
+without history). `service.stages.candidate_blend.choose` then picks the set of candidates to run (the
+last one while its summed estimate stays within `tolerance` of the lowest, else the cheapest that is,
+costing at most `budget` times the one it weighs most, by COSTS) and per tile their convex weights of least
+estimated error: two candidates whose errors are not fully correlated blend to less error than either.
+Every frame, the members denoise the frame from their own states (a temporal one keeps its history while
+it stays a member, and starts afresh when it joins again) and their outputs are blended with the weights
+interpolated between tile centres, so that tiles meet without seams.
 
-Outputs: `color`, and `error` (H, W, 1): the chosen tiles' estimates from the last evaluation (up to
-`every` - 1 frames old, at fixed tile positions), each at least its own standard error, interpolated the
-same way: the estimated relL2 of the chosen candidates run on half the samples without the guards
-(FRAME_FORMAT.md's `error`: a relative scale to send more samples by, not the error of `color` itself).
-The floor keeps a tile whose estimate fell to zero or below by chance (at 2 spp per half, 5-22% of 32x32
-tiles) from reading as error-free: on the benchmark sequences the log of max(estimate, its sd) follows the
-log of the true error more closely than the estimate clipped at 1e-6 (kpn and bmfr, frames 0-3, all four
-sequences but kpn on shadows). Without `colorA`/`colorB`, or with no candidate the frame can feed, the
-sequence goes to `service.pipelines.auto(layers)`'s choice whole, as the CLI did before this pipeline, and
-there is no `error` layer.
+Outputs: `color`, and `error` (H, W, 1): the blend's estimate per tile from the last evaluation (up to
+`every` - 1 frames old, at fixed tile positions), w^T C w, at least the standard error of that
+evaluation's estimate (halved where averaged), interpolated the same way: the estimated relL2 of the blend
+run on half the samples without the guards (FRAME_FORMAT.md's `error`: a relative scale to send more
+samples by, not the error of `color` itself). The floor keeps a tile whose estimate fell to zero or below
+by chance (at 2 spp per half, 5-22% of 32x32 tiles) from reading as error-free: on the benchmark sequences
+the log of max(estimate, its sd) follows the log of the true error more closely than the estimate clipped
+at 1e-6 (kpn and bmfr, frames 0-3, all four sequences but kpn on shadows). Without `colorA`/`colorB`, or
+with no candidate the frame can feed, the sequence goes to `service.pipelines.auto(layers)`'s choice whole,
+as the CLI did before this pipeline, and there is no `error` layer.
 """
 
 from __future__ import annotations
@@ -41,7 +41,15 @@ from service.frame import LAYERS, Frame, FrameError
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState, Split
 from service.pipelines.options import option
-from service.stages.error_estimate import TILE, cross_tile_error, interpolate_tiles, interpolation_matrix, tile_error
+from service.stages.candidate_blend import choose
+from service.stages.error_estimate import (
+    TILE,
+    cross_tile_error,
+    interpolate_tiles,
+    interpolation_matrix,
+    tile_covariance,
+    tile_error,
+)
 
 # Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest first,
 # with their cost: median ms a 1280x720 frame on 2 cores (`python -m bench.classical_speed`, 2026-11-27; runs
@@ -57,12 +65,11 @@ FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (
 class AutoOptions:
     tile: int = option(TILE, low=8, high=256)  # side of the tiles chosen for, pixels
     every: int = option(8, low=1, high=1000)  # frames between two evaluations of the candidates
-    # the main candidate's summed estimate is within tolerance x |lowest| of the lowest; another takes a tile by
-    # that margin
+    # a set of candidates is near-best where its summed estimate is within tolerance x |lowest| of the lowest
     tolerance: float = option(0.05, low=0.0, high=10.0)
     # run every candidate on both halves at an evaluation (twice its cost, half the estimate's variance)
     both_halves: bool = option(True)
-    # the candidates run on a frame cost at most this times the main one (COSTS)
+    # the candidates run on a frame cost at most this times the one of largest weight (COSTS)
     budget: float = option(1.25, low=1.0, high=100.0)
 
 
@@ -74,22 +81,21 @@ class AutoState(SequenceState):
     fallback_state: SequenceState | None = None
     candidates: dict[str, Pipeline] = field(default_factory=dict)  # name -> pipeline, in CANDIDATES order
     states: dict[str, SequenceState] = field(default_factory=dict)  # the chosen candidates' states
-    estimate: np.ndarray | None = None  # (K, th, tw) float64 running per-tile relL2 estimates
-    variance: np.ndarray | None = None  # (K, th, tw) float64 their variances
-    choice: np.ndarray | None = None  # (th, tw) int64 index into `candidates`
-    weights: np.ndarray | None = None  # (K, H, W) float32 blend weights of `choice`
-    error: np.ndarray | None = None  # (H, W, 1) float32 the chosen tiles' estimates, at least their sd, interpolated
-    main: int | None = None  # index of the main candidate
+    covariance: np.ndarray | None = None  # (K, K, th, tw) float64 running per-tile relL2 error covariance estimate
+    blend: np.ndarray | None = None  # (K, th, tw) float64 per-tile weights of the candidates, summing to 1
+    weights: np.ndarray | None = None  # (K, H, W) float32 `blend` interpolated between tile centres
+    error: np.ndarray | None = None  # (H, W, 1) float32 the blend's estimate per tile, at least its sd, interpolated
+    members: tuple[int, ...] | None = None  # indices of the candidates the blend runs
     evaluated: int | None = None  # the frame index of the last evaluation
     previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
 
     def shares(self) -> dict[str, float]:
-        """Per candidate in the current choice, the share of tiles it denoises (empty before a choice or with the
+        """Per candidate the blend runs, its mean weight over the tiles (empty before an evaluation or with the
         fallback)."""
-        if self.choice is None:
+        if self.blend is None:
             return {}
-        counts = np.bincount(self.choice.ravel(), minlength=len(self.candidates)) / self.choice.size
-        return {name: float(c) for name, c in zip(self.candidates, counts, strict=True) if c > 0}
+        means = self.blend.reshape(len(self.candidates), -1).mean(axis=1)
+        return {name: float(means[k]) for k, name in enumerate(self.candidates) if k in self.members}
 
     def close(self) -> None:
         self.previous = None
@@ -101,8 +107,8 @@ class AutoState(SequenceState):
 @register
 class AutoPipeline(Pipeline):
     name = pipelines.AUTO
-    summary = ("one of flr, bmfr, svgf and kpn, with others on the tiles where their error, estimated from the half "
-               "buffers, is lower, within a cost budget; also outputs that estimate (`error`)")
+    summary = ("a per-tile blend of flr, bmfr, svgf and kpn weighted by their error estimated from the half buffers, "
+               "within a cost budget; also outputs that estimate (`error`)")
     requires = ("color",)
     optional = tuple(k for k in LAYERS if k not in ("color", "reference", "error"))  # any candidate or fallback reads
     temporal = True
@@ -138,8 +144,8 @@ class AutoPipeline(Pipeline):
         if self.evaluates(state.frame_index):
             self._evaluate(frame, state)
         names = list(state.candidates)
-        chosen = sorted(set(state.choice.ravel().tolist()))
-        for index, name in enumerate(names):  # a candidate that left the choice loses its history
+        chosen = state.members
+        for index, name in enumerate(names):  # a candidate that left the blend loses its history
             if index not in chosen and name in state.states:
                 state.states.pop(name).close()
         weights = state.weights
@@ -159,8 +165,8 @@ class AutoPipeline(Pipeline):
 
     def _setup(self, frame: Frame, state: AutoState) -> None:
         state.close()  # a first frame that failed may have set some of it
-        state.fallback = state.fallback_state = state.estimate = state.variance = state.choice = None
-        state.previous = state.main = state.evaluated = None
+        state.fallback = state.fallback_state = state.covariance = state.blend = None
+        state.previous = state.members = state.evaluated = None
         state.candidates, state.states = {}, {}
         layers = set(frame.buffers)
         names = [n for n in CANDIDATES if set(pipelines.pipeline_class(n).requires) <= layers]
@@ -171,7 +177,7 @@ class AutoPipeline(Pipeline):
         state.candidates = {n: pipelines.get(n) for n in names}
 
     def _evaluate(self, frame: Frame, state: AutoState) -> None:
-        """Estimate every candidate's per-tile error on the halves (`run_half`) and choose per tile."""
+        """Estimate the candidates' per-tile error covariance on the halves (`run_half`) and blend per tile."""
         halves = HALVES if self.options.both_halves else HALVES[:1]
         histories = {name: self._history(name, state) for name in state.candidates}
         try:
@@ -181,26 +187,35 @@ class AutoPipeline(Pipeline):
             for name, history in histories.items():
                 if history is not None and history is not state.states.get(name):
                     history.close()
+        a, b, tile = frame["colorA"], frame["colorB"], self.options.tile
+        if "emission" in frame:  # judged on the radiance less the renderer's emission, which every candidate keeps
+            emission = frame["emission"]
+            a, b = a - emission, b - emission
+            outputs = {h: [out - emission for out in outs] for h, outs in outputs.items()}
         # robust to one candidate blowing up (a sky through a window)
         scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
-        a, b, tile = frame["colorA"], frame["colorB"], self.options.tile
-        if self.options.both_halves:
-            errors = [cross_tile_error(out_a, out_b, a, b, scale, tile, cap=FIREFLY_CAP)
-                      for out_a, out_b in zip(outputs["colorA"], outputs["colorB"], strict=True)]
-        else:
-            errors = [tile_error(out_a, a, b, scale, tile, cap=FIREFLY_CAP) for out_a in outputs["colorA"]]
-        estimate, variance = np.stack([e.mean for e in errors]), np.stack([e.variance for e in errors])
-        if state.estimate is not None and state.frame_index > 1:  # not with the first frame's, made without history
-            estimate, variance = 0.5 * (state.estimate + estimate), 0.25 * (state.variance + variance)
-        state.estimate, state.variance, state.evaluated = estimate, variance, state.frame_index
+        outs_b = outputs.get("colorB")
+        covariance = tile_covariance(outputs["colorA"], a, b, scale, tile, cap=FIREFLY_CAP, outs_b=outs_b)
+        averaged = state.covariance is not None and state.frame_index > 1  # not the first frame's, made without history
+        if averaged:
+            covariance = 0.5 * (state.covariance + covariance)
+        state.covariance, state.evaluated = covariance, state.frame_index
         costs = np.array([COSTS[name] for name in state.candidates])
-        # frame 0's main stays at frame 1 while near the lowest: made without history, it still tells (fireflies:
+        # frame 0's members stay at frame 1 while near the lowest: made without history, it still tells (fireflies:
         # kpn, fresh, best at frame 0, svgf within 1% at frame 1; kpn 0.0220 against svgf's 0.0327 over the sequence)
-        state.choice, state.main = choose(estimate, costs, self.options.tolerance, self.options.budget, state.main)
+        state.blend, state.members = choose(covariance, costs, self.options.tolerance, self.options.budget,
+                                            state.members)
         height, width = frame.height, frame.width
-        state.weights = tile_weights(state.choice, len(state.candidates), tile, height, width)
-        chosen, spread = (np.take_along_axis(x, state.choice[None], axis=0)[0] for x in (estimate, variance))
-        floored = np.maximum(chosen, np.sqrt(spread))  # >= 0, and so is its interpolation (convex weights)
+        state.weights = tile_weights(state.blend, tile, height, width)
+        # the blend's estimate w^T C w per tile, at least the sd of this evaluation's (halved where averaged)
+        estimate = np.einsum("jyx,jkyx,kyx->yx", state.blend, covariance, state.blend)
+        pixel_blend = np.repeat(np.repeat(state.blend, tile, axis=1), tile, axis=2)[:, :height, :width, None]
+        blended = [sum(w * out for w, out in zip(pixel_blend, outs, strict=True)) for outs in outputs.values()]
+        if outs_b is not None:
+            spread = cross_tile_error(blended[0], blended[1], a, b, scale, tile, cap=FIREFLY_CAP).variance
+        else:
+            spread = tile_error(blended[0], a, b, scale, tile, cap=FIREFLY_CAP).variance
+        floored = np.maximum(estimate, np.sqrt(0.5 * spread if averaged else spread))
         state.error = interpolate_tiles(floored, tile, height, width)[..., None].astype(np.float32)
 
     @staticmethod
@@ -234,42 +249,8 @@ def one_half(frame: Frame, half: str = "colorA") -> Frame:
     return Frame({**buffers, "color": frame[half]}, dict(frame.nonfinite))
 
 
-def choose(estimate: np.ndarray, costs: np.ndarray, tolerance: float, budget: float,
-           previous: int | None = None) -> tuple[np.ndarray, int]:
-    """Per tile, the index of the candidate that denoises it, and the main candidate's index. estimate: (K, th,
-    tw) finite per-tile error estimates (below zero where noise says so); costs: (K,) the candidates' relative
-    costs; tolerance >= 0; budget >= 1; previous: the last evaluation's main candidate, or None. Returns
-    ((th, tw) int64, int).
-
-    Near-best candidates are those whose estimate summed over the frame is within `tolerance` (times its
-    magnitude) of the lowest sum. The main one is `previous` if it is near-best (a switch costs a temporal
-    candidate its history, and the estimates are noisy), else the cheapest near-best one: it runs on every
-    frame, so a tile it does well enough costs nothing more. Another candidate takes a tile where its
-    estimate is below the main one's by more than `tolerance` times the main one's magnitude, the lowest of
-    those kept there; in order of what they gain (the sum of those margins), each is kept if it still fits:
-    the candidates kept cost at most `budget` times the main one. Where the others take every tile (estimates
-    below zero), the one that serves most tiles is returned as main."""
-    count = len(costs)
-    totals = estimate.reshape(count, -1).sum(axis=1)
-    best = totals.min()
-    near = totals <= best + tolerance * abs(best)
-    main = previous if previous is not None and near[previous] else int(np.argmin(np.where(near, costs, np.inf)))
-    bar = estimate[main] - tolerance * np.abs(estimate[main])  # (th, tw): what another must beat
-    gains = np.maximum(bar[None] - estimate, 0.0).reshape(count, -1).sum(axis=1)
-    kept, total = np.zeros(count, bool), costs[main]
-    kept[main] = True
-    for k in np.argsort(-gains, kind="stable"):
-        if gains[k] > 0 and total + costs[k] <= budget * costs[main] * (1 + 1e-9):
-            kept[k], total = True, total + costs[k]
-    others = np.where(kept[:, None, None] & (estimate < bar[None]), estimate, np.inf)
-    choice = np.where(np.isfinite(others.min(axis=0)), others.argmin(axis=0), main)
-    if not (choice == main).any():  # others beat it everywhere (estimates below zero): the one most chosen is main
-        main = int(np.argmax(np.bincount(choice.ravel(), minlength=count)))
-    return choice, main
-
-
-def tile_weights(choice: np.ndarray, count: int, tile: int, height: int, width: int) -> np.ndarray:
-    """(count, H, W) float32 blend weights of the candidates from the per-tile `choice` (th, tw): each
-    candidate's tile indicator interpolated between tile centres; they sum to 1 at every pixel."""
+def tile_weights(blend: np.ndarray, tile: int, height: int, width: int) -> np.ndarray:
+    """(K, H, W) float32 blend weights of the candidates from the per-tile weights `blend` (K, th, tw): each
+    interpolated between tile centres; where the tiles' weights sum to 1, so do the pixels'."""
     rows, cols = interpolation_matrix(height, tile), interpolation_matrix(width, tile)
-    return np.stack([rows @ (choice == k).astype(np.float64) @ cols.T for k in range(count)]).astype(np.float32)
+    return np.stack([rows @ w @ cols.T for w in blend]).astype(np.float32)

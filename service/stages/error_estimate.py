@@ -32,6 +32,14 @@ ways and cancels in the mean. For Gaussian noise that halves the variance where 
 It estimates the error of f on half the samples, not on the full frame: the ranking of candidates is what
 it is for (bench/error_estimate.py measures how well it ranks them against the true error of f on the
 full frame).
+
+Between two denoisers f and g the same argument gives their errors' covariance: f(A) and g(A) are both
+independent of B, so E[(f(A) - B)(g(A) - B)] = E[(f(A) - mu)(g(A) - mu)] + Var(B), and
+
+    d_fg = (f(A) - B)(g(A) - B) - (A - B)^2 / 2       (both ways: the mean of that and of the same with A, B swapped)
+
+estimates it (`tile_covariance`; d_ff is d). A blend sum_k w_k f_k (weights summing to 1) has the squared
+error w^T C w, C the matrix of these per tile: what `auto` minimises when it blends candidates.
 """
 
 from __future__ import annotations
@@ -95,13 +103,21 @@ def pixel_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, sca
     channels. out_a: (H, W, 3) a denoiser's output from half A alone; color_a, color_b: (H, W, 3) the halves;
     scale: (H, W, 3) the image whose channel mean normalises (module docstring); all linear radiance. cap:
     clip the halves at cap x (that mean + sqrt(eps)) first (fireflies, module docstring); None: unbiased."""
-    fa, a, b = (x.astype(np.float64) for x in (out_a, color_a, color_b))
+    a, b, weight = _normalised(color_a, color_b, scale, eps, cap)
+    d = ((out_a.astype(np.float64) - b) ** 2 - 0.5 * (a - b) ** 2) * weight
+    return d.mean(axis=-1)
+
+
+def _normalised(color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray, eps: float,
+                cap: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The halves as float64 (H, W, 3), clipped with `cap` (`pixel_error`), and the relL2 weight 1 / (m^2 + eps)
+    of the scale's channel mean m, (H, W, 1) float64."""
+    a, b = color_a.astype(np.float64), color_b.astype(np.float64)
     m = scale.astype(np.float64).mean(axis=-1, keepdims=True)
     if cap is not None:
         limit = cap * (np.abs(m) + np.sqrt(eps))
         a, b = np.minimum(a, limit), np.minimum(b, limit)
-    d = ((fa - b) ** 2 - 0.5 * (a - b) ** 2) / (m * m + eps)
-    return d.mean(axis=-1)
+    return a, b, 1.0 / (m * m + eps)
 
 
 def tile_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray, tile: int = TILE,
@@ -119,6 +135,31 @@ def cross_tile_error(out_a: np.ndarray, out_b: np.ndarray, color_a: np.ndarray, 
     d = 0.5 * (pixel_error(out_a, color_a, color_b, scale, eps, cap)
                + pixel_error(out_b, color_b, color_a, scale, eps, cap))
     return _tiled(d, tile)
+
+
+def tile_covariance(outs_a: list[np.ndarray], color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray,
+                    tile: int = TILE, eps: float = REL_L2_EPS, cap: float | None = None,
+                    outs_b: list[np.ndarray] | None = None) -> np.ndarray:
+    """Per tile, the estimated covariance of K denoisers' relative errors on half the samples (module docstring):
+    (K, K, ceil(H / tile), ceil(W / tile)) float64, symmetric, its diagonal `tile_error`'s means (with `outs_b`,
+    `cross_tile_error`'s). outs_a: K (H, W, 3) outputs from half A alone; outs_b: the same from half B alone,
+    for the estimate both ways, or None for one way; the other arguments as `pixel_error`. Not positive
+    semi-definite in general (noise): a caller that needs it so projects it."""
+    if tile < 1:
+        raise ValueError(f"tile must be >= 1, got {tile}")
+    a, b, weight = _normalised(color_a, color_b, scale, eps, cap)
+    halves = 0.5 * ((a - b) ** 2 * weight).mean(axis=-1)
+    ways = [[x.astype(np.float64) - b for x in outs_a]]
+    if outs_b is not None:
+        ways.append([x.astype(np.float64) - a for x in outs_b])
+    count = len(outs_a)
+    height, width = a.shape[:2]
+    result = np.empty((count, count, -(-height // tile), -(-width // tile)))
+    for j in range(count):
+        for k in range(j, count):
+            d = sum((way[j] * way[k] * weight).mean(axis=-1) for way in ways) / len(ways) - halves
+            result[j, k] = result[k, j] = tile_means(d, tile)
+    return result
 
 
 def _tiled(d: np.ndarray, tile: int) -> TileError:

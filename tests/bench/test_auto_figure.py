@@ -1,4 +1,4 @@
-"""`python -m bench.auto_figure`: auto's choice, its `error` layer and the true error of one frame."""
+"""`python -m bench.auto_figure`: auto's blend, its `error` layer and the true error of one frame."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from service.metrics import rel_l2_map
 from service.stages.error_estimate import tile_means
 
 
-def test_the_frame_auto_served_with_its_choice_estimate_and_truth(tiny_sequence_dir: Path, tmp_path: Path) -> None:
-    """What the figure shows is what `auto` serves: the same output, `error` layer and choice as a run of the
+def test_the_frame_auto_served_with_its_blend_estimate_and_truth(tiny_sequence_dir: Path, tmp_path: Path) -> None:
+    """What the figure shows is what `auto` serves: the same output, `error` layer and blend as a run of the
     pipeline itself, and the per-tile truth of that output."""
     result = run_auto(tiny_sequence_dir, 1)
     frames = [read_frame(p) for p in list_sequence(tiny_sequence_dir)[:2]]
@@ -26,7 +26,7 @@ def test_the_frame_auto_served_with_its_choice_estimate_and_truth(tiny_sequence_
         served, state = auto.step(frame, state)
     np.testing.assert_array_equal(result["color"], served["color"])
     np.testing.assert_array_equal(result["error"], served["error"][..., 0])
-    np.testing.assert_array_equal(result["choice"], state.choice)
+    np.testing.assert_array_equal(result["blend"], state.blend)
     assert result["candidates"] == list(state.candidates) and result["evaluated"] == 1
     assert result["shares"] == state.shares() and sum(result["shares"].values()) == pytest.approx(1.0)
     np.testing.assert_array_equal(result["truth"], tile_means(rel_l2_map(served["color"], frames[1]["reference"]),

@@ -116,16 +116,16 @@ def test_a_method_may_name_pipeline_options_and_bad_ones_are_refused_up_front() 
         pipeline_method("bilateral:radius=99")
 
 
-def test_autos_choice_is_recorded_and_its_time_set_against_the_candidate_it_chose_most(tiny_sequence_dir: Path) -> None:
+def test_autos_blend_is_recorded_and_its_time_set_against_the_candidate_it_weighs_most(tiny_sequence_dir: Path) -> None:
     results, _ = benchmark([tiny_sequence_dir], [pipeline_method("auto"), pipeline_method("flr")], flip=False,
                            progress=False, command=["test"], repeats=1)
     records = results["sequences"][0]["results"]
     shares = records["auto"]["shares"]
     assert set(shares) <= set(tiled.CANDIDATES) and sum(shares.values()) == pytest.approx(1.0)
-    assert list(shares.values()) == sorted(shares.values(), reverse=True)  # the most chosen first
+    assert list(shares.values()) == sorted(shares.values(), reverse=True)  # the largest weight first
     assert "shares" not in records["flr"]
     record = {"shares": {"kpn": 0.75, "flr": 0.25}, "summary": {"ms_per_frame": 12.0, "ms_mean": 20.0}}
     ran = {"kpn": {"status": "ok", "summary": {"ms_per_frame": 10.0, "ms_mean": 10.0}}}
-    assert shares_note("auto", record, ran) == ("- `auto` chose (share of tiles, mean over frames): kpn 75%, flr 25%; "
+    assert shares_note("auto", record, ran) == ("- `auto` blended (weight, mean over tiles and frames): kpn 75%, flr 25%; "
                                                 "its median frame takes 1.20x kpn's, its mean 2.00x")
     assert shares_note("auto", record, {}).endswith("flr 25%")
