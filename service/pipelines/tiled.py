@@ -188,11 +188,7 @@ class AutoPipeline(Pipeline):
                 if history is not None and history is not state.states.get(name):
                     history.close()
         a, b, tile = frame["colorA"], frame["colorB"], self.options.tile
-        if "emission" in frame:  # judged on the radiance less the renderer's emission, which every candidate keeps
-            emission = frame["emission"]
-            a, b = a - emission, b - emission
-            outputs = {h: [out - emission for out in outs] for h, outs in outputs.items()}
-        # robust to one candidate blowing up (a sky through a window)
+        # robust to one candidate blowing up (a sky through a window); with the emission, as relL2's reference
         scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
         outs_b = outputs.get("colorB")
         covariance = tile_covariance(outputs["colorA"], a, b, scale, tile, cap=FIREFLY_CAP, outs_b=outs_b)

@@ -126,6 +126,7 @@ def test_autos_blend_is_recorded_and_its_time_set_against_the_candidate_it_weigh
     assert "shares" not in records["flr"]
     record = {"shares": {"kpn": 0.75, "flr": 0.25}, "summary": {"ms_per_frame": 12.0, "ms_mean": 20.0}}
     ran = {"kpn": {"status": "ok", "summary": {"ms_per_frame": 10.0, "ms_mean": 10.0}}}
-    assert shares_note("auto", record, ran) == ("- `auto` blended (weight, mean over tiles and frames): kpn 75%, flr 25%; "
-                                                "its median frame takes 1.20x kpn's, its mean 2.00x")
+    assert shares_note("auto", record, ran) == (
+        "- `auto` blended (weight, mean over tiles and frames): kpn 75%, flr 25%; "
+        "its median frame takes 1.20x kpn's, its mean 2.00x")
     assert shares_note("auto", record, {}).endswith("flr 25%")
