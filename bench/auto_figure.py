@@ -72,7 +72,7 @@ def write_figure(result: dict, out: Path, title: str) -> None:
     axes[2].imshow(np.einsum("kyx,kc->yxc", result["blend"], palette), extent=extent, interpolation="nearest")
     handles = [matplotlib.patches.Patch(color=c, label=n) for c, n in zip(palette, names, strict=True)]
     axes[2].legend(handles=handles, fontsize=7, loc="lower right")
-    axes[2].set_title(f"blend per {tile}x{tile} tile (colours mixed by weight)", fontsize=9)
+    axes[2].set_title(f"weights per {tile}x{tile} tile (colours mixed)", fontsize=9)
     floor = 1e-5
     truth = np.maximum(result["truth"], floor)
     estimate = np.maximum(result["error"], floor)
