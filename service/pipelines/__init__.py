@@ -16,7 +16,7 @@ _REGISTRY: dict[str, type[Pipeline]] = {}
 # Used when an API caller names no pipeline: relL2 1.88x OIDN-high's at 108 ms/MP in `make bench` (2026-11-26).
 # `auto` has the lower error there (1.68x) but takes about 6x the time per frame; the CLI defaults to it.
 DEFAULT = "crossregression"
-AUTO = "auto"  # the per-tile choice (service/pipelines/tiled.py); the CLI's default
+AUTO = "auto"  # the per-tile blend (service/pipelines/tiled.py); the CLI's default
 # Preference of `auto`, best first by the benchmark's relL2 against OIDN-high at moderate cost (`make bench`,
 # 2026-11-27: kpn 1.45x at 0.30x OIDN-high's time at 1280x720, flr 1.80x at 0.04x); `bilateral` needs only
 # `color` and so is the fallback for any frame.

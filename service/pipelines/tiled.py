@@ -18,15 +18,15 @@ it stays a member, and starts afresh when it joins again) and their outputs are 
 interpolated between tile centres, so that tiles meet without seams.
 
 Outputs: `color`, and `error` (H, W, 1): the blend's estimate per tile from the last evaluation (up to
-`every` - 1 frames old, at fixed tile positions), w^T C w, at least the standard error of that
-evaluation's estimate (halved where averaged), interpolated the same way: the estimated relL2 of the blend
-run on half the samples without the guards (FRAME_FORMAT.md's `error`: a relative scale to send more
-samples by, not the error of `color` itself). The floor keeps a tile whose estimate fell to zero or below
-by chance (at 2 spp per half, 5-22% of 32x32 tiles) from reading as error-free: on the benchmark sequences
-the log of max(estimate, its sd) follows the log of the true error more closely than the estimate clipped
-at 1e-6 (kpn and bmfr, frames 0-3, all four sequences but kpn on shadows). Without `colorA`/`colorB`, or
-with no candidate the frame can feed, the sequence goes to `service.pipelines.auto(layers)`'s choice whole,
-as the CLI did before this pipeline, and there is no `error` layer.
+`every` - 1 frames old, at fixed tile positions), w^T C w, at least the standard error of that estimate
+(this evaluation's, its variance scaled as the running average scales it), interpolated the same way: the
+estimated relL2 of the blend run on half the samples without the guards (FRAME_FORMAT.md's `error`: a
+relative scale to send more samples by, not the error of `color` itself). The floor keeps a tile whose
+estimate fell to zero or below by chance (at 2 spp per half, 5-22% of 32x32 tiles) from reading as
+error-free: on the benchmark sequences the log of max(estimate, its sd) follows the log of the true error
+more closely than the estimate clipped at 1e-6 (kpn and bmfr, frames 0-3, all four sequences but kpn on
+shadows). Without `colorA`/`colorB`, or with no candidate the frame can feed, the sequence goes to
+`service.pipelines.auto(layers)`'s choice whole, as the CLI did before this pipeline, and there is no `error` layer.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (
 
 @dataclass(frozen=True)
 class AutoOptions:
-    tile: int = option(TILE, low=8, high=256)  # side of the tiles chosen for, pixels
+    tile: int = option(TILE, low=8, high=256)  # side of the tiles blended per, pixels
     every: int = option(8, low=1, high=1000)  # frames between two evaluations of the candidates
     # a set of candidates is near-best where its summed estimate is within tolerance x |lowest| of the lowest
     tolerance: float = option(0.05, low=0.0, high=10.0)
@@ -80,11 +80,13 @@ class AutoState(SequenceState):
     fallback: Pipeline | None = None  # the whole-sequence choice when the frames have no halves
     fallback_state: SequenceState | None = None
     candidates: dict[str, Pipeline] = field(default_factory=dict)  # name -> pipeline, in CANDIDATES order
-    states: dict[str, SequenceState] = field(default_factory=dict)  # the chosen candidates' states
+    states: dict[str, SequenceState] = field(default_factory=dict)  # the members' states
     covariance: np.ndarray | None = None  # (K, K, th, tw) float64 running per-tile relL2 error covariance estimate
     blend: np.ndarray | None = None  # (K, th, tw) float64 per-tile weights of the candidates, summing to 1
     weights: np.ndarray | None = None  # (K, H, W) float32 `blend` interpolated between tile centres
     error: np.ndarray | None = None  # (H, W, 1) float32 the blend's estimate per tile, at least its sd, interpolated
+    # the running average's variance against one evaluation's: 1, then f <- f / 4 + 1 / 4 at each average
+    variance_factor: float = 1.0
     members: tuple[int, ...] | None = None  # indices of the candidates the blend runs
     evaluated: int | None = None  # the frame index of the last evaluation
     previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
@@ -121,12 +123,12 @@ class AutoPipeline(Pipeline):
         return AutoState(height, width)
 
     def check(self, frame: Frame, state: SequenceState) -> None:
-        """Also: once the first frame's halves started the per-tile choice, every frame must have them."""
+        """Also: once the first frame's halves started the per-tile blend, every frame must have them."""
         super().check(frame, state)
         if isinstance(state, AutoState) and state.candidates:
             for name in HALVES:
                 if name not in frame:
-                    raise FrameError(f"pipeline 'auto' chooses per tile from the half buffers since the sequence's "
+                    raise FrameError(f"pipeline 'auto' blends per tile from the half buffers since the sequence's "
                                      f"first frame; this frame has no layer '{name}'", name)
 
     def denoise_split(self, frame: Frame, state: SequenceState) -> Split:
@@ -192,9 +194,11 @@ class AutoPipeline(Pipeline):
         scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
         outs_b = outputs.get("colorB")
         covariance = tile_covariance(outputs["colorA"], a, b, scale, tile, cap=FIREFLY_CAP, outs_b=outs_b)
-        averaged = state.covariance is not None and state.frame_index > 1  # not the first frame's, made without history
-        if averaged:
+        if state.covariance is not None and state.frame_index > 1:  # not with the first frame's, made without history
             covariance = 0.5 * (state.covariance + covariance)
+            state.variance_factor = 0.25 * state.variance_factor + 0.25
+        else:
+            state.variance_factor = 1.0
         state.covariance, state.evaluated = covariance, state.frame_index
         costs = np.array([COSTS[name] for name in state.candidates])
         # frame 0's members stay at frame 1 while near the lowest: made without history, it still tells (fireflies:
@@ -203,7 +207,7 @@ class AutoPipeline(Pipeline):
                                             state.members)
         height, width = frame.height, frame.width
         state.weights = tile_weights(state.blend, tile, height, width)
-        # the blend's estimate w^T C w per tile, at least the sd of this evaluation's (halved where averaged)
+        # the blend's estimate w^T C w per tile, at least its sd: this evaluation's, scaled as the average scales it
         estimate = np.einsum("jyx,jkyx,kyx->yx", state.blend, covariance, state.blend)
         pixel_blend = np.repeat(np.repeat(state.blend, tile, axis=1), tile, axis=2)[:, :height, :width, None]
         blended = [sum(w * out for w, out in zip(pixel_blend, outs, strict=True)) for outs in outputs.values()]
@@ -211,7 +215,7 @@ class AutoPipeline(Pipeline):
             spread = cross_tile_error(blended[0], blended[1], a, b, scale, tile, cap=FIREFLY_CAP).variance
         else:
             spread = tile_error(blended[0], a, b, scale, tile, cap=FIREFLY_CAP).variance
-        floored = np.maximum(estimate, np.sqrt(0.5 * spread if averaged else spread))
+        floored = np.maximum(estimate, np.sqrt(state.variance_factor * spread))
         state.error = interpolate_tiles(floored, tile, height, width)[..., None].astype(np.float32)
 
     @staticmethod

@@ -148,16 +148,17 @@ def tile_covariance(outs_a: list[np.ndarray], color_a: np.ndarray, color_b: np.n
     if tile < 1:
         raise ValueError(f"tile must be >= 1, got {tile}")
     a, b, weight = _normalised(color_a, color_b, scale, eps, cap)
+    root = np.sqrt(weight)  # folded into each difference: one product per pair and way
     halves = 0.5 * ((a - b) ** 2 * weight).mean(axis=-1)
-    ways = [[x.astype(np.float64) - b for x in outs_a]]
+    ways = [[(x.astype(np.float64) - b) * root for x in outs_a]]
     if outs_b is not None:
-        ways.append([x.astype(np.float64) - a for x in outs_b])
+        ways.append([(x.astype(np.float64) - a) * root for x in outs_b])
     count = len(outs_a)
     height, width = a.shape[:2]
     result = np.empty((count, count, -(-height // tile), -(-width // tile)))
     for j in range(count):
         for k in range(j, count):
-            d = sum((way[j] * way[k] * weight).mean(axis=-1) for way in ways) / len(ways) - halves
+            d = sum((way[j] * way[k]).mean(axis=-1) for way in ways) / len(ways) - halves
             result[j, k] = result[k, j] = tile_means(d, tile)
     return result
 

@@ -1,4 +1,4 @@
-"""`auto`: the per-tile choice by the reference-free error estimate, its blend, its fallback and its error layer."""
+"""`auto`: the per-tile blend by the reference-free error estimate, its members, its fallback and its error layer."""
 
 import copy
 import dataclasses
@@ -77,7 +77,7 @@ def test_with_halves_it_blends_per_tile_reevaluates_every_k_frames_and_outputs_i
     np.testing.assert_array_equal(outs[3]["error"], outs[2]["error"])  # frame 3 keeps frame 2's evaluation
     w = state.blend[:, 0, 0]
     assert outs[-1]["error"][0, 0, 0] >= w @ state.covariance[:, :, 0, 0] @ w * (1 - 1e-6)  # at least its sd
-    # each frame is the weighted blend of the chosen candidates, each stepped on the frame from its own state
+    # each frame is the weighted blend of the members, each stepped on the frame from its own state
     assert set(state.states) == {CANDIDATES[i] for i in state.members}
     assert set(np.flatnonzero(state.blend.reshape(len(CANDIDATES), -1).sum(axis=1))) == set(state.members)
 
@@ -90,7 +90,7 @@ def test_a_candidate_alone_is_served_exactly_when_every_tile_chooses_it(frames, 
         np.testing.assert_allclose(out["color"], ref["color"], rtol=1e-6, atol=1e-7)
 
 
-def test_a_frame_without_halves_after_the_choice_started_is_refused_naming_the_layer(frames):
+def test_a_frame_without_halves_after_the_blend_started_is_refused_naming_the_layer(frames):
     from service.frame import FrameError
 
     pipeline = pipelines.get("auto", every=2)
@@ -157,7 +157,7 @@ def test_each_evaluation_averages_with_the_previous_one_but_the_first(frames, mo
 
 def test_the_estimate_both_ways_compares_each_candidate_on_half_a_and_on_half_b(frames):
     """At the first frame each candidate's f(A) and f(B) (from fresh states) give the error covariance both ways,
-    whose diagonal is each candidate's `cross_tile_error`."""
+    whose diagonal is each candidate's `cross_tile_error`; the `error` layer is the blend's estimate."""
     from service.stages.error_estimate import cross_tile_error
 
     _, state = _run(pipelines.get("auto", tile=16, every=8), frames[:1])
@@ -171,6 +171,13 @@ def test_the_estimate_both_ways_compares_each_candidate_on_half_a_and_on_half_b(
                                     cap=tiled.FIREFLY_CAP).mean
         np.testing.assert_allclose(state.covariance[k, k], expected, rtol=1e-9, atol=1e-15)
     np.testing.assert_array_equal(state.covariance, state.covariance.transpose(1, 0, 2, 3))
+    # the error layer: the blend's estimate w^T C w, at least the sd of the blended halves' estimate
+    blend = state.blend
+    per_pixel = np.repeat(np.repeat(blend, 16, axis=1), 16, axis=2)[:, :40, :72, None]
+    blended = [sum(w * o for w, o in zip(per_pixel, outputs[h], strict=True)) for h in ("colorA", "colorB")]
+    spread = cross_tile_error(*blended, a, b, scale, 16, cap=tiled.FIREFLY_CAP).variance
+    floored = np.maximum(np.einsum("jyx,jkyx,kyx->yx", blend, state.covariance, blend), np.sqrt(spread))
+    np.testing.assert_allclose(state.error[..., 0], interpolate_tiles(floored, 16, 40, 72), rtol=1e-5)
 
 
 def test_a_running_candidate_is_judged_from_a_copy_of_its_state(frames, monkeypatch):
@@ -268,7 +275,8 @@ def test_the_members_are_handed_to_the_next_evaluation(frames, monkeypatch):
 
 def test_the_error_layer_is_at_least_the_estimates_standard_error(frames, monkeypatch):
     """A tile whose blend's estimate fell below zero by chance reads as its standard error, not as error-free;
-    one above it reads as itself."""
+    one above it reads as itself. The sd is that of the running average: one evaluation's at frames 0 and 1
+    (the first is not averaged into the second), then scaled by 1/2, 3/8, ... as averages are taken."""
     from service.stages.error_estimate import TileError
 
     def covariance(outs_a, *args, **kwargs):
@@ -279,7 +287,8 @@ def test_the_error_layer_is_at_least_the_estimates_standard_error(frames, monkey
     monkeypatch.setattr(tiled, "tile_covariance", covariance)
     monkeypatch.setattr(tiled, "cross_tile_error", lambda *args, **kwargs: TileError(np.zeros((3, 5)),
                                                                                       np.full((3, 5), 4.0), 16))
-    outs, _ = _run(pipelines.get("auto", tile=16), frames[:1])
-    error = outs[0]["error"][..., 0]
-    np.testing.assert_allclose(error[:, :16], 2.0, rtol=1e-6)  # sqrt(4), interpolated between equal tiles
-    np.testing.assert_allclose(error[:, 60:], 5.0, rtol=1e-6)
+    outs, _ = _run(pipelines.get("auto", tile=16, every=2), frames)  # evaluations at frames 0, 1, 2 and 4
+    for out, factor in zip(outs, (1.0, 1.0, 0.5, 0.5, 0.375), strict=True):
+        error = out["error"][..., 0]
+        np.testing.assert_allclose(error[:, :16], np.sqrt(4.0 * factor), rtol=1e-6)  # interpolated between equal tiles
+        np.testing.assert_allclose(error[:, 60:], 5.0, rtol=1e-6)

@@ -67,7 +67,7 @@ def test_the_budget_is_against_the_member_that_serves_most():
     covariance = _tiles(np.diag([1.0, 1.0]))  # two equal, independent: the blend is 0.5 with weights 1/2, 1/2
     costs = np.array([1.0, 7.0])
     assert choose(covariance, costs, 0.0, 100.0)[1] == (0, 1)
-    assert choose(covariance, costs, 0.0, 1.25)[1] == (0,)  # 8 > 1.25 x 7: the cheaper alone
+    assert choose(covariance, costs, 0.0, 1.25)[1] == (0,)  # equal weights, flr first: 8 > 1.25 x 1
     lopsided = _tiles(np.diag([4.0, 1.0]))  # kpn serves 80%: flr beside it costs 8 / 7
     assert choose(lopsided, costs, 0.0, 1.25)[1] == (0, 1)
 
@@ -77,6 +77,7 @@ def test_the_previous_set_stays_while_it_is_near_the_lowest():
     assert choose(covariance, COSTS[:3], 0.05, 1.0)[1] == (0,)
     assert choose(covariance, COSTS[:3], 0.05, 1.0, previous=(1,))[1] == (1,)  # bmfr ran: it stays
     assert choose(covariance, COSTS[:3], 0.05, 1.0, previous=(2,))[1] == (0,)  # svgf is not near
+    assert choose(covariance, COSTS[:3], 0.05, 1.0, previous=(0, 1))[1] == (0,)  # over the budget now: not kept
 
 
 def test_weights_are_convex_per_tile_on_random_covariances():
@@ -88,7 +89,10 @@ def test_weights_are_convex_per_tile_on_random_covariances():
     assert (weights >= 0).all()
     np.testing.assert_allclose(weights.sum(axis=0), 1.0)
     assert set(np.flatnonzero(weights.reshape(4, -1).sum(axis=1))) == set(members)
-    # no single candidate or pair does better in any tile than the blend chosen there
+    # with every candidate in the set, no weights on the simplex do better in any tile than the blend there
     matrices = positive_definite(covariance)
     blend = np.einsum("kt,tkj,jt->t", weights.reshape(4, -1), matrices, weights.reshape(4, -1))
-    assert (blend <= np.einsum("tkk->tk", matrices).min(axis=1) + 1e-12).all()
+    trials = rng.dirichlet(np.full(4, 0.5), size=4000)  # (N, K), many near the simplex's faces
+    trials = np.concatenate([trials, np.eye(4)])
+    values = np.einsum("nk,tkj,nj->tn", trials, matrices, trials)
+    assert (blend <= values.min(axis=1) * (1 + 1e-9) + 1e-15).all()

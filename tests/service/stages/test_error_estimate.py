@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service.metrics import REL_L2_EPS
-from service.stages.error_estimate import cross_tile_error, pixel_error, tile_error, tile_sums
+from service.stages.error_estimate import cross_tile_error, pixel_error, tile_covariance, tile_error, tile_sums
 
 
 def _halves(rng, mu, sigma):
@@ -98,3 +98,60 @@ def test_with_a_cap_fireflies_in_one_half_do_not_decide_the_ranking():
     capped = [tile_error(x, a, b, mu, tile=32, cap=4.0).mean[0, 0] for x in (good, brighter)]
     assert plain[0] > plain[1]  # without the cap the firefly makes the worse candidate look better
     assert capped[0] < capped[1]
+
+
+def _denoisers(rng, mu):
+    """Three denoisers' outputs (per half: f(A), f(B)): a bias, independent noise, and a mix of the two, so
+    that their errors are partly correlated."""
+    bias = (0.05 * mu).astype(np.float32)
+    def run(h):
+        own = (0.1 * mu * rng.standard_normal(mu.shape)).astype(np.float32)
+        return [mu + bias, mu + own, mu + 0.5 * bias + 0.5 * own]
+    return run
+
+
+@pytest.mark.parametrize("both", [False, True])
+def test_a_blends_estimate_is_w_c_w_of_the_covariance(both):
+    """The covariance's quadratic form in per-tile weights is exactly the estimate of the blended output (one
+    way: `tile_error`; both ways: `cross_tile_error`), and its diagonal is each denoiser's."""
+    rng = np.random.default_rng(5)
+    mu, sigma = _scene(rng, 70, 90)
+    a, b = _halves(rng, mu, sigma)
+    run = _denoisers(rng, mu)
+    outs_a, outs_b = run(a), run(b)
+    cov = tile_covariance(outs_a, a, b, mu, 32, cap=4.0, outs_b=outs_b if both else None)
+    assert cov.shape == (3, 3, 3, 3)
+    np.testing.assert_array_equal(cov, cov.transpose(1, 0, 2, 3))
+    weights = rng.dirichlet(np.ones(3), size=(3, 3)).transpose(2, 0, 1)  # (3, th, tw), summing to 1 per tile
+    per_pixel = np.repeat(np.repeat(weights, 32, axis=1), 32, axis=2)[:, :70, :90, None]
+    blend_a, blend_b = (sum(w * o for w, o in zip(per_pixel, outs, strict=True)) for outs in (outs_a, outs_b))
+    if both:
+        direct = cross_tile_error(blend_a, blend_b, a, b, mu, 32, cap=4.0).mean
+        diagonal = [cross_tile_error(outs_a[k], outs_b[k], a, b, mu, 32, cap=4.0).mean for k in range(3)]
+    else:
+        direct = tile_error(blend_a, a, b, mu, 32, cap=4.0).mean
+        diagonal = [tile_error(outs_a[k], a, b, mu, 32, cap=4.0).mean for k in range(3)]
+    np.testing.assert_allclose(np.einsum("jyx,jkyx,kyx->yx", weights, cov, weights), direct, rtol=1e-9, atol=1e-12)
+    for k in range(3):
+        np.testing.assert_allclose(cov[k, k], diagonal[k], rtol=1e-9, atol=1e-12)
+
+
+def test_the_covariance_is_unbiased_off_the_diagonal():
+    """Averaged over frames, each off-diagonal entry matches the true covariance of the two denoisers' errors."""
+    rng = np.random.default_rng(6)
+    mu, sigma = _scene(rng, 64, 64)
+    scale = mu.astype(np.float64).mean(axis=-1, keepdims=True)
+    weight = 1.0 / (scale * scale + REL_L2_EPS)
+    estimates, truths = [], []
+    for _ in range(40):
+        a, b = _halves(rng, mu, sigma)
+        run = _denoisers(rng, mu)
+        outs_a, outs_b = run(a), run(b)
+        estimates.append(tile_covariance(outs_a, a, b, mu, 64, outs_b=outs_b)[:, :, 0, 0])
+        errors = [[o.astype(np.float64) - mu for o in outs] for outs in (outs_a, outs_b)]
+        truths.append(np.array([[np.mean([((e[j] * e[k]) * weight).mean() for e in errors]) for k in range(3)]
+                                for j in range(3)]))
+    estimate, truth = np.mean(estimates, axis=0), np.mean(truths, axis=0)
+    spread = np.std(estimates, axis=0) / np.sqrt(len(estimates))
+    assert (np.abs(estimate - truth) < 4 * spread + 1e-6).all(), (estimate - truth) / spread
+    assert truth[0, 2] > 5 * spread[0, 2] and abs(truth[0, 1]) < truth[0, 2]  # a real correlation, measured
