@@ -19,6 +19,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--made-by", default="", metavar="COMMAND",
                         help="the command that rendered the data of the checkpoint's run and ran it, where that "
                              "was not `make data` and the run's own command (models/train/accelerator.sh ...)")
+    parser.add_argument("--made-by-for", nargs=2, action="append", default=[], metavar=("CKPT", "COMMAND"),
+                        help="the same for the run that made CKPT, a checkpoint this one was fine-tuned from "
+                             "(as its --init named it); repeatable")
     args = parser.parse_args(argv)
     from export.checkpoint import export_checkpoint  # torch: imported once the arguments are good
     from service.process import configure
@@ -26,7 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     configure()  # an entry point that reaches the service's kernels (service/process.py)
 
     try:
-        path = export_checkpoint(args.net, args.checkpoint, args.out, made_by=args.made_by)
+        path = export_checkpoint(args.net, args.checkpoint, args.out, made_by=args.made_by,
+                                 earlier=dict(args.made_by_for))
     except ValueError as err:
         raise SystemExit(f"python -m export: {err}") from None
     print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")

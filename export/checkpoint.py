@@ -3,7 +3,8 @@ and its manifest, for every offline-trained network (export/rae.py, export/flnr.
 
 The manifest (OUT.json) says what the shipped weights are and how they were made: the network, the training
 run (its options as a command line, preceded by the runs it fine-tuned, oldest first, and by `make data` or
-the command that rendered its data and ran it, `--made-by`), data, seed, steps, losses, validation curve,
+the command that rendered its data and ran it: `--made-by` for the exported run, `--made-by-for CKPT` for the
+run that made CKPT), data, seed, steps, losses, validation curve,
 time and machine, from the checkpoint and the log.csv beside it.
 """
 
@@ -47,17 +48,31 @@ def train_command(opts: dict[str, Any], step: int) -> str:
 
 
 def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_path: Path,
-             network: str, made_by: str = "") -> dict[str, Any]:
+             network: str, made_by: str = "", earlier: dict[str, str] | None = None) -> dict[str, Any]:
     """The manifest of the module docstring. `made_by`: the command that rendered the last run's data and ran
-    it (listed before that run's command), where it was not `make data`."""
+    it (listed before that run's command), where it was not `make data`; `earlier`: the same for runs it
+    fine-tuned, by the checkpoint path they made as the chain names it (`--init`). `make data` comes first
+    while any run lacks one."""
     opts = ckpt.get("options") or {}
-    runs, base, init = [train_command(opts, ckpt["step"])], [], opts.get("init")
+    runs, base, init = [(str(checkpoint), train_command(opts, ckpt["step"]))], [], opts.get("init")
     while init and Path(init).is_file():  # the runs this one fine-tuned, oldest first
         start = torch.load(init, map_location="cpu", weights_only=False)
-        runs.insert(0, train_command(start["options"], start["step"]))
+        runs.insert(0, (init, train_command(start["options"], start["step"])))
         base.insert(0, {"checkpoint": init, "step": start.get("step"), "seconds": start.get("seconds"),
                         "best_val_rel_l2": start.get("best_val_rel_l2")})
         init = start["options"].get("init")
+    earlier = earlier or {}
+    unknown = set(earlier) - {path for path, _ in runs[:-1]}
+    if unknown:
+        raise ValueError(f"--made-by-for names no checkpoint this one was fine-tuned from: {sorted(unknown)}")
+    made = {**earlier, **({str(checkpoint): made_by} if made_by else {})}
+    commands = ["make data"] * any(path not in made for path, _ in runs)
+    for path, command in runs:
+        commands += ([made[path]] if path in made else []) + [command]
+    exported = ["python", "-m", "export", network, str(checkpoint), str(onnx_path),
+                *["--made-by", made_by] * bool(made_by)]
+    for path, command in earlier.items():
+        exported += ["--made-by-for", path, command]
     log = checkpoint.parent / LOG
     rows = list(csv.DictReader(log.open())) if log.is_file() else []
     train_rows = [r for r in rows if r["kind"] == "train" and int(r["step"]) <= ckpt["step"]]
@@ -68,9 +83,7 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
         "bytes": onnx_path.stat().st_size,
         "parameters": count_parameters(net),
         "config": ckpt["config"],
-        "commands": [*["make data"] * bool(runs[:-1] or not made_by), *runs[:-1], *[made_by] * bool(made_by),
-                     runs[-1], shlex.join(["python", "-m", "export", network, str(checkpoint), str(onnx_path),
-                                           *["--made-by", made_by] * bool(made_by)])],
+        "commands": [*commands, shlex.join(exported)],
         "seed": opts.get("seed"),
         "step": ckpt.get("step"),
         "data": ckpt.get("data"),
@@ -88,10 +101,12 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
     }
 
 
-def export_checkpoint(network: str, checkpoint: str | Path, out: str | Path, made_by: str = "") -> Path:
+def export_checkpoint(network: str, checkpoint: str | Path, out: str | Path, made_by: str = "",
+                      earlier: dict[str, str] | None = None) -> Path:
     """Export a models.train checkpoint of `network` (a NETWORKS key) to `out` (.onnx) and its manifest to `out`
-    with .json. The training options, step and validation score also go into the ONNX metadata under
-    `training`. ValueError if the checkpoint was trained for another network."""
+    with .json (`made_by`, `earlier`: `manifest`'s). The training options, step and validation score also go
+    into the ONNX metadata under `training`. ValueError if the checkpoint was trained for another network, or
+    `earlier` names a checkpoint outside its chain."""
     checkpoint, out = Path(checkpoint), Path(out)
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
     trained = (ckpt.get("options") or {}).get("net", "rae")
@@ -102,6 +117,6 @@ def export_checkpoint(network: str, checkpoint: str | Path, out: str | Path, mad
                 "best_val_rel_l2": ckpt.get("best_val_rel_l2"), "machine": ckpt.get("machine")}
     net = load(inference_state(ckpt))
     path = onnx_export.write(export_bytes(net, extra={"training": training}), out)
-    info = manifest(ckpt, net, checkpoint, path, network, made_by)
+    info = manifest(ckpt, net, checkpoint, path, network, made_by, earlier)
     path.with_suffix(".json").write_text(json.dumps(info, indent=1) + "\n")
     return path

@@ -28,6 +28,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--ema", type=float, default=defaults["ema"], help="weight-average decay (0: raw weights)")
     p.add_argument("--clip-grad", type=float, default=defaults["clip_grad"],
                    help="largest global gradient norm a step applies, 0..1000 (0: no clipping)")
+    p.add_argument("--tone-eps", type=float, default=defaults["tone_eps"],
+                   help="added to radiance before the loss's power 0.2, in (0, 1] (default: the shipped weights')")
     p.add_argument("--minutes", type=float, default=defaults["minutes"], help="wall-time limit (0: none)")
     p.add_argument("--warp", action="store_true", help="warp the recurrent state by motion between frames")
     p.add_argument("--device", choices=DEVICES, default=defaults["device"], help="where the network trains")

@@ -138,11 +138,12 @@ class SequenceBank:
             raise ValueError(f"{root}: no sequence folders (folders with sequence.json)")
         return cls([load_sequence(f) for f in folders], device)
 
-    def sample(self, rng: np.random.Generator, frames: int, crop: int, *, reverse: bool = True) -> Window:
+    def sample(self, rng: np.random.Generator, frames: int, crop: int, *, reverse: bool = True,
+               index: int | None = None) -> Window:
         """One random window of `frames` frames and a `crop` x `crop` square (module docstring), its tensors on
         the bank's device. `reverse`: allow backward playback (then the window's motion is zero: only backward
-        motion is stored)."""
-        index = int(rng.integers(len(self.sequences)))
+        motion is stored). index: of the sequence to cut it from (None: drawn from `rng` first)."""
+        index = int(rng.integers(len(self.sequences))) if index is None else index
         seq, planes = self.sequences[index], self._planes[index]
         if seq.frames < frames:
             raise ValueError(f"sequence {seq.name} has {seq.frames} frames; windows need {frames}")

@@ -24,7 +24,7 @@ from models.nets.flnr import FlnrConfig, GuideNet, load_network, make_flnr
 from models.train import flr
 from models.train.dataset import Sequence, Window
 from models.train.rae import RaeRecipe
-from models.train.rae_loss import LossTerms, tone_loss
+from models.train.rae_loss import TONE_EPS, LossTerms, tone_loss
 from service.stages.flr import FlrParams
 from service.stages.outliers import clamp_outlier_planes
 
@@ -57,9 +57,10 @@ class FlnrRecipe:
     crop = CROP
     reverse = False
 
-    def __init__(self, warp: bool = False):
+    def __init__(self, warp: bool = False, tone_eps: float = TONE_EPS):
         if warp:
             raise ValueError("flnr has no recurrent state to warp (--warp is rae's)")
+        self.tone_eps = tone_eps  # the loss's (rae_loss.tone)
 
     def build(self, seed: int) -> GuideNet:
         return make_flnr(FlnrConfig(), seed=seed)
@@ -70,7 +71,7 @@ class FlnrRecipe:
     def loss(self, net: GuideNet, batch: Window, step: int = 0) -> LossTerms:
         """The loss of one batch (the same at every optimiser `step`)."""
         pred = regress(net, batch.noisy[:, 0], batch.guides[:, 0])
-        return tone_loss(pred.clamp_min(0.0)[:, None], batch.target)
+        return tone_loss(pred.clamp_min(0.0)[:, None], batch.target, self.tone_eps)
 
     @torch.no_grad()
     def denoise(self, net: GuideNet, seq: Sequence) -> torch.Tensor:

@@ -27,7 +27,7 @@ from models.train.dataset import Sequence, Window
 from models.train.kernel_filter import kernel_filter
 from models.train.kpn_loss import kpn_loss, occlusion_weights
 from models.train.rae import RaeRecipe
-from models.train.rae_loss import LossTerms, prediction_to_linear
+from models.train.rae_loss import TONE_EPS, LossTerms, prediction_to_linear
 from service.layout import KPN_INPUTS, channel_slices
 
 WINDOW_FRAMES = 7  # frames per training window (the recurrent autoencoder's; the paper trains on 9 of 10)
@@ -73,15 +73,16 @@ class KpnRecipe:
     crop = CROP
     reverse = False  # the previous output is warped by backward motion
 
-    def __init__(self, warp: bool = False, motion: str = "dual", occlusion_step: int = 0):
+    def __init__(self, warp: bool = False, motion: str = "dual", occlusion_step: int = 0, tone_eps: float = TONE_EPS):
         """motion: one of MOTIONS; occlusion_step: the optimiser step from which the loss has its
-        motion-occlusion term (Zeng 2023 sec. 5: half of the training)."""
+        motion-occlusion term (Zeng 2023 sec. 5: half of the training); tone_eps: the loss's (rae_loss.tone)."""
         if warp:
             raise ValueError("kpn always warps its previous output (--warp is rae's)")
         if motion not in MOTIONS:
             raise ValueError(f"motion must be one of {', '.join(MOTIONS)}, got '{motion}'")
         self.motion = motion
         self.occlusion_step = occlusion_step
+        self.tone_eps = tone_eps
 
     def build(self, seed: int) -> KernelPredictor:
         return make_kpn(KpnConfig(), seed=seed)
@@ -96,7 +97,7 @@ class KpnRecipe:
     def loss(self, net: KernelPredictor, batch: Window, step: int = 0) -> LossTerms:
         pred = filter_window(net, batch.noisy, batch.guides, self.warp_motion(batch.motion, batch.motion_dual))
         weights = occlusion_weights(batch.motion, batch.motion_dual)
-        return kpn_loss(pred, batch.target, weights, occlusion=step >= self.occlusion_step)
+        return kpn_loss(pred, batch.target, weights, occlusion=step >= self.occlusion_step, eps=self.tone_eps)
 
     @torch.no_grad()
     def denoise(self, net: KernelPredictor, seq: Sequence) -> torch.Tensor:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from models.train.rae_loss import LossTerms, prediction_to_linear, tone
+from models.train.rae_loss import TONE_EPS, LossTerms, prediction_to_linear, tone
 from service.stages.reprojection import DUAL_OCCLUSION_PX
 
 MASK_WEIGHTS = (1.0, 0.8, 0.6)  # w_i^0, w_i^1, w_i^2 (Zeng 2023 sec. 4.4)
@@ -37,12 +37,13 @@ def occlusion_weights(motion: torch.Tensor, motion_dual: torch.Tensor) -> torch.
     return out
 
 
-def kpn_loss(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, *, occlusion: bool) -> LossTerms:
+def kpn_loss(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, *, occlusion: bool,
+             eps: float = TONE_EPS) -> LossTerms:
     """pred: (N, T, 3, H, W) filtered log1p demodulated radiance; target: (N, T, 3, H, W) linear demodulated
     reference; weights: (N, T, 1, H, W) `occlusion_weights`; occlusion: add L_occ to the total. Returns
-    the loss of the module docstring (`gradient` 0: no HFEN term here)."""
-    p = tone(prediction_to_linear(pred))
-    q = tone(target)
+    the loss of the module docstring (`gradient` 0: no HFEN term here); eps: `rae_loss.tone`'s."""
+    p = tone(prediction_to_linear(pred), eps)
+    q = tone(target, eps)
     spatial = (p - q).abs().mean()
     temporal = torch.zeros_like(spatial)
     if p.shape[1] > 1:

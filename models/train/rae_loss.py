@@ -28,7 +28,10 @@ import torch.nn.functional as F
 from service.stages.rae_inputs import LOG_RADIANCE_MAX
 
 GAMMA = 0.2  # Chaitanya 2017 sec. 4.4: "a more aggressive value of 0.2"
-TONE_EPS = 1e-3  # added before the power: d/dx (x + eps)^0.2 <= 0.2 * eps^-0.8 ~ 50 at x = 0
+# added before the power: d/dx (x + eps)^0.2 <= 0.2 * eps^-0.8 ~ 50 at x = 0. The default of the shipped weights;
+# `--tone-eps` (models.train) sets it per run, in (0, 1]: a larger one weighs near-black pixels less
+# (docs/training.md, "Gradient norms").
+TONE_EPS = 1e-3
 WEIGHTS = (0.8, 0.1, 0.1)  # ws, wg, wt (Chaitanya 2017 sec. 4.4)
 HFEN_SIGMA = 1.5  # Laplacian-of-Gaussian sigma, pixels (Ravishankar and Bresler 2011, as in the paper)
 HFEN_RADIUS = 5  # kernel half-width, pixels: 11 taps, out to 3.3 sigma
@@ -49,9 +52,9 @@ def log_kernel(sigma: float = HFEN_SIGMA, radius: int = HFEN_RADIUS) -> torch.Te
     return (kernel - kernel.mean()).to(torch.float32)
 
 
-def tone(x: torch.Tensor) -> torch.Tensor:
-    """Linear demodulated radiance (>= 0) -> (x + TONE_EPS)^GAMMA, the loss's domain."""
-    return (x + TONE_EPS) ** GAMMA
+def tone(x: torch.Tensor, eps: float = TONE_EPS) -> torch.Tensor:
+    """Linear demodulated radiance (>= 0) -> (x + eps)^GAMMA, the loss's domain."""
+    return (x + eps) ** GAMMA
 
 
 def prediction_to_linear(pred: torch.Tensor) -> torch.Tensor:
@@ -82,18 +85,18 @@ class LossTerms:
     occlusion: torch.Tensor = field(default_factory=lambda: torch.zeros(()))
 
 
-def rae_loss(pred: torch.Tensor, target: torch.Tensor) -> LossTerms:
+def rae_loss(pred: torch.Tensor, target: torch.Tensor, eps: float = TONE_EPS) -> LossTerms:
     """pred: (N, T, 3, H, W) network output (log1p demodulated radiance); target: (N, T, 3, H, W) linear
-    demodulated reference. Returns the loss of the module docstring."""
-    return tone_loss(prediction_to_linear(pred), target)
+    demodulated reference; eps: `tone`'s. Returns the loss of the module docstring."""
+    return tone_loss(prediction_to_linear(pred), target, eps)
 
 
-def tone_loss(linear: torch.Tensor, target: torch.Tensor) -> LossTerms:
+def tone_loss(linear: torch.Tensor, target: torch.Tensor, eps: float = TONE_EPS) -> LossTerms:
     """The loss of the module docstring on a linear prediction: linear, target (N, T, 3, H, W) demodulated
-    radiance, >= 0 (FLNR's regression output, clipped at 0, takes this entry)."""
+    radiance, >= 0 (FLNR's regression output, clipped at 0, takes this entry); eps: `tone`'s."""
     n, t = linear.shape[:2]
-    p = tone(linear)
-    q = tone(target)
+    p = tone(linear, eps)
+    q = tone(target, eps)
     spatial = (p - q).abs().mean(dim=(0, 2, 3, 4))  # (T,)
     gradient = (hfen(p.flatten(0, 1)) - hfen(q.flatten(0, 1))).abs().reshape(n, t, -1).mean(dim=(0, 2))
     temporal = torch.zeros_like(spatial)

@@ -34,6 +34,7 @@ from models.train.dataset import SequenceBank, collate
 from models.train.flnr import FlnrRecipe
 from models.train.kpn import MOTIONS, KpnRecipe
 from models.train.rae import RaeRecipe
+from models.train.rae_loss import TONE_EPS
 from service.metrics import TRIM_FRACTION, rel_l2, temporal_rel_l2
 
 RECIPES = {"rae": RaeRecipe, "flnr": FlnrRecipe, "kpn": KpnRecipe}  # NET name -> how to build, feed and score it
@@ -78,6 +79,9 @@ class TrainOptions:
     # clipping. The shipped rae's norms were 0.3-0.6, with outliers of 1.4 (16 steps of batch 16); its H100
     # runs' loss jumped with and without clipping at 1.0 (docs/training.md), so it stays off by default.
     clip_grad: float = 0.0
+    # added to the loss's radiance before its power 0.2 (models/train/rae_loss.py `tone`), in (0, 1]: 1e-3 made
+    # the shipped weights; near-black pixels' gradients are up to 0.2 eps^-0.8 (docs/training.md, "Gradient norms")
+    tone_eps: float = TONE_EPS
     # kpn: the motion that warps the previous output, "dual" (motionDual) or "plain" (motion)
     motion: str = KPN_ONLY["motion"]
     # kpn: share of `steps` after which the motion-occlusion loss term joins (Zeng 2023 sec. 5: half), in [0, 1]
@@ -101,6 +105,8 @@ class TrainOptions:
             raise ValueError(f"occlusion_from must be in [0, 1], got {self.occlusion_from}")
         if self.net != "kpn" and self.occlusion_from != KPN_ONLY["occlusion_from"]:
             raise ValueError("--occlusion-from is kpn's (the network trained with the motion-occlusion loss)")
+        if not 0 < self.tone_eps <= 1:
+            raise ValueError(f"tone_eps must be in (0, 1], got {self.tone_eps}")
         if not 0 <= self.clip_grad <= 1e3:
             raise ValueError(f"clip_grad must be in [0, 1000], got {self.clip_grad}")
         if self.device not in DEVICES:
@@ -110,8 +116,9 @@ class TrainOptions:
 def make_recipe(opts: TrainOptions) -> Recipe:
     """The recipe of `opts.net` with the options it reads (ValueError for one it cannot take)."""
     if opts.net == "kpn":
-        return KpnRecipe(warp=opts.warp, motion=opts.motion, occlusion_step=round(opts.occlusion_from * opts.steps))
-    return RECIPES[opts.net](warp=opts.warp)
+        return KpnRecipe(warp=opts.warp, motion=opts.motion, occlusion_step=round(opts.occlusion_from * opts.steps),
+                         tone_eps=opts.tone_eps)
+    return RECIPES[opts.net](warp=opts.warp, tone_eps=opts.tone_eps)
 
 
 def learning_rate(step: int, peak: float, warmup: int) -> float:

@@ -61,3 +61,14 @@ def test_loss_is_finite_for_extreme_predictions():
     terms = rae_loss(pred, target)
     terms.total.backward()
     assert torch.isfinite(terms.total) and torch.isfinite(pred.grad).all()
+
+
+@pytest.mark.parametrize("eps", [TONE_EPS, 1e-2])
+def test_tone_eps_bounds_the_pull_of_a_black_pixel(eps):
+    """A prediction just above a black target pulls with the power's slope at eps, 0.2 eps^-0.8 (times
+    expm1's slope, 1 at 0): a larger eps weighs near-black pixels less."""
+    target = torch.zeros(1, 1, 3, 8, 8)
+    pred = torch.full((1, 1, 3, 8, 8), 1e-6, requires_grad=True)  # log1p radiance, ~1e-6
+    rae_loss(pred, target, eps).spatial.backward()
+    slope = pred.grad.abs().max().item() * pred.numel()  # the spatial term is a mean over the pixels
+    assert slope == pytest.approx(GAMMA * eps ** (GAMMA - 1), rel=1e-3)

@@ -159,6 +159,18 @@ def test_options_are_validated():
         TrainOptions(net="rae", data="d", val="v", out="o", steps=0)
     with pytest.raises(ValueError, match="device must be one of cpu, cuda, got 'tpu'"):
         TrainOptions(net="rae", data="d", val="v", out="o", device="tpu")
+    for bad in (0.0, 2.0):
+        with pytest.raises(ValueError, match="tone_eps must be in"):
+            TrainOptions(net="rae", data="d", val="v", out="o", tone_eps=bad)
+
+
+@pytest.mark.parametrize("net", ["rae", "flnr", "kpn"])
+def test_every_recipe_takes_the_runs_tone_eps(net):
+    from models.train.rae_loss import TONE_EPS
+    from models.train.train import make_recipe
+
+    assert make_recipe(TrainOptions(net=net, data="d", val="v", out="o")).tone_eps == TONE_EPS
+    assert make_recipe(TrainOptions(net=net, data="d", val="v", out="o", tone_eps=0.01)).tone_eps == 0.01
 
 
 def test_best_checkpoint_keeps_only_what_export_and_fine_tuning_read(tmp_path):
@@ -203,6 +215,30 @@ def test_export_writes_the_model_and_a_manifest_of_how_it_was_made(tmp_path):
     assert [v["step"] for v in info["validation_curve"]] == [2]
     model = OnnxModel.from_file(path, swappable=False)
     assert model.info.network == "rae" and not trained_with_warp(model)
+
+
+def test_a_manifest_names_what_made_each_run_of_a_fine_tune_chain(tmp_path):
+    """A fine-tune of a run whose data a script rendered: `make data` for the fine-tune's data, the script
+    before the run it made, then each run's command, oldest first; a checkpoint outside the chain is refused."""
+    pytest.importorskip("onnx")
+    import json
+
+    from export.checkpoint import export_checkpoint
+
+    train(_opts(tmp_path, 2, "first"), progress=False)
+    first = str(tmp_path / "first" / BEST)
+    tuned = dataclasses.replace(_opts(tmp_path, 2, "tuned"), init=first, tone_eps=0.01)
+    train(tuned, progress=False)
+    script = "INIT_rae=x NETS=rae models/train/accelerator.sh OUT 130 5.0 8"
+    out = tmp_path / "weights" / "rae.onnx"
+    path = export_checkpoint("rae", tmp_path / "tuned" / BEST, out, earlier={first: script})
+    commands = json.loads(path.with_suffix(".json").read_text())["commands"]
+    assert commands[0] == "make data" and commands[1] == script and len(commands) == 5
+    assert commands[2].startswith("python -m models.train rae ") and "--init" not in commands[2]
+    assert f"--init {first}" in commands[3] and "--tone-eps 0.01" in commands[3]
+    assert commands[4].endswith(f"--made-by-for {first} '{script}'")
+    with pytest.raises(ValueError, match="--made-by-for names no checkpoint"):
+        export_checkpoint("rae", tmp_path / "tuned" / BEST, out, earlier={"elsewhere/best.pt": script})
 
 
 def test_the_three_commands_chain(tmp_path, capsys):

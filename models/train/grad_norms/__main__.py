@@ -1,0 +1,40 @@
+"""`python -m models.train.grad_norms`: the command line of models/train/grad_norms (its docstring)."""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from models.train.dataset import SequenceBank
+from models.train.grad_norms import __doc__ as DOC
+from models.train.grad_norms import report, window_norms
+from models.train.train import RECIPES, TrainOptions
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m models.train.grad_norms", description=DOC.splitlines()[0])
+    parser.add_argument("net", choices=sorted(RECIPES))
+    parser.add_argument("--data", required=True, help="folder of training sequence folders")
+    parser.add_argument("--init", default="", help="checkpoint whose weights are measured (default: fresh ones)")
+    parser.add_argument("--windows", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--tone-eps", type=float, default=TrainOptions.tone_eps)
+    parser.add_argument("--top", type=int, default=8)
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    args = parser.parse_args(argv)
+    if args.windows < 1:
+        raise SystemExit("python -m models.train.grad_norms: --windows must be >= 1")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        opts = TrainOptions(net=args.net, data=args.data, val=args.data, out="", init=args.init,
+                            tone_eps=args.tone_eps)
+    except ValueError as exc:
+        raise SystemExit(f"python -m models.train.grad_norms: {exc}") from None
+    print(report(window_norms(opts, SequenceBank.from_root(args.data), args.windows, args.seed), args.top))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
