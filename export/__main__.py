@@ -23,6 +23,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="the same for the run that made CKPT, a checkpoint this one was fine-tuned from "
                              "(as its --init named it); repeatable")
     args = parser.parse_args(argv)
+    named = [path for path, _ in args.made_by_for]
+    if len(set(named)) < len(named):
+        parser.error("--made-by-for names a checkpoint twice")
     from export.checkpoint import export_checkpoint  # torch: imported once the arguments are good
     from service.process import configure
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shlex
 from datetime import UTC, datetime
 from pathlib import Path
@@ -55,17 +56,18 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
     while any run lacks one."""
     opts = ckpt.get("options") or {}
     runs, base, init = [(str(checkpoint), train_command(opts, ckpt["step"]))], [], opts.get("init")
-    while init and Path(init).is_file():  # the runs this one fine-tuned, oldest first
+    while init and Path(init).is_file() and init not in {path for path, _ in runs}:  # the runs it fine-tuned
         start = torch.load(init, map_location="cpu", weights_only=False)
         runs.insert(0, (init, train_command(start["options"], start["step"])))
         base.insert(0, {"checkpoint": init, "step": start.get("step"), "seconds": start.get("seconds"),
                         "best_val_rel_l2": start.get("best_val_rel_l2")})
         init = start["options"].get("init")
-    earlier = earlier or {}
+    runs = [(os.path.normpath(path), command) for path, command in runs]
+    earlier = {os.path.normpath(path): command for path, command in (earlier or {}).items()}
     unknown = set(earlier) - {path for path, _ in runs[:-1]}
     if unknown:
         raise ValueError(f"--made-by-for names no checkpoint this one was fine-tuned from: {sorted(unknown)}")
-    made = {**earlier, **({str(checkpoint): made_by} if made_by else {})}
+    made = {**earlier, **({runs[-1][0]: made_by} if made_by else {})}
     commands = ["make data"] * any(path not in made for path, _ in runs)
     for path, command in runs:
         commands += ([made[path]] if path in made else []) + [command]

@@ -14,7 +14,7 @@
 # 2. Trains one run per network in $NETS (default: all of them), side by side on the one GPU (the CPU
 #    threads shared out), TRAIN_MINUTES each: OUT/rae (with the hidden-state warp, as the shipped weights),
 #    OUT/flnr, OUT/kpn (dual motion); with INIT_<NET> set (INIT_rae=CKPT), a fine-tune of that checkpoint
-#    (`--init`). Peak learning rate LR; CLIP: --clip-grad (0: none); TONE_EPS: --tone-eps (default 0.001).
+#    (`--init`). Peak learning rate LR; CLIP: --clip-grad (0: none); TONE_EPS: --tone-eps (unset: the loss's default).
 #    `python -m export NET OUT/NET/best.pt OUT/NET.onnx` exports each.
 #
 # Needs: a CUDA GPU, torch with CUDA, mitsuba (cuda_ad_rgb), OpenEXR, numba, tqdm, matplotlib (or DEVICE=cpu
@@ -47,7 +47,7 @@ nets=(${NETS:-rae flnr kpn})
 threads=$(( $(nproc) / ${#nets[@]} > 0 ? $(nproc) / ${#nets[@]} : 1 ))
 common=(--data "$out/data/train" --val "$out/data/val" --device "$device" --steps 1000000 --minutes "$train_min"
         --batch 16 --lr "${LR:-0.001}" --warmup 200 --seed 0 --val-every 250 --log-every 50 --checkpoint-every 250
-        --ema 0.999 --threads "$threads" --clip-grad "${CLIP:-0}" --tone-eps "${TONE_EPS:-0.001}")
+        --ema 0.999 --threads "$threads" --clip-grad "${CLIP:-0}" ${TONE_EPS:+--tone-eps "$TONE_EPS"})
 # kpn: its occlusion loss term joins at a share of --steps (1e6 here, never reached in TRAIN_MINUTES): step 1000
 declare -A extra=([rae]="--warp" [flnr]="" [kpn]="--motion dual --occlusion-from 0.001")
 pids=()

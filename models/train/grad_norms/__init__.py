@@ -2,8 +2,9 @@
 norm of single training windows, to find those that would dominate a batch.
 
 Each window is drawn as training draws them (`SequenceBank.sample`, the recipe's frames and crop, `--seed`), its
-loss (the recipe's, with `--tone-eps`) back-propagated alone through the network (`--init`'s weights, or a
-fresh one), and the global gradient norm recorded. Printed: percentiles of the norms and losses, and the
+loss (the recipe's) back-propagated alone through the network (`--init`'s weights, with the `--warp` and
+`--tone-eps` its run had unless `--tone-eps` is given; or a fresh network), and the global gradient norm
+recorded. Printed: percentiles of the norms and losses, and the
 `--top` windows of largest norm with their sequence and the share of their target pixels darker than DARK
 (demodulated radiance, mean of the channels), where the loss's power is steepest.
 """
@@ -27,6 +28,17 @@ class WindowNorm:
     loss: float  # the recipe's loss of the window alone
     norm: float  # the global L2 norm of its gradient
     dark: float  # share of its target pixels darker than DARK
+
+
+def options_for(net: str, data: str, init: str = "", tone_eps: float | None = None) -> TrainOptions:
+    """The training options the windows are measured under: `init`'s run's warp and tone eps (ValueError where
+    `init` holds another network), `tone_eps` instead of its where given."""
+    stored = torch.load(init, map_location="cpu", weights_only=False).get("options", {}) if init else {}
+    if stored.get("net", net) != net:
+        raise ValueError(f"{init} holds a '{stored['net']}' network, not '{net}'")
+    eps = tone_eps if tone_eps is not None else stored.get("tone_eps", TrainOptions.tone_eps)
+    return TrainOptions(net=net, data=data, val=data, out="", init=init, warp=bool(stored.get("warp", False)),
+                        tone_eps=eps)
 
 
 def window_norms(opts: TrainOptions, bank: SequenceBank, count: int, seed: int) -> list[WindowNorm]:

@@ -8,8 +8,8 @@ import torch
 
 from models.train.dataset import SequenceBank
 from models.train.grad_norms import __doc__ as DOC
-from models.train.grad_norms import report, window_norms
-from models.train.train import RECIPES, TrainOptions
+from models.train.grad_norms import options_for, report, window_norms
+from models.train.train import RECIPES
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -19,17 +19,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--init", default="", help="checkpoint whose weights are measured (default: fresh ones)")
     parser.add_argument("--windows", type=int, default=300)
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--tone-eps", type=float, default=TrainOptions.tone_eps)
+    parser.add_argument("--tone-eps", type=float, default=None, help="the loss's (default: --init's run's)")
     parser.add_argument("--top", type=int, default=8)
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     args = parser.parse_args(argv)
-    if args.windows < 1:
-        raise SystemExit("python -m models.train.grad_norms: --windows must be >= 1")
+    if args.windows < 1 or args.top < 0:
+        raise SystemExit("python -m models.train.grad_norms: --windows must be >= 1 and --top >= 0")
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        opts = TrainOptions(net=args.net, data=args.data, val=args.data, out="", init=args.init,
-                            tone_eps=args.tone_eps)
+        opts = options_for(args.net, args.data, args.init, args.tone_eps)
     except ValueError as exc:
         raise SystemExit(f"python -m models.train.grad_norms: {exc}") from None
     print(report(window_norms(opts, SequenceBank.from_root(args.data), args.windows, args.seed), args.top))

@@ -7,9 +7,9 @@ torch = pytest.importorskip("torch")
 
 from models.data import SAMPLE_DIRS  # noqa: E402
 from models.train.dataset import SequenceBank, collate, load_sequence  # noqa: E402
-from models.train.grad_norms import report, window_norms  # noqa: E402
+from models.train.grad_norms import options_for, report, window_norms  # noqa: E402
 from models.train.grad_norms.__main__ import main  # noqa: E402
-from models.train.train import TrainOptions, make_recipe  # noqa: E402
+from models.train.train import BEST, TrainOptions, make_recipe, train  # noqa: E402
 
 SAMPLE = SAMPLE_DIRS[0]
 
@@ -39,5 +39,17 @@ def test_each_norm_is_the_gradient_of_that_window_alone():
 def test_the_command_line_refuses_bad_options(capsys):
     with pytest.raises(SystemExit, match="tone_eps must be in"):
         main(["rae", "--data", str(SAMPLE), "--tone-eps", "0"])
-    with pytest.raises(SystemExit, match="--windows must be >= 1"):
+    with pytest.raises(SystemExit, match="--windows must be >= 1 and --top >= 0"):
         main(["rae", "--data", str(SAMPLE), "--windows", "0"])
+
+
+def test_windows_are_measured_as_the_checkpoints_run_trained(tmp_path):
+    opts = TrainOptions(net="rae", data=str(SAMPLE), val=str(SAMPLE), out=str(tmp_path / "run"), steps=1, batch=1,
+                        threads=1, warp=True, tone_eps=0.02)
+    train(opts, progress=False)
+    measured = options_for("rae", str(SAMPLE), str(tmp_path / "run" / BEST))
+    assert measured.warp and measured.tone_eps == 0.02 and make_recipe(measured).reverse is False
+    assert options_for("rae", str(SAMPLE), str(tmp_path / "run" / BEST), 0.05).tone_eps == 0.05
+    assert not options_for("rae", str(SAMPLE)).warp
+    with pytest.raises(ValueError, match="holds a 'rae' network, not 'kpn'"):
+        options_for("kpn", str(SAMPLE), str(tmp_path / "run" / BEST))

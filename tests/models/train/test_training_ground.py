@@ -165,12 +165,22 @@ def test_options_are_validated():
 
 
 @pytest.mark.parametrize("net", ["rae", "flnr", "kpn"])
-def test_every_recipe_takes_the_runs_tone_eps(net):
+def test_every_recipe_takes_the_runs_tone_eps(net, bank):
+    """The run's tone eps reaches each recipe's loss: against a black target the loss is the mean of
+    (p + eps)^0.2 - eps^0.2, which differs between two eps."""
     from models.train.rae_loss import TONE_EPS
     from models.train.train import make_recipe
 
     assert make_recipe(TrainOptions(net=net, data="d", val="v", out="o")).tone_eps == TONE_EPS
-    assert make_recipe(TrainOptions(net=net, data="d", val="v", out="o", tone_eps=0.01)).tone_eps == 0.01
+    losses = []
+    for eps in (TONE_EPS, 0.01):
+        recipe = make_recipe(TrainOptions(net=net, data="d", val="v", out="o", tone_eps=eps))
+        assert recipe.tone_eps == eps
+        window = bank.sample(np.random.default_rng(0), recipe.frames, recipe.crop, reverse=recipe.reverse)
+        batch = collate([window])
+        batch = dataclasses.replace(batch, target=torch.zeros_like(batch.target))
+        losses.append(float(recipe.loss(recipe.build(0), batch).spatial.detach()))
+    assert losses[0] > 1.2 * losses[1] > 0  # the steeper power near black costs more
 
 
 def test_best_checkpoint_keeps_only_what_export_and_fine_tuning_read(tmp_path):
