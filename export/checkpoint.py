@@ -32,13 +32,24 @@ NETWORKS = {"rae": (load_rae, rae.export_bytes), "flnr": (load_flnr, flnr.export
             "kpn": (load_kpn, kpn.export_bytes)}  # name -> (load, export)
 
 
+PATH_OPTIONS = ("data", "val", "out", "init")  # written relative to the working directory where they lie in it
+
+
+def _relative(path: str) -> str:
+    """`path` relative to the working directory (the repository root, where the commands run) where it lies in
+    it; else as it is."""
+    relative = os.path.relpath(path)
+    return relative if os.path.isabs(path) and not relative.startswith("..") else path
+
+
 def train_command(opts: dict[str, Any], step: int) -> str:
     """The `python -m models.train` command line that remakes a run's checkpoint of step `step` from its
-    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps), and
-    `--occlusion-from` rescaled so that the occlusion term joins at the same step as in the run."""
+    stored options: `--steps step`, no `--minutes` (a run stopped early is the same run with fewer steps),
+    `--occlusion-from` rescaled so that the occlusion term joins at the same step as in the run, and paths in
+    the working directory relative to it."""
     if "occlusion_from" in opts and step:
         opts = {**opts, "occlusion_from": float(f"{min(1.0, opts['occlusion_from'] * opts['steps'] / step):.6g}")}
-    opts = {**opts, "steps": step}
+    opts = {**opts, "steps": step, **{k: _relative(opts[k]) for k in PATH_OPTIONS if opts.get(k)}}
     if opts.get("net", "rae") != "kpn":  # options only kpn reads stay out of other networks' commands
         opts = {k: v for k, v in opts.items() if k not in KPN_ONLY}
     opts.setdefault("ema", 0.0)  # runs from before the `ema` option used raw weights

@@ -86,3 +86,13 @@ def test_manifest_command_keeps_the_step_the_occlusion_term_joined():
     assert "--steps 4434" in command and round(share * 4434) == 2750
     rae = train_command({"net": "rae", "steps": 500, "occlusion_from": 0.5, "motion": "dual", "batch": 4}, 500)
     assert "--occlusion-from" not in rae and "--motion" not in rae and "--batch 4" in rae
+
+
+def test_a_command_names_paths_in_the_working_directory_relative_to_it(tmp_path, monkeypatch):
+    from export.checkpoint import train_command
+
+    monkeypatch.chdir(tmp_path)
+    inside, outside = str(tmp_path / "data" / "train"), "/elsewhere/val"
+    command = train_command({"net": "rae", "data": inside, "val": outside, "init": str(tmp_path / "a" / "best.pt")}, 10)
+    assert "--data data/train " in command and "--val /elsewhere/val " in command
+    assert command.endswith("--init a/best.pt")
