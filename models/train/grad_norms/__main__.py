@@ -10,9 +10,11 @@ from models.train.dataset import SequenceBank
 from models.train.grad_norms import __doc__ as DOC
 from models.train.grad_norms import options_for, report, window_norms
 from models.train.train import RECIPES
+from service.process import configure
 
 
 def main(argv: list[str] | None = None) -> int:
+    configure()  # an entry point whose imports reach the service's kernels (service/process.py)
     parser = argparse.ArgumentParser(prog="python -m models.train.grad_norms", description=DOC.splitlines()[0])
     parser.add_argument("net", choices=sorted(RECIPES))
     parser.add_argument("--data", required=True, help="folder of training sequence folders")
