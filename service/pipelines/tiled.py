@@ -46,7 +46,6 @@ from service.stages.error_estimate import (
     TILE,
     cross_tile_error,
     interpolate_tiles,
-    interpolation_matrix,
     tile_covariance,
     tile_error,
 )
@@ -146,13 +145,12 @@ class AutoPipeline(Pipeline):
         if self.evaluates(state.frame_index):
             self._evaluate(frame, state)
         names = list(state.candidates)
-        chosen = state.members
         for index, name in enumerate(names):  # a candidate that left the blend loses its history
-            if index not in chosen and name in state.states:
+            if index not in state.members and name in state.states:
                 state.states.pop(name).close()
         weights = state.weights
         color = np.zeros((frame.height, frame.width, 3), np.float32)
-        for index in chosen:
+        for index in state.members:
             name = names[index]
             pipeline = state.candidates[name]
             sub = state.states.get(name) or pipeline.start(frame.height, frame.width)
@@ -206,7 +204,7 @@ class AutoPipeline(Pipeline):
         state.blend, state.members = choose(covariance, costs, self.options.tolerance, self.options.budget,
                                             state.members)
         height, width = frame.height, frame.width
-        state.weights = tile_weights(state.blend, tile, height, width)
+        state.weights = interpolate_tiles(state.blend, tile, height, width).astype(np.float32)
         # the blend's estimate w^T C w per tile, at least its sd: this evaluation's, scaled as the average scales it
         estimate = np.einsum("jyx,jkyx,kyx->yx", state.blend, covariance, state.blend)
         pixel_blend = np.repeat(np.repeat(state.blend, tile, axis=1), tile, axis=2)[:, :height, :width, None]
@@ -247,10 +245,3 @@ def one_half(frame: Frame, half: str = "colorA") -> Frame:
     f(A) or f(B) is computed from."""
     buffers = {k: v for k, v in frame.buffers.items() if k not in HALVES}
     return Frame({**buffers, "color": frame[half]}, dict(frame.nonfinite))
-
-
-def tile_weights(blend: np.ndarray, tile: int, height: int, width: int) -> np.ndarray:
-    """(K, H, W) float32 blend weights of the candidates from the per-tile weights `blend` (K, th, tw): each
-    interpolated between tile centres; where the tiles' weights sum to 1, so do the pixels'."""
-    rows, cols = interpolation_matrix(height, tile), interpolation_matrix(width, tile)
-    return np.stack([rows @ w @ cols.T for w in blend]).astype(np.float32)

@@ -93,7 +93,8 @@ def interpolation_matrix(size: int, tile: int) -> np.ndarray:
 
 
 def interpolate_tiles(values: np.ndarray, tile: int, height: int, width: int) -> np.ndarray:
-    """(th, tw) per-tile values -> (H, W) float64 interpolated between tile centres."""
+    """(..., th, tw) per-tile values -> (..., H, W) float64 interpolated between tile centres (weights summing to
+    1 per pixel: where the tiles' values along a leading axis sum to 1, so do the pixels')."""
     return interpolation_matrix(height, tile) @ values @ interpolation_matrix(width, tile).T
 
 

@@ -10,7 +10,7 @@ from bench.synthetic import synthetic_sequence
 from service import pipelines
 from service.frame import Frame
 from service.pipelines import tiled
-from service.pipelines.tiled import CANDIDATES, one_half, run_half, tile_weights
+from service.pipelines.tiled import CANDIDATES, one_half, run_half
 from service.stages.error_estimate import interpolate_tiles
 
 
@@ -43,7 +43,7 @@ def test_blend_weights_sum_to_one_without_seams_and_are_pure_inside_uniform_regi
     choice = np.array([[0, 0, 1, 1], [0, 0, 1, 1], [2, 2, 2, 2]])
     blend = np.stack([(choice == k).astype(float) for k in range(3)])
     blend[:, 0, 0] = [0.25, 0.0, 0.75]  # a tile blended from two
-    weights = tile_weights(blend, 8, 21, 30)  # ragged last row and column of tiles
+    weights = interpolate_tiles(blend, 8, 21, 30)  # ragged last row and column of tiles
     assert weights.shape == (3, 21, 30) and (weights >= 0).all()
     np.testing.assert_allclose(weights.sum(axis=0), 1.0, atol=1e-6)
     assert weights[1, 0, 29] == 1.0 and weights[2, 20, 15] == 1.0
@@ -119,7 +119,7 @@ def test_an_error_pass_in_an_input_file_is_ignored(tmp_path, frames):
 
 def test_two_chosen_candidates_are_blended_by_their_tile_weights(frames, monkeypatch):
     """Left tiles to the first candidate, the rest to a 30/70 blend of both: every frame is their outputs (each
-    run alone from the sequence's start) weighted by `tile_weights`."""
+    run alone from the sequence's start) weighted by the tiles' weights interpolated between their centres."""
 
     def split(covariance, *args):
         weights = np.zeros(covariance.shape[1:])
@@ -129,7 +129,7 @@ def test_two_chosen_candidates_are_blended_by_their_tile_weights(frames, monkeyp
 
     monkeypatch.setattr(tiled, "choose", split)
     outs, state = _run(pipelines.get("auto", tile=16), frames)
-    weights = tile_weights(state.blend, 16, 40, 72)
+    weights = interpolate_tiles(state.blend, 16, 40, 72)
     alone = [_run(pipelines.get(name), frames)[0] for name in CANDIDATES[:2]]
     for index, out in enumerate(outs):
         expected = sum(weights[k][..., None] * alone[k][index]["color"] for k in range(2))
