@@ -70,5 +70,6 @@ class StatisticalPipeline(Pipeline):
         features = guide_features(
             params.base, frame.height, frame.width, frame.get("albedo"), frame.get("normal"), frame.get("depth")
         )
-        color = clamp_outliers(frame["color"])  # the t-test admits a firefly (its variance is huge): clip it first
+        # the t-test admits a firefly (its variance is huge): clip it first, judged on the demodulated colour
+        color = clamp_outliers(frame["color"], albedo=frame.get("albedo"))
         return {"color": statistical_filter(color, features, estimates, params)}, state

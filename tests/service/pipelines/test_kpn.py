@@ -73,7 +73,8 @@ def test_served_pipeline_matches_the_training_twin(frames, tmp_path, monkeypatch
         color, *halves = subtract_emission([frame[k] for k in ("color", "colorA", "colorB")], frame["emission"])
         _, state = pipeline.denoise(_inputs(frame, color=color, colorA=halves[0], colorB=halves[1]), state)
         served.append(state.previous)
-        planes.append(rae_planes(clamp_outliers(color, halves=tuple(halves)), frame["albedo"], frame["normal"],
+        clamped = clamp_outliers(color, halves=tuple(halves), albedo=frame["albedo"])
+        planes.append(rae_planes(clamped, frame["albedo"], frame["normal"],
                                  frame["depth"], frame.get("roughness"), background=~surface_hit(frame["normal"])))
     planes = torch.from_numpy(np.stack(planes))[None]
     moves = np.stack([f["motionDual" if motion == "dual" else "motion"].transpose(2, 0, 1) for f in frames[:3]])
@@ -87,18 +88,19 @@ def test_served_pipeline_matches_the_training_twin(frames, tmp_path, monkeypatch
 
 def test_the_input_clamp_gets_the_halves_less_the_emission(frames, monkeypatch):
     """Pipeline.step hands kpn's input clamp the halves with the emission taken out, as the radiance it clamps
-    (the halves are declared, so the emission split covers them)."""
+    (the halves are declared, so the emission split covers them), and the albedo."""
     import service.pipelines.kpn as module
 
     seen = []
     clamp = module.clamp_outliers
-    monkeypatch.setattr(module, "clamp_outliers", lambda color, halves=None: (seen.append((color, halves)),
-                                                                              clamp(color, halves=halves))[1])
+    monkeypatch.setattr(module, "clamp_outliers", lambda color, halves=None, albedo=None: (
+        seen.append((color, halves, albedo)), clamp(color, halves=halves, albedo=albedo))[1])
     frame = _inputs(frames[0])
     assert float(frame["emission"].max()) > 0
     pipeline = pipelines.get("kpn")
     pipeline.step(frame, pipeline.start(frame.height, frame.width))
-    (color, halves), = seen
+    (color, halves, albedo), = seen
+    np.testing.assert_array_equal(albedo, frame["albedo"])  # judged on the demodulated radiance
     expected = subtract_emission([frame[k] for k in ("color", "colorA", "colorB")], frame["emission"])
     np.testing.assert_array_equal(color, expected[0])
     np.testing.assert_array_equal(halves[0], expected[1])

@@ -4,6 +4,7 @@ a smooth gradient and an edge are not; with the halves, what both show is kept."
 import numpy as np
 import pytest
 
+from service.stages.albedo import ALBEDO_EPS
 from service.stages.outliers import clamp_outliers
 
 
@@ -52,3 +53,28 @@ def test_halves_of_another_shape_are_refused():
     image = np.ones((8, 8, 3), np.float32)
     with pytest.raises(ValueError, match="halves"):
         clamp_outliers(image, halves=(image, image[:4]))
+
+
+def test_with_the_albedo_a_bright_texel_is_texture_and_an_edge_firefly_is_clipped():
+    """Under an irradiance of about 1 (a gentle ramp), one texel of albedo 0.9 among texels of 0.05: its radiance
+    is 15 times its neighbours', texture that the albedo shows, kept bit for bit; without the albedo, clipped.
+    A silhouette's edge: a row the surface covers a tenth of (albedo 0.075, radiance 0.1) between a lit floor
+    (albedo 0.75, radiance 1) and the void (0); one sample there hit a firefly of 2.5. Against its radiance
+    neighbours (0 to 1, bound 3) it is no outlier; against their irradiance (0 to 1.3, its own 29) it is."""
+    albedo = np.full((16, 16, 3), 0.05, np.float32)
+    albedo[8, 8] = 0.9
+    irradiance = np.linspace(1.0, 1.2, 16, dtype=np.float32)[None, :, None]
+    image = ((albedo + ALBEDO_EPS) * irradiance).astype(np.float32)
+    assert clamp_outliers(image)[8, 8].max() < 0.1
+    np.testing.assert_array_equal(clamp_outliers(image, albedo=albedo), image)
+    albedo = np.zeros((16, 16, 3), np.float32)
+    albedo[:8], albedo[8] = 0.75, 0.075
+    image = np.zeros((16, 16, 3), np.float32)
+    image[:8], image[8] = 1.0, 0.1
+    image[8, 8] = 2.5
+    np.testing.assert_array_equal(clamp_outliers(image)[8, 8], image[8, 8])
+    out = clamp_outliers(image, albedo=albedo)
+    assert out[8, 8].max() < 0.5 and (out[8, 8] >= 0.1).all()
+    mask = np.ones((16, 16), bool)
+    mask[8, 8] = False
+    np.testing.assert_array_equal(out[mask], image[mask])
