@@ -78,3 +78,22 @@ def initializers(model_bytes: bytes) -> dict[str, np.ndarray]:
     """name -> array of every initializer of an ONNX model."""
     model = onnx.load_from_string(model_bytes)
     return {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+
+
+def checkpoint_state(model_bytes: bytes) -> dict[str, Any]:
+    """{'config', 'state_dict'} of a network `export_bytes` exported, as a checkpoint's `inference_state` holds
+    them (a fine-tune can start from shipped weights): the config from the `mcdenoise` metadata, every
+    parameter its `weights` entry names from the initializer of that name (float32 CPU tensors)."""
+    model = onnx.load_from_string(model_bytes)
+    entries = {p.key: p.value for p in model.metadata_props}
+    if METADATA_KEY not in entries:
+        raise ValueError(f"no '{METADATA_KEY}' metadata: not a model this project exported")
+    metadata = json.loads(entries[METADATA_KEY])
+    if "config" not in metadata or "weights" not in metadata:
+        raise ValueError(f"the '{METADATA_KEY}' metadata names no config or weights: exported before they were kept")
+    arrays = initializers(model_bytes)
+    missing = sorted(set(metadata["weights"]) - set(arrays))
+    if missing:
+        raise ValueError(f"the model lacks the initializers of weights {missing}")
+    state = {name: torch.from_numpy(np.array(arrays[name], dtype=np.float32)) for name in metadata["weights"]}
+    return {"config": metadata["config"], "state_dict": state}

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from export.onnx import checkpoint_state
 from models.nets import state_for
 from models.train.dataset import SequenceBank, collate
 from models.train.flnr import FlnrRecipe
@@ -71,7 +72,7 @@ class TrainOptions:
     checkpoint_every: int = 250  # steps between checkpoints
     minutes: float = 0.0  # stop (with a checkpoint) after this much wall time of this invocation; 0: no limit
     warp: bool = False  # warp recurrent state by motion between frames (the pipeline option of the same name)
-    init: str = ""  # start from this checkpoint's weights (a fine-tune; a fresh optimiser and step 0)
+    init: str = ""  # start from this checkpoint's or exported .onnx's weights (a fine-tune: fresh optimiser, step 0)
     ema: float = 0.999  # decay of the exponential moving average of the weights that is validated and
     # exported (Polyak averaging; 0: the raw weights). Batches of 4 windows make single steps noisy.
     device: str = "cpu"  # where the network trains and its windows are cut: "cpu" or "cuda"
@@ -216,6 +217,14 @@ def inference_state(ckpt: dict[str, Any]) -> dict[str, Any]:
     return {"config": ckpt["config"], "state_dict": ckpt.get("ema_state_dict") or ckpt["state_dict"]}
 
 
+def init_state(path: str) -> dict[str, Any]:
+    """{'config', 'state_dict'} that `--init PATH` fine-tunes: a checkpoint's `inference_state`, or, for an
+    exported `.onnx` file (the shipped weights, models/weights), the weights it holds."""
+    if Path(path).suffix == ".onnx":
+        return checkpoint_state(Path(path).read_bytes())
+    return inference_state(torch.load(path, map_location="cpu", weights_only=False))
+
+
 def update_average(ema: torch.nn.Module, net: torch.nn.Module, decay: float, step: int) -> None:
     """ema <- d ema + (1 - d) net with d = min(decay, (1 + step) / (10 + step)) (a short average early on);
     decay 0 copies the weights."""
@@ -250,7 +259,7 @@ def _start(opts: TrainOptions, recipe: Recipe, ckpt_path: Path, resume: bool):
         return net, ema, optimizer, int(ckpt["step"]), float(ckpt["best_val_rel_l2"]), rng, float(ckpt["seconds"])
     torch.manual_seed(opts.seed)
     if opts.init:  # a fine-tune: the weights the checkpoint serves with
-        net = recipe.load(inference_state(torch.load(opts.init, map_location="cpu", weights_only=False)))
+        net = recipe.load(init_state(opts.init))
     else:
         net = recipe.build(opts.seed)
     net.to(opts.device)

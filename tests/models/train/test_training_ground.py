@@ -251,6 +251,41 @@ def test_a_manifest_names_what_made_each_run_of_a_fine_tune_chain(tmp_path):
         export_checkpoint("rae", tmp_path / "tuned" / BEST, out, earlier={"elsewhere/best.pt": script})
 
 
+def test_a_fine_tune_of_exported_weights_starts_from_them_and_its_manifest_starts_with_theirs(tmp_path):
+    """`--init models/weights/NET.onnx`: the network the ONNX file holds, parameter for parameter, and the
+    manifest of the fine-tune lists the commands that made those weights (from the manifest beside them)
+    before its own; exported weights without a manifest are refused, as a file that is no export is."""
+    pytest.importorskip("onnx")
+    import json
+
+    from export.checkpoint import export_checkpoint
+    from models.train.rae import RaeRecipe
+    from models.train.train import _start, inference_state
+
+    train(_opts(tmp_path, 2, "first"), progress=False)
+    shipped = export_checkpoint("rae", tmp_path / "first" / BEST, tmp_path / "weights" / "rae.onnx")
+    served = inference_state(torch.load(tmp_path / "first" / BEST, map_location="cpu", weights_only=False))
+    tuned = dataclasses.replace(_opts(tmp_path, 2, "tuned"), init=str(shipped))
+    net, _ema, _optimizer, step, *_ = _start(tuned, RaeRecipe(), tmp_path / "tuned" / CHECKPOINT, resume=False)
+    assert step == 0 and set(net.state_dict()) == set(served["state_dict"])
+    for name, value in served["state_dict"].items():
+        assert torch.equal(net.state_dict()[name], value), name
+    train(tuned, progress=False)
+    made = json.loads(shipped.with_suffix(".json").read_text())
+    path = export_checkpoint("rae", tmp_path / "tuned" / BEST, tmp_path / "weights" / "rae_tuned.onnx")
+    info = json.loads(path.with_suffix(".json").read_text())
+    assert info["commands"][:3] == made["commands"] and len(info["commands"]) == 5
+    assert f"--init {shipped}" in info["commands"][3] and info["commands"][4].startswith("python -m export rae ")
+    assert info["fine_tuned_from"][0]["step"] == 2 and info["fine_tuned_from"][0]["onnx"] == str(shipped)
+    shipped.with_suffix(".json").unlink()
+    with pytest.raises(ValueError, match="no manifest rae.json beside it"):
+        export_checkpoint("rae", tmp_path / "tuned" / BEST, tmp_path / "weights" / "rae_tuned.onnx")
+    (tmp_path / "not_exported.onnx").write_bytes(b"")  # parses as an empty model, without our metadata
+    with pytest.raises(ValueError, match="not a model this project exported"):
+        _start(dataclasses.replace(tuned, init=str(tmp_path / "not_exported.onnx")), RaeRecipe(),
+               tmp_path / "x" / CHECKPOINT, resume=False)
+
+
 def test_the_three_commands_chain(tmp_path, capsys):
     """`python -m models.train` then `python -m export`, as docs/training.md gives them."""
     pytest.importorskip("onnx")
