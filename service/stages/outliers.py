@@ -6,10 +6,11 @@ regressions (bmfr, flr, cross-regression) clamp their inputs with `clamp_firefli
 against the 3x3 neighbour range, widened by k times that range; our addition, not in the papers) and
 `clamp_outlier_clusters` (small clusters, against a sigma-clipped 7x7 statistic of the log-compressed
 signal), in that order, through `clamp_outlier_planes`; the filters without a regression (bilateral,
-statistical, svgf) and kpn call `clamp_outliers` on their colour, demodulated by the frame's albedo where it
-has one (bmfr and flr clamp their demodulated planes too). A directly visible light is not clipped when the
-frame carries its emission: the renderer's `emission` layer, or, for a frame with both halves and no
-emission layer, its exact pixels (`service.stages.exact`, taken out by `Pipeline.step`).
+statistical, svgf) and the networks kpn and rae call `clamp_outliers` on their colour, demodulated by the
+frame's albedo where it has one (bmfr and flr clamp their demodulated planes too). A directly visible
+light is not clipped when the frame carries its emission: the renderer's `emission` layer, or, for a frame
+with both halves and no emission layer, its exact pixels (`service.stages.exact`, taken out by
+`Pipeline.step`).
 
 Judged on the demodulated colour instead of the radiance (2026-11-27, `python -m bench run` on make bench's
 four sequences, 128x128, 4 spp): relL2 lower or unchanged on every sequence for bilateral, statistical,

@@ -181,3 +181,22 @@ def test_the_background_passes_through_as_it_came(frames):
     out, _ = pipeline.step(sky, pipeline.start(120, 120))
     np.testing.assert_array_equal(out["color"][:30], sky["color"][:30])
     assert not np.array_equal(out["color"][30:], sky["color"][30:])
+
+
+def test_a_firefly_in_one_half_does_not_enter_the_network(frames):
+    """The input clamp (as kpn's): a firefly of 1e4 in one half at one pixel of the sample's first frame (radiance
+    ~0.5) moves no other pixel by more than 0.1 and all of them by 15 in sum (without the clamp: 0.25 and 63,
+    spread by the network); the clamp is told the halves, which the pipeline declares."""
+    frame = Frame({k: v for k, v in frames[0].buffers.items() if k != "reference"}, {})
+    pipeline = pipelines.get("rae")
+    clean, _ = pipeline.step(frame, pipeline.start(frame.height, frame.width))
+    buffers = dict(frame.buffers)
+    buffers["colorB"] = buffers["colorB"].copy()
+    buffers["colorB"][60, 60] = 1e4
+    buffers["color"] = (0.5 * (buffers["colorA"] + buffers["colorB"])).astype(np.float32)
+    spiked = Frame(buffers, {})
+    out, _ = pipeline.step(spiked, pipeline.start(frame.height, frame.width))
+    moved = np.abs(out["color"] - clean["color"]).max(axis=-1)
+    moved[60, 60] = 0.0  # the firefly's own pixel, clipped to its neighbourhood's range
+    assert float(moved.max()) < 0.1 and float(moved.sum()) < 15.0
+    assert pipelines.get("rae").describe()["optional"][-2:] == ["colorA", "colorB"]
