@@ -5,7 +5,8 @@ The manifest (OUT.json) says what the shipped weights are and how they were made
 run (its options as a command line, preceded by the runs it fine-tuned, oldest first, and by `make data` or
 the command that rendered its data and ran it: `--made-by` for the exported run, `--made-by-for CKPT` for the
 run that made CKPT; a chain that starts from exported weights, `--init models/weights/NET.onnx`, starts with
-the commands of the manifest beside them), data, seed, steps, losses, validation curve,
+the commands of the manifest that was beside them when that run began, which its checkpoints keep, so that
+exporting over those weights changes nothing), data, seed, steps, losses, validation curve,
 time and machine, from the checkpoint and the log.csv beside it.
 """
 
@@ -60,18 +61,6 @@ def train_command(opts: dict[str, Any], step: int) -> str:
     return f"python -m models.train {opts.get('net', 'rae')} {flags}"
 
 
-def shipped_manifest(onnx_path: Path) -> dict[str, Any]:
-    """The manifest beside exported weights (`export_checkpoint`'s OUT.json); ValueError where there is none,
-    since weights fine-tuned from them could not say how they were made."""
-    path = onnx_path.with_suffix(".json")
-    if not path.is_file():
-        raise ValueError(f"--init {onnx_path}: no manifest {path.name} beside it says how those weights were made")
-    made = json.loads(path.read_text())
-    if not isinstance(made.get("commands"), list):
-        raise ValueError(f"{path}: the manifest lists no commands")
-    return made
-
-
 def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_path: Path,
              network: str, made_by: str = "", earlier: dict[str, str] | None = None) -> dict[str, Any]:
     """The manifest of the module docstring. `made_by`: the command that rendered the last run's data and ran
@@ -81,15 +70,20 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
     opts = ckpt.get("options") or {}
     runs, base, init = [(str(checkpoint), train_command(opts, ckpt["step"]))], [], opts.get("init")
     shipped: list[str] = []  # the commands that made the exported weights the chain starts from, if it does
-    while init and Path(init).is_file() and init not in {path for path, _ in runs}:  # the runs it fine-tuned
-        if Path(init).suffix == ".onnx":  # exported weights: the manifest beside them says how they were made
-            made_from = shipped_manifest(Path(init))
+    link = ckpt  # the run whose --init is `init`
+    while init and init not in {path for path, _ in runs}:  # the runs it fine-tuned
+        if Path(init).suffix == ".onnx":  # exported weights: their manifest as the run found it (kept, see train)
+            made_from = link.get("init_manifest")
+            if made_from is None:
+                raise ValueError(f"a run fine-tuned {init} but its checkpoint keeps no manifest of those weights")
             shipped = made_from["commands"]
-            base.insert(0, {"onnx": _relative(init), "step": made_from.get("step"),
-                            "seconds": made_from.get("training_seconds"),
-                            "best_val_rel_l2": made_from.get("best_val_rel_l2")})
+            base[:0] = [*(made_from.get("fine_tuned_from") or []), {
+                "onnx": init, "step": made_from.get("step"), "seconds": made_from.get("training_seconds"),
+                "best_val_rel_l2": made_from.get("best_val_rel_l2")}]
             break
-        start = torch.load(init, map_location="cpu", weights_only=False)
+        if not Path(init).is_file():
+            break
+        start = link = torch.load(init, map_location="cpu", weights_only=False)
         runs.insert(0, (init, train_command(start["options"], start["step"])))
         base.insert(0, {"checkpoint": init, "step": start.get("step"), "seconds": start.get("seconds"),
                         "best_val_rel_l2": start.get("best_val_rel_l2")})

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import json
 import math
 import os
 import platform
@@ -225,6 +226,19 @@ def init_state(path: str) -> dict[str, Any]:
     return inference_state(torch.load(path, map_location="cpu", weights_only=False))
 
 
+def exported_manifest(path: str) -> dict[str, Any]:
+    """The manifest beside exported weights (`python -m export`'s OUT.json, for OUT.onnx at `path`), which a
+    fine-tune of them keeps in its checkpoints (`init_manifest`) for its own manifest to start from. ValueError
+    where there is none: weights fine-tuned from them could not say how they were made."""
+    manifest_path = Path(path).with_suffix(".json")
+    if not manifest_path.is_file():
+        raise ValueError(f"--init {path}: no manifest {manifest_path.name} beside it says how those weights were made")
+    made = json.loads(manifest_path.read_text())
+    if not isinstance(made.get("commands"), list):
+        raise ValueError(f"{manifest_path}: the manifest lists no commands")
+    return made
+
+
 def update_average(ema: torch.nn.Module, net: torch.nn.Module, decay: float, step: int) -> None:
     """ema <- d ema + (1 - d) net with d = min(decay, (1 + step) / (10 + step)) (a short average early on);
     decay 0 copies the weights."""
@@ -282,11 +296,14 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
     recipe = make_recipe(opts)
     bank, held_out = SequenceBank.from_root(opts.data, opts.device), SequenceBank.from_root(opts.val)
     ckpt_path, log_path = out / CHECKPOINT, out / LOG
+    extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences],
+             "machine": machine(opts.device)}
+    if Path(opts.init).suffix == ".onnx":  # kept in every checkpoint: the file may be exported over later
+        extra["init_manifest"] = (torch.load(ckpt_path, map_location="cpu", weights_only=False)["init_manifest"]
+                                  if resume else exported_manifest(opts.init))
     net, ema, optimizer, step, best, rng, elapsed = _start(opts, recipe, ckpt_path, resume)
     if step == 0:
         log_path.unlink(missing_ok=True)
-    extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences],
-             "machine": machine(opts.device)}
     started = time.perf_counter() - elapsed  # wall time counts across resumes
     sums, count, tick = torch.zeros(len(TERMS), device=opts.device), 0, time.perf_counter()
     bar = tqdm(total=opts.steps, initial=step, unit="step", disable=not progress, desc=opts.net)

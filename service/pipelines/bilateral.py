@@ -1,7 +1,6 @@
 """`bilateral`: joint bilateral filter guided by albedo, normal and depth (Sakai 2024 eq. 16 weights).
 
-Stages: outlier clamp on the albedo-demodulated colour (service/stages/outliers.py) -> (optional) albedo
-demodulation -> guide features
+Stages: outlier clamp (service/stages/outliers.py) and (optional) albedo demodulation -> guide features
 -> joint bilateral -> remodulation.
 Fast and robust; blurs what no G-buffer shows (shadows, caustics). The baseline and the default
 until better pipelines land.
@@ -50,7 +49,8 @@ class BilateralPipeline(Pipeline):
         features = guide_features(
             params, frame.height, frame.width, albedo, frame.get("normal"), frame.get("depth")
         )
-        color = clamp_outliers(frame["color"], albedo=albedo)  # fireflies would spread into discs
+        # fireflies would spread into discs; judged on the colour as filtered, demodulated or not
+        color = clamp_outliers(frame["color"], albedo=albedo if opt.demodulate else None)
         if opt.demodulate and albedo is not None:
             color = remodulate(joint_bilateral(demodulate(color, albedo), features, params), albedo)
         else:

@@ -1,9 +1,10 @@
 """`svgf`: spatiotemporal variance-guided filtering (Schied et al. 2017).
 
-Stages, top to bottom: albedo demodulation -> outlier clamp (service/stages/outliers.py) -> reprojection of
-the history (colour, moments, history length) by motion with depth/normal validity -> history clamp to the
-current frame's local colour box (extension) -> temporal accumulation of colour and luminance moments
--> variance estimate (spatial for short histories) -> 5 edge-aware a-trous passes -> remodulation.
+Stages, top to bottom: outlier clamp, judged on the demodulated colour (service/stages/outliers.py) ->
+albedo demodulation -> reprojection of the history (colour, moments, history length) by motion with
+depth/normal validity -> history clamp to the current frame's local colour box (extension) -> temporal
+accumulation of colour and luminance moments -> variance estimate (spatial for short histories) -> 5
+edge-aware a-trous passes -> remodulation.
 The colour after the first a-trous pass becomes the next frame's colour history (Schied sec. 4.3).
 """
 
@@ -95,8 +96,8 @@ class SvgfPipeline(Pipeline):
 
     def denoise(self, frame: Frame, state: SvgfState) -> tuple[dict[str, np.ndarray], SvgfState]:
         albedo = frame.get("albedo") if self.options.demodulate else None
-        # a firefly would enter the history and every a-trous pass; judged on the demodulated colour
-        color = clamp_outliers(frame["color"], albedo=frame.get("albedo"))
+        # a firefly would enter the history and every a-trous pass; judged on the colour as filtered
+        color = clamp_outliers(frame["color"], albedo=albedo)
         color = color if albedo is None else demodulate(color, albedo)
         scale = max(1.0, float(np.abs(color).max()) / SAFE_RADIANCE)
         color = color / np.float32(scale)

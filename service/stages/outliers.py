@@ -14,8 +14,8 @@ with both halves and no emission layer, its exact pixels (`service.stages.exact`
 
 Judged on the demodulated colour instead of the radiance (2026-11-27, `python -m bench run` on make bench's
 four sequences, 128x128, 4 spp): relL2 lower or unchanged on every sequence for bilateral, statistical,
-svgf and kpn (at most 2%: svgf on shadows 0.0347 -> 0.0341, statistical on textures 0.0142 -> 0.0139),
-temporal error within 1%; bilateral's and statistical's worst tile on the bulb hard case 1.86x and 1.21x
+svgf and kpn (by at most 2%: statistical on textures 0.0142 -> 0.0139, bilateral on fireflies 0.0414 ->
+0.0406), temporal error within 1%; bilateral's and statistical's worst tile on the bulb hard case 1.86x and 1.21x
 the noisy input's -> 0.90x and 0.91x (`python -m bench.hard_cases table`).
 """
 
@@ -31,7 +31,7 @@ from service.kernels.simd import (
 )
 from service.kernels.window import overlap, window_offsets
 from service.regression.planes import from_planes, to_planes
-from service.stages.albedo import demodulate, remodulate
+from service.stages.albedo import ALBEDO_EPS
 
 FIREFLY_K = 2.0  # clamp_fireflies: neighbour ranges (max - min) a value may lie beyond its neighbours
 
@@ -351,21 +351,31 @@ def clamp_outliers(image: np.ndarray, firefly_k: float = FIREFLY_K,
     clipped below min(A, B) is brought back up to it (never above `image`), per channel: the glint survives
     at the level both halves vouch for, a one-half firefly is clipped as before.
     albedo: None, or the frame's (H, W, C) float32 albedo: the clamps then judge the demodulated image
-    (`albedo.demodulate`, as the filters see it) and the clipped values are remodulated; values they leave
-    keep their bits. A bright texel among dark ones is texture, not a firefly, and a firefly at a pixel the
-    surface only partly covers (a silhouette's edge, albedo 0.1) stands out against its neighbours'
-    irradiance where its radiance did not. Returns (H, W, C) float32.
+    (`albedo.demodulate`, as the filters see it) and the clipped values are remodulated where that brings
+    them closer to 0 (or the value was NaN); the others keep their bits. A bright texel among dark ones is
+    texture, not a firefly, and a firefly at a pixel the surface only partly covers (a silhouette's edge,
+    albedo 0.1) stands out against its neighbours' irradiance where its radiance did not. A value is never
+    raised: a surface pixel seen among sky pixels of albedo 0 (irradiance radiance / ALBEDO_EPS) is dark
+    against their irradiance, and lifted to it and remodulated by its own albedo it would become a firefly.
+    Pixels whose albedo is below ALBEDO_EPS in every channel (the sky, the void, black paint), whose
+    radiance is no albedo times an irradiance, are not demodulated: a sky pixel seen through a gap would be
+    bright against the surfaces' irradiance only because its albedo is 0. Returns (H, W, C) float32.
     """
+    for name, other in (("halves", halves or ()), ("albedo", () if albedo is None else (albedo,))):
+        if any(np.shape(x) != image.shape for x in other):
+            raise ValueError(f"clamp_outliers: the {name} {[np.shape(x) for x in other]} must match {image.shape}")
     if albedo is None:
         clamped = from_planes(clamp_outlier_planes(to_planes(image), firefly_k))
     else:
-        flat = demodulate(image, albedo)
+        unlit = np.logical_and.reduce([albedo[..., c] < ALBEDO_EPS for c in range(albedo.shape[-1])])[..., None]
+        factor = np.where(unlit, np.float32(1.0), np.maximum(albedo, 0) + ALBEDO_EPS)  # `albedo.demodulate`'s
+        flat = image / factor
         kept = from_planes(clamp_outlier_planes(to_planes(flat), firefly_k))
-        clamped = np.where(kept == flat, image, remodulate(kept, albedo)).astype(np.float32)
+        back = kept * factor
+        lowered = ((kept != flat) & (np.abs(back) < np.abs(image))) | np.isnan(image)
+        clamped = np.where(lowered, back, image).astype(np.float32)
     if halves is None:
         return clamped
     color_a, color_b = halves
-    if color_a.shape != image.shape or color_b.shape != image.shape:
-        raise ValueError(f"clamp_outliers: the halves {color_a.shape}, {color_b.shape} must match {image.shape}")
     shown = np.minimum(np.minimum(color_a, color_b), image)
     return np.maximum(clamped, shown, out=clamped)

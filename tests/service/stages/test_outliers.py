@@ -78,3 +78,26 @@ def test_with_the_albedo_a_bright_texel_is_texture_and_an_edge_firefly_is_clippe
     mask = np.ones((16, 16), bool)
     mask[8, 8] = False
     np.testing.assert_array_equal(out[mask], image[mask])
+
+
+def test_with_the_albedo_no_value_is_raised_and_mismatched_shapes_are_refused():
+    """A surface pixel (albedo 0.8, radiance 0.3) among sky pixels (albedo 0, radiance about 1): against their
+    irradiance (1 / ALBEDO_EPS = 100) it is a dark outlier, and lifted to it and remodulated it would be a
+    firefly of ~60; it keeps its value (the radiance clamp would raise it), and the sky, not demodulated,
+    comes out as without the albedo. A sky pixel seen through a gap among surfaces (albedo 0.8, radiance 1),
+    bright against their irradiance only because its albedo is 0, keeps its radiance: it is theirs."""
+    rng = np.random.default_rng(0)
+    image = (1.0 + 0.1 * rng.random((9, 9, 3))).astype(np.float32)
+    albedo = np.zeros((9, 9, 3), np.float32)
+    image[4, 4], albedo[4, 4] = 0.3, 0.8
+    out = clamp_outliers(image, albedo=albedo)
+    np.testing.assert_array_equal(out[4, 4], image[4, 4])
+    sky = np.ones((9, 9), bool)
+    sky[4, 4] = False
+    np.testing.assert_array_equal(out[sky], clamp_outliers(image)[sky])  # not demodulated: as without
+    surfaces = np.full((9, 9, 3), 0.8, np.float32)
+    surfaces[4, 4] = 0.0
+    constant = np.full((9, 9, 3), 1.05, np.float32)
+    np.testing.assert_array_equal(clamp_outliers(constant, albedo=surfaces), constant)
+    with pytest.raises(ValueError, match="albedo"):
+        clamp_outliers(image, albedo=albedo[:4])
