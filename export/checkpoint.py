@@ -78,7 +78,7 @@ def manifest(ckpt: dict[str, Any], net: torch.nn.Module, checkpoint: Path, onnx_
                 raise ValueError(f"a run fine-tuned {init} but its checkpoint keeps no manifest of those weights")
             shipped = made_from["commands"]
             base[:0] = [*(made_from.get("fine_tuned_from") or []), {
-                "onnx": init, "step": made_from.get("step"), "seconds": made_from.get("training_seconds"),
+                "onnx": _relative(init), "step": made_from.get("step"), "seconds": made_from.get("training_seconds"),
                 "best_val_rel_l2": made_from.get("best_val_rel_l2")}]
             break
         if not Path(init).is_file():

@@ -298,10 +298,14 @@ def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) ->
     ckpt_path, log_path = out / CHECKPOINT, out / LOG
     extra = {"data": [s.name for s in bank.sequences], "val": [s.name for s in held_out.sequences],
              "machine": machine(opts.device)}
-    if Path(opts.init).suffix == ".onnx":  # kept in every checkpoint: the file may be exported over later
-        extra["init_manifest"] = (torch.load(ckpt_path, map_location="cpu", weights_only=False)["init_manifest"]
-                                  if resume else exported_manifest(opts.init))
+    if Path(opts.init).suffix == ".onnx" and not resume:  # kept in every checkpoint: the file may be exported over
+        extra["init_manifest"] = exported_manifest(opts.init)
     net, ema, optimizer, step, best, rng, elapsed = _start(opts, recipe, ckpt_path, resume)
+    if Path(opts.init).suffix == ".onnx" and resume:
+        extra["init_manifest"] = torch.load(ckpt_path, map_location="cpu", weights_only=False).get("init_manifest")
+        if extra["init_manifest"] is None:
+            raise ValueError(f"--resume: {ckpt_path} keeps no manifest of the weights it fine-tunes ({opts.init}); "
+                             "start the run afresh")
     if step == 0:
         log_path.unlink(missing_ok=True)
     started = time.perf_counter() - elapsed  # wall time counts across resumes

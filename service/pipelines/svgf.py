@@ -1,6 +1,6 @@
 """`svgf`: spatiotemporal variance-guided filtering (Schied et al. 2017).
 
-Stages, top to bottom: outlier clamp, judged on the demodulated colour (service/stages/outliers.py) ->
+Stages, top to bottom: outlier clamp, judged on the colour as filtered (service/stages/outliers.py) ->
 albedo demodulation -> reprojection of the history (colour, moments, history length) by motion with
 depth/normal validity -> history clamp to the current frame's local colour box (extension) -> temporal
 accumulation of colour and luminance moments -> variance estimate (spatial for short histories) -> 5

@@ -31,7 +31,8 @@ from service.kernels.simd import (
 )
 from service.kernels.window import overlap, window_offsets
 from service.regression.planes import from_planes, to_planes
-from service.stages.albedo import ALBEDO_EPS
+from service.stages.albedo import ALBEDO_EPS, demodulate, remodulate
+from service.stages.svgf import box_mean
 
 FIREFLY_K = 2.0  # clamp_fireflies: neighbour ranges (max - min) a value may lie beyond its neighbours
 
@@ -357,23 +358,33 @@ def clamp_outliers(image: np.ndarray, firefly_k: float = FIREFLY_K,
     albedo 0.1) stands out against its neighbours' irradiance where its radiance did not. A value is never
     raised: a surface pixel seen among sky pixels of albedo 0 (irradiance radiance / ALBEDO_EPS) is dark
     against their irradiance, and lifted to it and remodulated by its own albedo it would become a firefly.
-    Pixels whose albedo is below ALBEDO_EPS in every channel (the sky, the void, black paint), whose
-    radiance is no albedo times an irradiance, are not demodulated: a sky pixel seen through a gap would be
-    bright against the surfaces' irradiance only because its albedo is 0. Returns (H, W, C) float32.
+    Pixels whose albedo is below ALBEDO_EPS in every channel (the sky, the void, black paint) have radiance
+    that is no albedo times an irradiance. Where one of them shows light (a sky, not the black void), every
+    pixel within ROBUST_RADIUS of it is judged on its radiance as without the albedo: a silhouette's edge
+    pixel (albedo 0.1, radiance 0.9 of which the sky gave 0.8) would have an irradiance of 9 against its
+    neighbours' 1 and come out dark, a sky pixel seen through a gap would be bright against the surfaces'
+    irradiance only because its albedo is 0. Returns (H, W, C) float32 (inputs are judged as float32).
     """
     for name, other in (("halves", halves or ()), ("albedo", () if albedo is None else (albedo,))):
         if any(np.shape(x) != image.shape for x in other):
             raise ValueError(f"clamp_outliers: the {name} {[np.shape(x) for x in other]} must match {image.shape}")
+    image = np.asarray(image, dtype=np.float32)
+    albedo = None if albedo is None else np.asarray(albedo, dtype=np.float32)
+    sky = None if albedo is None else (albedo < ALBEDO_EPS).all(axis=-1) & (image != 0).any(axis=-1)
+    by_radiance = None
+    if albedo is None or sky.any():
+        by_radiance = from_planes(clamp_outlier_planes(to_planes(image), firefly_k))
     if albedo is None:
-        clamped = from_planes(clamp_outlier_planes(to_planes(image), firefly_k))
+        clamped = by_radiance
     else:
-        unlit = np.logical_and.reduce([albedo[..., c] < ALBEDO_EPS for c in range(albedo.shape[-1])])[..., None]
-        factor = np.where(unlit, np.float32(1.0), np.maximum(albedo, 0) + ALBEDO_EPS)  # `albedo.demodulate`'s
-        flat = image / factor
+        flat = demodulate(image, albedo)
         kept = from_planes(clamp_outlier_planes(to_planes(flat), firefly_k))
-        back = kept * factor
+        back = remodulate(kept, albedo)
         lowered = ((kept != flat) & (np.abs(back) < np.abs(image))) | np.isnan(image)
         clamped = np.where(lowered, back, image).astype(np.float32)
+        if by_radiance is not None:
+            near = box_mean(sky[..., None].astype(np.float32), ROBUST_RADIUS)[..., 0] > 0
+            clamped[near] = by_radiance[near]
     if halves is None:
         return clamped
     color_a, color_b = halves

@@ -272,6 +272,9 @@ def test_a_fine_tune_of_exported_weights_starts_from_them_and_its_manifest_start
         assert torch.equal(net.state_dict()[name], value), name
     train(tuned, progress=False)
     made = json.loads(shipped.with_suffix(".json").read_text())
+    train(dataclasses.replace(tuned, steps=3), resume=True, progress=False)  # a resumed run keeps it too
+    resumed = torch.load(tmp_path / "tuned" / CHECKPOINT, map_location="cpu", weights_only=False)
+    assert resumed["step"] == 3 and resumed["init_manifest"] == made
     for _ in range(2):  # exported over the weights it started from, twice: the chain stays as it was
         path = export_checkpoint("rae", tmp_path / "tuned" / BEST, shipped)
         info = json.loads(path.with_suffix(".json").read_text())

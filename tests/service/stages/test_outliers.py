@@ -80,24 +80,35 @@ def test_with_the_albedo_a_bright_texel_is_texture_and_an_edge_firefly_is_clippe
     np.testing.assert_array_equal(out[mask], image[mask])
 
 
-def test_with_the_albedo_no_value_is_raised_and_mismatched_shapes_are_refused():
-    """A surface pixel (albedo 0.8, radiance 0.3) among sky pixels (albedo 0, radiance about 1): against their
-    irradiance (1 / ALBEDO_EPS = 100) it is a dark outlier, and lifted to it and remodulated it would be a
-    firefly of ~60; it keeps its value (the radiance clamp would raise it), and the sky, not demodulated,
-    comes out as without the albedo. A sky pixel seen through a gap among surfaces (albedo 0.8, radiance 1),
-    bright against their irradiance only because its albedo is 0, keeps its radiance: it is theirs."""
+def test_with_the_albedo_no_value_is_raised_near_a_sky_the_radiance_judges_and_shapes_are_checked():
+    """A dark pixel among surfaces (albedo 0.9, radiance 0.1 among albedo 0.5, radiance 1): a dark outlier of
+    their irradiance, kept (the radiance clamp raises it). A surface pixel (albedo 0.8, radiance 0.3) among sky
+    pixels (albedo 0, radiance about 1): near a sky every pixel is judged on its radiance, as without the
+    albedo (against the sky's unscaled radiance, demodulated, it would be raised to a firefly of ~60). A
+    silhouette column (albedo 0.1, radiance 0.9, most of it the sky's) between a sky and a surface keeps its
+    value, as does a sky pixel seen through a gap among surfaces. Beside the black void (albedo 0, radiance 0)
+    the albedo still judges: the firefly at the floor's edge in the test above."""
+    shade = np.ones((9, 9, 3), np.float32)
+    surfaces = np.full((9, 9, 3), 0.5, np.float32)
+    shade[4, 4], surfaces[4, 4] = 0.1, 0.9
+    assert clamp_outliers(shade)[4, 4].min() > 0.5
+    np.testing.assert_array_equal(clamp_outliers(shade, albedo=surfaces), shade)
     rng = np.random.default_rng(0)
     image = (1.0 + 0.1 * rng.random((9, 9, 3))).astype(np.float32)
     albedo = np.zeros((9, 9, 3), np.float32)
     image[4, 4], albedo[4, 4] = 0.3, 0.8
     out = clamp_outliers(image, albedo=albedo)
-    np.testing.assert_array_equal(out[4, 4], image[4, 4])
-    sky = np.ones((9, 9), bool)
-    sky[4, 4] = False
-    np.testing.assert_array_equal(out[sky], clamp_outliers(image)[sky])  # not demodulated: as without
+    np.testing.assert_array_equal(out, clamp_outliers(image))
+    assert out.max() <= image.max()
+    noise = 1.0 + 0.05 * rng.standard_normal((24, 24, 3))
+    columns = np.arange(24)[None, :, None]
+    image = np.where(columns < 12, noise, 0.5 * noise).astype(np.float32)  # a sky left, a surface right
+    albedo = np.where(columns < 12, 0.0, 0.5) * np.ones((24, 24, 3), np.float32)
+    image[:, 12], albedo[:, 12] = 0.9, 0.1  # the silhouette, 20% covered
+    np.testing.assert_array_equal(clamp_outliers(image, albedo=albedo.astype(np.float32))[:, 12], image[:, 12])
     surfaces = np.full((9, 9, 3), 0.8, np.float32)
     surfaces[4, 4] = 0.0
-    constant = np.full((9, 9, 3), 1.05, np.float32)
+    constant = np.full((9, 9, 3), 1.05, np.float32)  # a sky pixel seen through a gap
     np.testing.assert_array_equal(clamp_outliers(constant, albedo=surfaces), constant)
     with pytest.raises(ValueError, match="albedo"):
-        clamp_outliers(image, albedo=albedo[:4])
+        clamp_outliers(constant, albedo=surfaces[:4])
