@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from models.train.dataset import SequenceBank, collate
-from models.train.train import TrainOptions, inference_state, make_recipe
+from models.train.train import TrainOptions, init_state, make_recipe
 
 DARK = 0.01  # demodulated radiance below which a target pixel counts as dark
 
@@ -44,10 +44,7 @@ def options_for(net: str, data: str, init: str = "", tone_eps: float | None = No
 def window_norms(opts: TrainOptions, bank: SequenceBank, count: int, seed: int) -> list[WindowNorm]:
     """`count` windows' losses and gradient norms (module docstring) for `opts`' network, recipe and weights."""
     recipe = make_recipe(opts)
-    if opts.init:
-        net = recipe.load(inference_state(torch.load(opts.init, map_location="cpu", weights_only=False)))
-    else:
-        net = recipe.build(opts.seed)
+    net = recipe.load(init_state(opts.init)) if opts.init else recipe.build(opts.seed)
     net.train()
     rng = np.random.default_rng(seed)
     results = []
