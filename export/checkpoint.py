@@ -28,7 +28,7 @@ from models.nets import count_parameters
 from models.nets.flnr import load_network as load_flnr
 from models.nets.kpn import load_network as load_kpn
 from models.nets.rae import load_network as load_rae
-from models.train.train import KPN_ONLY, LOG, LOG_TERMS, inference_state
+from models.train.train import KPN_ONLY, LOG, LOG_TERMS, RAE_ONLY, inference_state
 
 NETWORKS = {"rae": (load_rae, rae.export_bytes), "flnr": (load_flnr, flnr.export_bytes),
             "kpn": (load_kpn, kpn.export_bytes)}  # name -> (load, export)
@@ -54,6 +54,8 @@ def train_command(opts: dict[str, Any], step: int) -> str:
     opts = {**opts, "steps": step, **{k: _relative(opts[k]) for k in PATH_OPTIONS if opts.get(k)}}
     if opts.get("net", "rae") != "kpn":  # options only kpn reads stay out of other networks' commands
         opts = {k: v for k, v in opts.items() if k not in KPN_ONLY}
+    if opts.get("net", "rae") != "rae":  # and those only rae reads
+        opts = {k: v for k, v in opts.items() if k not in RAE_ONLY}
     opts.setdefault("ema", 0.0)  # runs from before the `ema` option used raw weights
     flags = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in opts.items()
                      if k not in ("net", "warp", "init", "minutes") and v not in ("", None))

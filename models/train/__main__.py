@@ -37,6 +37,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="kpn: warp the previous output by motionDual (dual, where the frame has it) or motion (plain)")
     p.add_argument("--occlusion-from", type=float, default=defaults["occlusion_from"],
                    help="kpn: share of the steps after which the motion-occlusion loss joins (0..1)")
+    p.add_argument("--temporal-weight", type=float, default=defaults["temporal_weight"],
+                   help="rae: the loss's temporal L1 weight, 0..0.9; the spatial one is 0.9 minus it (paper: 0.1)")
     p.add_argument("--init", default="",
                    help="start from this checkpoint's weights (a fine-tune), or an exported .onnx file's")
     return p

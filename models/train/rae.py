@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from models.nets.rae import RaeConfig, RecurrentAutoencoder, load_network, make_rae
 from models.nets.warp import warp_level
 from models.train.dataset import Sequence, Window
-from models.train.rae_loss import TONE_EPS, LossTerms, prediction_to_linear, rae_loss
+from models.train.rae_loss import TONE_EPS, WEIGHTS, LossTerms, loss_weights, prediction_to_linear, rae_loss
 
 WINDOW_FRAMES = 7  # Chaitanya 2017 sec. 4.3: sequences of 7 consecutive frames
 CROP = 96  # training crop side, pixels: a multiple of the alignment (32) that fits the 128x128 renders
@@ -30,10 +30,11 @@ class RaeRecipe:
     frames = WINDOW_FRAMES
     crop = CROP
 
-    def __init__(self, warp: bool = False, tone_eps: float = TONE_EPS):
+    def __init__(self, warp: bool = False, tone_eps: float = TONE_EPS, temporal_weight: float = WEIGHTS[2]):
         self.warp = warp
         self.reverse = not warp  # backward playback has no motion to warp by
         self.tone_eps = tone_eps  # the loss's (rae_loss.tone)
+        self.weights = loss_weights(temporal_weight)  # the loss's (ws, wg, wt)
 
     def build(self, seed: int) -> RecurrentAutoencoder:
         """A freshly initialised network of the default configuration, reproducible in `seed`."""
@@ -66,7 +67,7 @@ class RaeRecipe:
     def loss(self, net: RecurrentAutoencoder, batch: Window, step: int = 0) -> LossTerms:
         """The loss of one batch (the same at every optimiser `step`)."""
         return rae_loss(self.run(net, self.inputs(batch.noisy, batch.guides), batch.motion), batch.target,
-                        self.tone_eps)
+                        self.tone_eps, self.weights)
 
     @torch.no_grad()
     def denoise(self, net: RecurrentAutoencoder, seq: Sequence) -> torch.Tensor:

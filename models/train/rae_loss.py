@@ -3,7 +3,8 @@
 Both the prediction and the target are flattened by a power of 0.2 first ("raises both input and target
 images into power 0.2"), then, per frame t of a window,
 
-    L_t = ws * Ls + wg * Lg + wt * Lt,   ws/wg/wt = 0.8/0.1/0.1
+    L_t = ws * Ls + wg * Lg + wt * Lt,   ws/wg/wt = 0.8/0.1/0.1 (the paper's; `--temporal-weight` sets wt,
+                                          and ws = 0.9 - wt keeps the sum at 1)
     Ls  = mean |P - T|                                       spatial L1
     Lg  = mean |LoG(P) - LoG(T)|                             HFEN: Laplacian of Gaussian, sigma 1.5
     Lt  = mean |(P_t - P_{t-1}) - (T_t - T_{t-1})|           temporal L1 (0 at the first frame)
@@ -33,8 +34,17 @@ GAMMA = 0.2  # Chaitanya 2017 sec. 4.4: "a more aggressive value of 0.2"
 # (docs/training.md, "Gradient norms").
 TONE_EPS = 1e-3
 WEIGHTS = (0.8, 0.1, 0.1)  # ws, wg, wt (Chaitanya 2017 sec. 4.4)
+TEMPORAL_WEIGHTS = (0.0, 0.9)  # the range of wt that `loss_weights` takes (ws = 0.9 - wt stays >= 0)
 HFEN_SIGMA = 1.5  # Laplacian-of-Gaussian sigma, pixels (Ravishankar and Bresler 2011, as in the paper)
 HFEN_RADIUS = 5  # kernel half-width, pixels: 11 taps, out to 3.3 sigma
+
+
+def loss_weights(temporal: float = WEIGHTS[2]) -> tuple[float, float, float]:
+    """(ws, wg, wt) with wt = `temporal` in TEMPORAL_WEIGHTS and ws = 1 - wg - wt: the paper's at wt = 0.1."""
+    low, high = TEMPORAL_WEIGHTS
+    if not low <= temporal <= high:
+        raise ValueError(f"temporal weight must be in [{low}, {high}], got {temporal}")
+    return 1.0 - WEIGHTS[1] - temporal, WEIGHTS[1], temporal
 
 
 def frame_weights(frames: int) -> torch.Tensor:
@@ -85,15 +95,19 @@ class LossTerms:
     occlusion: torch.Tensor = field(default_factory=lambda: torch.zeros(()))
 
 
-def rae_loss(pred: torch.Tensor, target: torch.Tensor, eps: float = TONE_EPS) -> LossTerms:
+def rae_loss(pred: torch.Tensor, target: torch.Tensor, eps: float = TONE_EPS,
+             weights: tuple[float, float, float] = WEIGHTS) -> LossTerms:
     """pred: (N, T, 3, H, W) network output (log1p demodulated radiance); target: (N, T, 3, H, W) linear
-    demodulated reference; eps: `tone`'s. Returns the loss of the module docstring."""
-    return tone_loss(prediction_to_linear(pred), target, eps)
+    demodulated reference; eps: `tone`'s; weights: (ws, wg, wt), `loss_weights`. Returns the loss of the module
+    docstring."""
+    return tone_loss(prediction_to_linear(pred), target, eps, weights)
 
 
-def tone_loss(linear: torch.Tensor, target: torch.Tensor, eps: float = TONE_EPS) -> LossTerms:
+def tone_loss(linear: torch.Tensor, target: torch.Tensor, eps: float = TONE_EPS,
+              weights: tuple[float, float, float] = WEIGHTS) -> LossTerms:
     """The loss of the module docstring on a linear prediction: linear, target (N, T, 3, H, W) demodulated
-    radiance, >= 0 (FLNR's regression output, clipped at 0, takes this entry); eps: `tone`'s."""
+    radiance, >= 0 (FLNR's regression output, clipped at 0, takes this entry); eps: `tone`'s; weights: (ws, wg,
+    wt)."""
     n, t = linear.shape[:2]
     p = tone(linear, eps)
     q = tone(target, eps)
@@ -106,5 +120,5 @@ def tone_loss(linear: torch.Tensor, target: torch.Tensor, eps: float = TONE_EPS)
     g = frame_weights(t).to(linear)
     g = g / g.sum()
     terms = [(g * term).sum() for term in (spatial, gradient, temporal)]
-    total = sum(w * term for w, term in zip(WEIGHTS, terms, strict=True))
+    total = sum(w * term for w, term in zip(weights, terms, strict=True))
     return LossTerms(total, *terms)

@@ -36,7 +36,7 @@ from models.train.dataset import SequenceBank, collate
 from models.train.flnr import FlnrRecipe
 from models.train.kpn import MOTIONS, KpnRecipe
 from models.train.rae import RaeRecipe
-from models.train.rae_loss import TONE_EPS
+from models.train.rae_loss import TEMPORAL_WEIGHTS, TONE_EPS, WEIGHTS
 from service.metrics import TRIM_FRACTION, rel_l2, temporal_rel_l2
 
 RECIPES = {"rae": RaeRecipe, "flnr": FlnrRecipe, "kpn": KpnRecipe}  # NET name -> how to build, feed and score it
@@ -48,6 +48,7 @@ LOG = "log.csv"
 CURVES = "curves.png"
 DEVICES = ("cpu", "cuda")
 KPN_ONLY = {"motion": "dual", "occlusion_from": 0.5}  # TrainOptions only kpn reads, and their defaults
+RAE_ONLY = {"temporal_weight": WEIGHTS[2]}  # TrainOptions only rae reads, and their defaults
 LOG_FIELDS = ("step", "kind", "loss", "spatial", "gradient", "temporal", "occlusion", "lr", "seq_per_s", "val_rel_l2",
               "val_temporal", "seconds")
 TERMS = ("total", "spatial", "gradient", "temporal", "occlusion")  # LossTerms fields, logged as LOG_TERMS
@@ -88,6 +89,9 @@ class TrainOptions:
     motion: str = KPN_ONLY["motion"]
     # kpn: share of `steps` after which the motion-occlusion loss term joins (Zeng 2023 sec. 5: half), in [0, 1]
     occlusion_from: float = KPN_ONLY["occlusion_from"]
+    # rae: the loss's temporal weight wt in [0, 0.9], the spatial one 0.9 - wt (models/train/rae_loss.py; the
+    # paper's 0.1). A larger one trades relL2 for frame-to-frame steadiness (docs/training.md).
+    temporal_weight: float = RAE_ONLY["temporal_weight"]
 
     def __post_init__(self):
         if self.net not in RECIPES:
@@ -107,6 +111,11 @@ class TrainOptions:
             raise ValueError(f"occlusion_from must be in [0, 1], got {self.occlusion_from}")
         if self.net != "kpn" and self.occlusion_from != KPN_ONLY["occlusion_from"]:
             raise ValueError("--occlusion-from is kpn's (the network trained with the motion-occlusion loss)")
+        if not TEMPORAL_WEIGHTS[0] <= self.temporal_weight <= TEMPORAL_WEIGHTS[1]:
+            raise ValueError(f"temporal_weight must be in [{TEMPORAL_WEIGHTS[0]}, {TEMPORAL_WEIGHTS[1]}], "
+                             f"got {self.temporal_weight}")
+        if self.net != "rae" and self.temporal_weight != RAE_ONLY["temporal_weight"]:
+            raise ValueError("--temporal-weight is rae's (the recurrent network trained on windows of frames)")
         if not 0 < self.tone_eps <= 1:
             raise ValueError(f"tone_eps must be in (0, 1], got {self.tone_eps}")
         if not 0 <= self.clip_grad <= 1e3:
@@ -120,6 +129,8 @@ def make_recipe(opts: TrainOptions) -> Recipe:
     if opts.net == "kpn":
         return KpnRecipe(warp=opts.warp, motion=opts.motion, occlusion_step=round(opts.occlusion_from * opts.steps),
                          tone_eps=opts.tone_eps)
+    if opts.net == "rae":
+        return RaeRecipe(warp=opts.warp, tone_eps=opts.tone_eps, temporal_weight=opts.temporal_weight)
     return RECIPES[opts.net](warp=opts.warp, tone_eps=opts.tone_eps)
 
 

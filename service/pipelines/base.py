@@ -7,10 +7,11 @@
 `Pipeline.step` does what all denoisers share, in order: check the frame against the declared layers
 and the sequence size (before any work), find the exact pixels when the frame has halves but no
 `emission` layer (`service.stages.exact`: they become its emission), split off `emission` from the
-radiance layers, call the denoiser's `denoise`, add emission back, keep the result within the noise the
+radiance layers, call the denoiser's `denoise`, add emission back, return the pixels where nothing was hit
+and no emission is given as they came (`service.stages.background`), keep the result within the noise the
 halves show (`service.stages.noise_clamp`), blend it per tile with the input by the weight the halves
-say is best (`service.stages.noise_blend`), and make sure nothing non-finite leaves. The split is
-`Pipeline.denoise_split`, which a denoiser able to do it inside its own passes overrides.
+say is best (`service.stages.noise_blend`), and make sure nothing non-finite leaves.
+The split is `Pipeline.denoise_split`, which a denoiser able to do it inside its own passes overrides.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 from service.frame import RADIANCE_LAYERS, Frame, FrameError
 from service.pipelines.options import build as build_options
 from service.pipelines.options import describe as describe_options
+from service.stages.background import pass_background
 from service.stages.emission import add_emission, subtract_emission
 from service.stages.exact import exact_emission
 from service.stages.noise_blend import noise_blend
@@ -61,8 +63,8 @@ class Pipeline(ABC):
     optional: ClassVar[tuple[str, ...]] = ()  # layers used when present
     temporal: ClassVar[bool] = False  # whether the output depends on earlier frames
     Options: ClassVar[type] = NoOptions  # frozen dataclass of algorithm options
-    # True: the step's hard-case guards run (exact pixels as emission, the noise clamp and blend); the benchmark's
-    # anchors turn them off, so that OIDN is measured as its users call it
+    # True: the step's hard-case guards run (exact pixels as emission, the noise clamp and blend, the background
+    # passed through); the benchmark's anchors turn them off, so that OIDN is measured as its users call it
     guards: ClassVar[bool] = True
 
     def __init__(self, **options: Any):
@@ -77,9 +79,9 @@ class Pipeline(ABC):
     @classmethod
     def reads(cls) -> tuple[str, ...]:
         """Every layer the pipeline's step may read: `color` (the frame contract fills it in), required,
-        optional, and with `guards` the halves and `emission` (exact pixels, noise clamp). Readers decode
-        only these (service/api/codec.py)."""
-        guarded = ("colorA", "colorB", "emission") if cls.guards else ()
+        optional, and with `guards` the halves, `emission` (exact pixels, noise clamp) and `normal` (the
+        background). Readers decode only these (service/api/codec.py)."""
+        guarded = ("colorA", "colorB", "emission", "normal") if cls.guards else ()
         return tuple(dict.fromkeys((*cls.declared(), *guarded)))
 
     def start(self, height: int, width: int) -> SequenceState:
@@ -111,6 +113,9 @@ class Pipeline(ABC):
         if self.guards:
             frame = with_exact_emission(frame)
         buffers, finite, state = self.denoise_split(frame, state)
+        if self.guards and "normal" in given:  # before the clamp and blend: a pixel as it came stays so there
+            buffers["color"] = pass_background(buffers["color"], given["color"], given["normal"],
+                                               given.get("emission"))
         for name, value in buffers.items():
             if name not in finite and not np.isfinite(value).all():  # a guard: stages are tested never to get here
                 raise FloatingPointError(f"pipeline '{self.name}' produced non-finite '{name}'")

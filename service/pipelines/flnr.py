@@ -61,7 +61,7 @@ class FlnrPipeline(NetworkPipeline):
         """(G, H, W) float32: the network's FLR guides for `frame`."""
         model = self.model()
         info = model.info
-        planes, _background = frame_planes(frame)  # the network sees no radiance where nothing was hit (as rae)
+        planes = frame_planes(frame)  # the network sees no radiance where nothing was hit (as rae)
         learned = model.run({info.input_name: np.ascontiguousarray(pad_planes(planes, info.alignment))[None]})
         learned = learned[info.output_name][0, :, : frame.height, : frame.width]
         if not np.isfinite(learned).all():

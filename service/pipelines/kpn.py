@@ -27,9 +27,9 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
      error 0-9% lower, relL2 as low or lower but fireflies' (0.0230 -> 0.0231); 0.4 lowered the temporal
      error further but raised relL2 on shadows and fireflies.
   7. remodulation by the albedo
-The background (nothing hit: zero normal) passes through as it came and the network sees zero radiance there,
-as in `rae`. State: the previous output of step 4 (3, H, W) float32, none at the first frame of a sequence,
-and step 6's.
+The network sees zero radiance where nothing was hit (zero normal), as in `rae`; the pipeline step returns those
+pixels as they came (service.stages.background). State: the previous output of step 4 (3, H, W) float32, none
+at the first frame of a sequence, and step 6's.
 The network and the filter were trained together through their torch twins (models/train/kpn.py);
 tests/service/pipelines/test_kpn.py holds the served pipeline to them.
 """
@@ -140,7 +140,7 @@ class KpnPipeline(NetworkPipeline):
         # halves show is no firefly
         halves = (frame["colorA"], frame["colorB"]) if "colorA" in frame and "colorB" in frame else None
         clamped = clamp_outliers(frame["color"], halves=halves, albedo=frame.get("albedo"))
-        planes, background = frame_planes(frame.replace(color=clamped))
+        planes = frame_planes(frame.replace(color=clamped))
         previous = self.previous(frame, state, planes[RADIANCE])
         features = np.ascontiguousarray(pad_planes(np.concatenate([planes, previous]), info.alignment))
         outputs = model.run({info.input_name: features[None]})
@@ -158,4 +158,4 @@ class KpnPipeline(NetworkPipeline):
         if self.options.history:
             lighting = state.history.blend(lighting, frame, self.options.history, self.options.history_radius)
         radiance = remodulate(lighting, frame["albedo"])
-        return {"color": np.where(background[..., None], frame["color"], radiance)}, state
+        return {"color": radiance}, state

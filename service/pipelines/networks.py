@@ -54,11 +54,10 @@ class NetworkPipeline(Pipeline):
         return self.State(height, width)
 
 
-def frame_planes(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+def frame_planes(frame: Frame) -> np.ndarray:
     """The recurrent autoencoder's input planes of `frame` (its `color` without emission): (8, H, W) float32
-    (service.stages.rae_inputs.rae_planes), with zero radiance where nothing was hit, and that background
-    (H, W) bool (zero normal), which the networks' pipelines pass through as it came."""
-    background = ~surface_hit(frame["normal"])
-    planes = rae_planes(frame["color"], frame["albedo"], frame["normal"], frame["depth"], frame.get("roughness"),
-                        background=background)
-    return planes, background
+    (service.stages.rae_inputs.rae_planes), with zero radiance where nothing was hit (zero normal): the pipeline
+    step returns those pixels as they came (service.stages.background), and the networks never saw radiance
+    there."""
+    return rae_planes(frame["color"], frame["albedo"], frame["normal"], frame["depth"], frame.get("roughness"),
+                      background=~surface_hit(frame["normal"]))

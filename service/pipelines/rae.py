@@ -19,9 +19,9 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
      relL2 as low or lower; larger weights raised relL2 on shadows and the error on the Blender fixture.
      Blended in radiance rather than demodulated, textures' relL2 rose.
   6. remodulation by the albedo
-The background (pixels where nothing was hit: zero normal) passes through as it came, and the network sees
-zero radiance there. Our training renders carry the directly seen environment in their `emission` layer,
-so the network learned radiance without it; a frame whose renderer writes no `emission` layer, or one
+The network sees zero radiance where nothing was hit (zero normal), and the pipeline step returns those pixels
+as they came (service.stages.background). Our training renders carry the directly seen environment in their
+`emission` layer, so the network learned radiance without it; a frame whose renderer writes no `emission` layer, or one
 without the environment (Blender's Emit pass), would otherwise hand it a sky of radiance / ALBEDO_EPS that
 it never saw (the `glints` hard case: a sky tile 16x worse than the noisy input). The environment seen
 directly is nearly noise-free in a path tracer (one lookup per sample), so passing it through costs little.
@@ -112,8 +112,8 @@ class RaePipeline(NetworkPipeline):
         model = self.model()
         info = model.info
         halves = (frame["colorA"], frame["colorB"]) if "colorA" in frame and "colorB" in frame else None
-        planes, background = frame_planes(frame.replace(color=clamp_outliers(frame["color"], halves=halves,
-                                                                              albedo=frame["albedo"])))
+        clamped = clamp_outliers(frame["color"], halves=halves, albedo=frame["albedo"])
+        planes = frame_planes(frame.replace(color=clamped))
         padded = np.ascontiguousarray(pad_planes(planes, info.alignment))
         height, width = padded.shape[1:]
         hidden = state.hidden
@@ -138,4 +138,4 @@ class RaePipeline(NetworkPipeline):
         if self.options.history:
             lighting = state.history.blend(lighting, frame, self.options.history, self.options.history_radius)
         radiance = remodulate(lighting, frame["albedo"])
-        return {"color": np.where(background[..., None], frame["color"], radiance)}, state
+        return {"color": radiance}, state

@@ -81,11 +81,14 @@ def test_manifest_command_keeps_the_step_the_occlusion_term_joined():
     """A run of 5,500 steps stopped at 4,434: its occlusion term joined at step 2,750, and so must the remake's."""
     from export.checkpoint import train_command
 
-    command = train_command({"net": "kpn", "steps": 5500, "occlusion_from": 0.5, "motion": "dual"}, 4434)
+    command = train_command({"net": "kpn", "steps": 5500, "occlusion_from": 0.5, "motion": "dual",
+                             "temporal_weight": 0.1}, 4434)
     share = float(command.split("--occlusion-from ")[1].split()[0])
-    assert "--steps 4434" in command and round(share * 4434) == 2750
-    rae = train_command({"net": "rae", "steps": 500, "occlusion_from": 0.5, "motion": "dual", "batch": 4}, 500)
+    assert "--steps 4434" in command and round(share * 4434) == 2750 and "--temporal-weight" not in command
+    rae = train_command({"net": "rae", "steps": 500, "occlusion_from": 0.5, "motion": "dual", "batch": 4,
+                         "temporal_weight": 0.3}, 500)
     assert "--occlusion-from" not in rae and "--motion" not in rae and "--batch 4" in rae
+    assert "--temporal-weight 0.3" in rae
 
 
 def test_a_command_names_paths_in_the_working_directory_relative_to_it(tmp_path, monkeypatch):

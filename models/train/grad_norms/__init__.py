@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from models.train.dataset import SequenceBank, collate
-from models.train.train import TrainOptions, init_state, make_recipe
+from models.train.train import RAE_ONLY, TrainOptions, init_state, make_recipe
 
 DARK = 0.01  # demodulated radiance below which a target pixel counts as dark
 
@@ -31,14 +31,15 @@ class WindowNorm:
 
 
 def options_for(net: str, data: str, init: str = "", tone_eps: float | None = None) -> TrainOptions:
-    """The training options the windows are measured under: `init`'s run's warp and tone eps (ValueError where
-    `init` holds another network), `tone_eps` instead of its where given."""
+    """The training options the windows are measured under: `init`'s run's warp, tone eps and (rae) temporal
+    weight (ValueError where `init` holds another network), `tone_eps` instead of its where given."""
     stored = torch.load(init, map_location="cpu", weights_only=False).get("options", {}) if init else {}
     if stored.get("net", net) != net:
         raise ValueError(f"{init} holds a '{stored['net']}' network, not '{net}'")
     eps = tone_eps if tone_eps is not None else stored.get("tone_eps", TrainOptions.tone_eps)
+    rae_only = {"temporal_weight": stored.get("temporal_weight", RAE_ONLY["temporal_weight"])} if net == "rae" else {}
     return TrainOptions(net=net, data=data, val=data, out="", init=init, warp=bool(stored.get("warp", False)),
-                        tone_eps=eps)
+                        tone_eps=eps, **rae_only)
 
 
 def window_norms(opts: TrainOptions, bank: SequenceBank, count: int, seed: int) -> list[WindowNorm]:

@@ -6,7 +6,16 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.train.rae_loss import GAMMA, TONE_EPS, WEIGHTS, frame_weights, hfen, log_kernel, rae_loss  # noqa: E402
+from models.train.rae_loss import (  # noqa: E402
+    GAMMA,
+    TONE_EPS,
+    WEIGHTS,
+    frame_weights,
+    hfen,
+    log_kernel,
+    loss_weights,
+    rae_loss,
+)
 
 
 def test_frame_weights_are_the_papers_for_seven_frames():
@@ -72,3 +81,28 @@ def test_tone_eps_bounds_the_pull_of_a_black_pixel(eps):
     rae_loss(pred, target, eps).spatial.backward()
     slope = pred.grad.abs().max().item() * pred.numel()  # the spatial term is a mean over the pixels
     assert slope == pytest.approx(GAMMA * eps ** (GAMMA - 1), rel=1e-3)
+
+
+def test_loss_weights_are_the_papers_at_wt_0_1_and_keep_their_sum():
+    assert loss_weights() == pytest.approx(WEIGHTS)
+    for wt in (0.0, 0.3, 0.9):
+        ws, wg, got = loss_weights(wt)
+        assert got == wt and wg == WEIGHTS[1] and ws + wg + wt == pytest.approx(1.0) and ws >= 0
+    for bad in (-0.1, 0.95):
+        with pytest.raises(ValueError, match="temporal weight must be in"):
+            loss_weights(bad)
+
+
+def test_a_larger_temporal_weight_charges_flicker_more():
+    """The total is ws Ls + wg Lg + wt Lt with the weights given: a prediction that flickers (its temporal term
+    above its spatial one) costs more as wt grows; one that is off by a steady factor (temporal term below the
+    spatial one) costs less, as ws shrinks."""
+    target = _window(t=4, seed=3)
+    flicker = torch.log1p(torch.stack([target[:, i] * (1.5 if i % 2 else 1.0) for i in range(4)], dim=1))
+    steady = torch.log1p(target * 1.5)
+    for pred, grows in ((flicker, True), (steady, False)):
+        paper, heavy = rae_loss(pred, target), rae_loss(pred, target, weights=loss_weights(0.5))
+        for terms, (ws, wg, wt) in ((paper, WEIGHTS), (heavy, loss_weights(0.5))):
+            expected = ws * terms.spatial + wg * terms.gradient + wt * terms.temporal
+            assert terms.total.item() == pytest.approx(expected.item(), rel=1e-6)
+        assert (heavy.total > paper.total).item() == grows

@@ -162,6 +162,21 @@ def test_options_are_validated():
     for bad in (0.0, 2.0):
         with pytest.raises(ValueError, match="tone_eps must be in"):
             TrainOptions(net="rae", data="d", val="v", out="o", tone_eps=bad)
+    for bad in (-0.1, 0.95):
+        with pytest.raises(ValueError, match="temporal_weight must be in"):
+            TrainOptions(net="rae", data="d", val="v", out="o", temporal_weight=bad)
+    for net in ("kpn", "flnr"):
+        with pytest.raises(ValueError, match="--temporal-weight is rae's"):
+            TrainOptions(net=net, data="d", val="v", out="o", temporal_weight=0.3)
+
+
+def test_the_runs_temporal_weight_reaches_raes_loss():
+    from models.train.rae_loss import WEIGHTS
+    from models.train.train import make_recipe
+
+    assert make_recipe(TrainOptions(net="rae", data="d", val="v", out="o")).weights == pytest.approx(WEIGHTS)
+    recipe = make_recipe(TrainOptions(net="rae", data="d", val="v", out="o", temporal_weight=0.4))
+    assert recipe.weights == pytest.approx((0.5, WEIGHTS[1], 0.4))
 
 
 @pytest.mark.parametrize("net", ["rae", "flnr", "kpn"])

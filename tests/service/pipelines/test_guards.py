@@ -1,6 +1,6 @@
 """The step's hard-case guards (Pipeline.step, `Pipeline.guards`): a visible light without an emission layer
-comes out exactly as it went in and does not leak into its neighbours, for every pipeline; anchors run
-without the guards."""
+comes out exactly as it went in and does not leak into its neighbours, and a sky seen directly comes out as it
+came, for every pipeline; anchors run without the guards."""
 
 import numpy as np
 import pytest
@@ -9,6 +9,7 @@ from bench.methods import anchor_method
 from service import pipelines
 from service.frame import Frame
 from service.pipelines.base import Pipeline, with_exact_emission
+from service.stages.background import FILTER_REACH
 from service.stages.exact import exact_mask
 
 LIGHT = (slice(10, 13), slice(18, 21))  # 3x3 pixels of a directly visible light
@@ -37,6 +38,39 @@ def test_a_light_without_emission_layer_stays_exact_and_in_place(name, tiny_laye
     ring[LIGHT] = False
     assert color[ring].max() < 50.0  # no glow, no blown-out block around the light (surround ~1)
     assert color[ring].min() >= 0.0  # no black ring
+
+
+@pytest.mark.parametrize("emitters", [False, True], ids=["no-emission", "emission-of-emitters-only"])
+@pytest.mark.parametrize("name", pipelines.names())
+def test_a_sky_seen_directly_comes_out_as_it_came(name, emitters, tiny_layers):
+    """Nothing hit (zero normal), halves that differ a little (the pixel filter's jitter over a textured sky of
+    radiance ~1e2), and no emission layer or one of the emitters alone (Blender's Emit without Env): every
+    pipeline returns those pixels beyond the pixel filter's reach of a surface as they came, its neighbours
+    denoised."""
+    pipeline = pipelines.get(name)
+    state = pipeline.start(24, 40)
+    rng = np.random.default_rng(5)
+    sky = (slice(0, 6), slice(0, 40))
+    for layers in tiny_layers[:2]:
+        buffers = {k: v.copy() for k, v in layers.items() if k not in ("emission", "reference")}
+        texture = (100.0 * (1.0 + rng.random((6, 40, 1)))).astype(np.float32)
+        jitter = (rng.standard_normal((6, 40, 3)) * 0.5).astype(np.float32)
+        buffers["colorA"][sky], buffers["colorB"][sky] = texture + jitter, texture - jitter
+        buffers["color"][sky] = texture
+        buffers["normal"][sky] = 0.0
+        if emitters:
+            buffers["emission"] = np.zeros_like(buffers["color"])
+            for name_ in ("color", "colorA", "colorB", "emission"):
+                buffers[name_][LIGHT] = 1000.0
+        frame = Frame.from_buffers(buffers)
+        out, state = pipeline.step(frame, state)
+    interior = (slice(0, 6 - FILTER_REACH), slice(0, 40))  # beyond the pixel filter's reach of the surfaces
+    np.testing.assert_array_equal(out["color"][interior], frame["color"][interior])
+    below = out["color"][8:]
+    if emitters:
+        np.testing.assert_array_equal(out["color"][LIGHT], frame["color"][LIGHT])
+        below = np.where(np.isin(np.arange(8, 24), range(10, 13))[:, None, None], 0.0, below)
+    assert np.isfinite(below).all() and below.max() < 50.0  # the sky's radiance did not reach the surfaces
 
 
 def test_exact_pixels_become_emission_and_a_renderers_emission_decides(tiny_layers):
