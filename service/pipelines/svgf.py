@@ -3,8 +3,8 @@
 Stages, top to bottom: outlier clamp, judged on the colour as filtered (service/stages/outliers.py) ->
 albedo demodulation -> reprojection of the history (colour, moments, history length) by motion with
 depth/normal validity -> history clamp to the current frame's local colour box (extension) -> temporal
-accumulation of colour and luminance moments -> variance estimate (spatial for short histories) -> 5
-edge-aware a-trous passes -> remodulation.
+accumulation of colour and luminance moments -> variance estimate (spatial for short histories, no more
+than the half buffers' own where the frame has them) -> 5 edge-aware a-trous passes -> remodulation.
 The colour after the first a-trous pass becomes the next frame's colour history (Schied sec. 4.3).
 """
 
@@ -30,6 +30,7 @@ from service.stages.svgf import (
     accumulate,
     clamp_history,
     estimate_variance,
+    halves_variance,
     luminance_moments,
 )
 
@@ -77,7 +78,7 @@ class SvgfPipeline(Pipeline):
     name = "svgf"
     summary = "SVGF (Schied 2017): temporal accumulation with reprojection + variance-guided a-trous; fast, temporal"
     requires = ("color", "normal", "depth", "motion")
-    optional = ("albedo", "emission")
+    optional = ("albedo", "emission", "colorA", "colorB")
     temporal = True
     Options = SvgfOptions
 
@@ -101,6 +102,11 @@ class SvgfPipeline(Pipeline):
         color = color if albedo is None else demodulate(color, albedo)
         scale = max(1.0, float(np.abs(color).max()) / SAFE_RADIANCE)
         color = color / np.float32(scale)
+        halves = None
+        if "colorA" in frame and "colorB" in frame:  # in the filtered colour's units
+            a, b = (frame[k] if albedo is None else demodulate(frame[k], albedo) for k in ("colorA", "colorB"))
+            with np.errstate(over="ignore"):  # a half far above the full estimate's range: inf, never chosen
+                halves = halves_variance(a / np.float32(scale), b / np.float32(scale))
         depth, normal = frame["depth"], frame["normal"]
         guides = edge_guides(depth, normal)
         moments = luminance_moments(color)
@@ -124,7 +130,7 @@ class SvgfPipeline(Pipeline):
         accumulated, moments_acc, history = accumulate(
             color, moments, prev_color, prev_moments, prev[..., 5], valid, self.temporal_params
         )
-        variance = estimate_variance(moments_acc, moments, history, color, guides, self.temporal_params)
+        variance = estimate_variance(moments_acc, moments, history, color, guides, self.temporal_params, halves)
         filtered, _, first = atrous(accumulated, variance, guides, self.atrous_params)
         state.history = np.concatenate([first, moments_acc, history[..., None]], axis=-1)
         state.depth, state.normal, state.scale = depth, normal, scale

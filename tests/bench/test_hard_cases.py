@@ -28,7 +28,6 @@ from service.frame import Frame
 KNOWN_FAILURES: dict[tuple[str, str], float] = {
     ("bmfr", "bulb"): 1.16, ("bmfr", "bulb_emission"): 1.16,
     ("crossregression", "glints"): 1.13,
-    ("svgf", "glints"): 1.18,
 }
 
 

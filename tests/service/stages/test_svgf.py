@@ -10,6 +10,7 @@ from service.stages.svgf import (
     clamp_history,
     clamp_history_numpy,
     estimate_variance,
+    halves_variance,
     luminance_moments,
 )
 
@@ -44,6 +45,47 @@ def test_variance_is_temporal_with_long_history_and_spatial_otherwise():
     np.testing.assert_allclose(var[3:], 0.01, rtol=1e-4)
     lum = current[..., 0]
     assert np.all(var[:3] > 0) and np.all(var[:3] < lum.var() * 2)  # about one frame's spatial variance / 2
+
+
+def test_halves_variance_is_the_means_variance_and_sees_no_edge_both_halves_show():
+    """A and B: a picture (a thin bright line on a dark ground) plus independent noise of sd 0.1 each: the mean
+    over pixels of the estimate is the variance of (A + B) / 2, 0.1^2 / 2 (grey noise: luminance = value), to
+    sampling error; without noise it is 0 on the line, where the spatial estimate counts the line as noise."""
+    h, w = 64, 64
+    rng = np.random.default_rng(4)
+    picture = np.full((h, w, 3), 0.2, np.float32)
+    picture[:, 31:33] = 5.0
+    noise_a, noise_b = (rng.standard_normal((h, w, 1)).astype(np.float32) * np.float32(0.1) for _ in range(2))
+    estimate = halves_variance(picture + noise_a, picture + noise_b)
+    assert estimate.dtype == np.float32 and estimate.shape == (h, w)
+    assert estimate.mean() == pytest.approx(0.1**2 / 2, rel=0.05)
+    np.testing.assert_array_equal(halves_variance(picture, picture), 0.0)
+    guides = edge_guides(np.ones((h, w, 1), np.float32), np.tile(np.float32([0, 0, 1]), (h, w, 1)))
+    current = luminance_moments(picture)
+    history = np.ones((h, w), np.float32)
+    spatial = estimate_variance(current, current, history, picture, guides, TemporalParams())
+    with_halves = estimate_variance(current, current, history, picture, guides, TemporalParams(),
+                                    halves_variance(picture, picture))
+    assert spatial[:, 30:34].min() > 0.1 and np.all(with_halves == 0.0)
+
+
+def test_the_halves_only_lower_a_short_historys_variance():
+    """With the halves' estimate the variance is the lesser of the two where the history is short, and the
+    temporal estimate, untouched, where it is long."""
+    h, w = 9, 10
+    rng = np.random.default_rng(1)
+    color = rng.random((h, w, 3), dtype=np.float32)
+    current = luminance_moments(color)
+    moments = np.stack([np.full((h, w), 0.5), np.full((h, w), 0.5**2 + 0.01)], -1).astype(np.float32)
+    guides = edge_guides(np.ones((h, w, 1), np.float32), np.tile(np.float32([0, 0, 1]), (h, w, 1)))
+    history = np.full((h, w), 10.0, np.float32)
+    history[:3] = 2.0
+    plain = estimate_variance(moments, current, history, color, guides, TemporalParams())
+    halves = np.where(np.arange(w) % 2 == 0, 0.0, 1e3).astype(np.float32)[None].repeat(h, 0)
+    var = estimate_variance(moments, current, history, color, guides, TemporalParams(), halves)
+    np.testing.assert_array_equal(var[3:], plain[3:])
+    np.testing.assert_allclose(var[:3], np.minimum(plain[:3], halves[:3] / 2.0), rtol=1e-6)
+    assert (var[:3, 0::2] == 0).all() and (var[:3, 1::2] == plain[:3, 1::2]).all()
 
 
 def test_box_mean_and_clamp():
