@@ -30,14 +30,17 @@ def test_accumulate_blends_with_history_floor_and_restarts_where_invalid():
     np.testing.assert_allclose(moments[..., 0], expected, rtol=1e-5)
 
 
-def test_variance_is_temporal_with_long_history_and_spatial_otherwise():
-    h, w = 9, 10
-    rng = np.random.default_rng(0)
-    color = rng.random((h, w, 3), dtype=np.float32)
-    current = luminance_moments(color)
+def _variance_inputs(seed: int, h: int = 9, w: int = 10):
+    """A random frame's colour and moments, accumulated moments of variance 0.01, flat guides and a history
+    of 10 frames: (color, current, moments, guides, history)."""
+    color = np.random.default_rng(seed).random((h, w, 3), dtype=np.float32)
     moments = np.stack([np.full((h, w), 0.5), np.full((h, w), 0.5**2 + 0.01)], -1).astype(np.float32)
     guides = edge_guides(np.ones((h, w, 1), np.float32), np.tile(np.float32([0, 0, 1]), (h, w, 1)))
-    history = np.full((h, w), 10.0, np.float32)
+    return color, luminance_moments(color), moments, guides, np.full((h, w), 10.0, np.float32)
+
+
+def test_variance_is_temporal_with_long_history_and_spatial_otherwise():
+    color, current, moments, guides, history = _variance_inputs(0)
     np.testing.assert_allclose(estimate_variance(moments, current, history, color, guides, TemporalParams()), 0.01,
                                rtol=1e-4)
     history[:3] = 2.0
@@ -72,13 +75,8 @@ def test_halves_variance_is_the_means_variance_and_sees_no_edge_both_halves_show
 def test_the_halves_only_lower_a_short_historys_variance():
     """With the halves' estimate the variance is the lesser of the two where the history is short, and the
     temporal estimate, untouched, where it is long."""
-    h, w = 9, 10
-    rng = np.random.default_rng(1)
-    color = rng.random((h, w, 3), dtype=np.float32)
-    current = luminance_moments(color)
-    moments = np.stack([np.full((h, w), 0.5), np.full((h, w), 0.5**2 + 0.01)], -1).astype(np.float32)
-    guides = edge_guides(np.ones((h, w, 1), np.float32), np.tile(np.float32([0, 0, 1]), (h, w, 1)))
-    history = np.full((h, w), 10.0, np.float32)
+    color, current, moments, guides, history = _variance_inputs(1)
+    h, w = history.shape
     history[:3] = 2.0
     plain = estimate_variance(moments, current, history, color, guides, TemporalParams())
     halves = np.where(np.arange(w) % 2 == 0, 0.0, 1e3).astype(np.float32)[None].repeat(h, 0)
