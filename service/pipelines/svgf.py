@@ -103,10 +103,12 @@ class SvgfPipeline(Pipeline):
         scale = max(1.0, float(np.abs(color).max()) / SAFE_RADIANCE)
         color = color / np.float32(scale)
         halves = None
-        if "colorA" in frame and "colorB" in frame:  # in the filtered colour's units
-            a, b = (frame[k] if albedo is None else demodulate(frame[k], albedo) for k in ("colorA", "colorB"))
-            with np.errstate(over="ignore"):  # a half far above the full estimate's range: inf, never chosen
-                halves = halves_variance(a / np.float32(scale), b / np.float32(scale))
+        if "colorA" in frame and "colorB" in frame:
+            def halves(box: tuple[slice, slice]) -> np.ndarray:  # over `box`, in the filtered colour's units
+                a, b = (frame[k][box] if albedo is None else demodulate(frame[k][box], albedo[box])
+                        for k in ("colorA", "colorB"))
+                with np.errstate(over="ignore"):  # a half far above the full estimate's range: inf, never chosen
+                    return halves_variance(a / np.float32(scale), b / np.float32(scale))
         depth, normal = frame["depth"], frame["normal"]
         guides = edge_guides(depth, normal)
         moments = luminance_moments(color)

@@ -2,20 +2,21 @@
 within a cost budget.
 
 At the first two frames and every `every` frames, each candidate (CANDIDATES whose layers the frame has)
-denoises half A alone and half B alone (`both_halves`; else half A only), with a history where it is
-temporal: from a copy of its running state, or, where it is not running, from a state stepped through the
-previous frame (`_history`; the first frame has none: all start fresh), so that a temporal candidate is
-judged as it would run; `service.stages.error_estimate.tile_covariance` gives, per tile, the covariance of
-their relative errors estimated from the halves, both ways (half the variance of one way), normalised by
-the median of the candidates' outputs (the same for all; halves clipped at FIREFLY_CAP times that level,
-so that fireflies do not decide), averaged with the previous evaluation's except the first frame's (made
-without history). `service.stages.candidate_blend.choose` then picks the set of candidates to run (the
-last one while its summed estimate stays within `tolerance` of the lowest, else the cheapest that is,
+denoises half A alone and half B alone (`both_halves`; else half A only), with a history where it is temporal:
+from a copy of its running state, or, where it is not running, from a state stepped through the previous frame
+(`_history`; the first frame has none: all start fresh), so that a temporal candidate is judged as it would
+run; `service.stages.error_estimate.tile_covariance` gives, per tile, the covariance of their relative errors
+estimated from the halves, both ways (half the variance of one way; a candidate run on one half has no halves
+of its own, so svgf is judged without its halves' variance: a little worse than it runs where its history is
+short), normalised by the median of the candidates' outputs (the same for all; halves clipped at FIREFLY_CAP
+times that level, so that fireflies do not decide), averaged with the previous evaluation's except the first
+frame's (made without history). `service.stages.candidate_blend.choose` then picks the set of candidates to
+run (the last one while its summed estimate stays within `tolerance` of the lowest, else the cheapest that is,
 costing at most `budget` times the one it weighs most, by COSTS) and per tile their convex weights of least
-estimated error: two candidates whose errors are not fully correlated blend to less error than either.
-Every frame, the members denoise the frame from their own states (a temporal one keeps its history while
-it stays a member, and starts afresh when it joins again) and their outputs are blended with the weights
-interpolated between tile centres, so that tiles meet without seams.
+estimated error: two candidates whose errors are not fully correlated blend to less error than either. Every
+frame, the members denoise the frame from their own states (a temporal one keeps its history while it stays a
+member, and starts afresh when it joins again) and their outputs are blended with the weights interpolated
+between tile centres, so that tiles meet without seams.
 
 Outputs: `color`, and `error` (H, W, 1): the blend's estimate per tile from the last evaluation (up to
 `every` - 1 frames old, at fixed tile positions), w^T C w, at least the standard error of that estimate

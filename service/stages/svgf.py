@@ -18,6 +18,7 @@ an empty start.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +30,7 @@ from service.stages.atrous import LUMINANCE_WEIGHTS, EdgeGuides, edge_aware_filt
 ALPHA_COLOR = 0.2  # Schied 2017 sec. 4.1: blend weight of the new frame in the colour history
 ALPHA_MOMENTS = 0.2  # Schied 2017 sec. 4.2: blend weight of the new frame in the moment history
 MIN_HISTORY = 4  # frames; Schied 2017 sec. 4.2: below it the variance is estimated spatially
-HALVES_RADIUS = 1  # pixels: `halves_variance` averages over 3x3 (5x5, 7x7: relL2 higher on make bench, measured)
+HALVES_RADIUS = 1  # pixels: `halves_variance` averages over 3x3 (docs/benchmarks.md)
 MOMENTS_RADIUS = 3  # pixels; 7x7 spatial moment window (Falcor SVGFFilterMoments)
 MOMENTS_SIGMA_LUMINANCE = 10.0  # Falcor SVGFFilterMoments: constant phi_l of the spatial estimate
 MOMENTS_DEPTH_SCALE = 3.0  # Falcor SVGFFilterMoments: phi_z = 3 |grad z| |p - q|
@@ -250,8 +251,9 @@ def halves_variance(color_a: np.ndarray, color_b: np.ndarray, radius: int = HALV
     s^2 / 2 = E[(A - B)^2] / 4).
 
     color_a, color_b: (H, W, 3) float32 linear radiance, as the filtered colour is (demodulated and scaled
-    alike). Returns (H, W) float32 >= 0. Unlike the spatial estimate of `estimate_variance`, it does not count
-    an edge in the picture (a thin reflection, a shadow's border) as noise: both halves show the edge."""
+    alike). Returns (H, W) float32 >= 0 (+inf where the square overflows). Unlike the spatial estimate of
+    `estimate_variance`, it does not count an edge in the picture (a thin reflection, a shadow's border) as
+    noise: both halves show the edge. It trusts the halves to be independent, as the step's noise clamp does."""
     diff = luminance(color_a) - luminance(color_b)
     return box_mean((np.float32(0.25) * diff * diff)[..., None], radius)[..., 0]
 
@@ -263,24 +265,26 @@ def estimate_variance(
     color: np.ndarray,
     guides: EdgeGuides,
     params: TemporalParams,
-    halves: np.ndarray | None = None,
+    halves: Callable[[tuple[slice, slice]], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Luminance variance per pixel of the accumulated colour (Schied 2017 sec. 4.2).
 
     moments: (H, W, 2) accumulated moments and history: (H, W) from `accumulate`; current_moments:
     (H, W, 2) moments of the current frame alone; color: (H, W, 3) current frame (its luminance steers
-    the spatial weights); guides: EdgeGuides; halves: (H, W) float32 `halves_variance` of the current frame,
-    or None; all float32. Returns (H, W) float32 >= 0:
+    the spatial weights); guides: EdgeGuides; all float32; halves: None, or a function of a (rows, columns)
+    slice pair giving `halves_variance` over that crop of the current frame, in the units of `color`'s
+    luminance squared (the halves demodulated and scaled as `color` is). Returns (H, W) float32 >= 0:
     max(0, mu2 - mu1^2) of the accumulated moments where history >= min_history; elsewhere (sec. 4.2)
     a spatial estimate: the current frame's moments averaged over a 7x7 edge-aware window, which
     gives the variance of one frame, divided by the history length, since the accumulated colour
     averages that many frames. (Falcor averages the accumulated moments and multiplies by 4 / history;
     on a moving shadow that counts the change as noise and blurs it away.) Only the bounding box of the
-    short-history pixels is filtered. With `halves`, the lesser of the spatial estimate and halves / history:
-    the spatial window counts the picture's own edges as noise, which blurs detail no G-buffer shows (near-
-    mirror reflections under a sun, the `glints` hard case: worst tile 1.18x the noisy input's -> 1.0x);
-    make bench's sequences, relL2 / temporal error 0-2.7% lower but on fireflies (temporal +0.1%), 2026-11-27.
-    Alone, the halves' estimate (noisier, 3 dof) cost 1-3% relL2 there.
+    short-history pixels is filtered, and only there are the halves read. With `halves`, the lesser of the
+    spatial estimate and halves / history: the spatial window counts the picture's own edges as noise,
+    which blurs detail no G-buffer shows (near-mirror reflections under a sun: the `glints` hard case's
+    worst tile, `python -m bench.hard_cases table`, 1.18x the noisy input's -> 1.0x). `make bench`,
+    2026-11-27: relL2 0.5-2.3% lower on its four sequences, temporal error 2% and 0.9% lower on shadows and
+    disocclusion, 0.1% higher on fireflies.
     """
     variance = np.maximum(moments[..., 1] - moments[..., 0] ** 2, np.float32(0.0))
     short = history < params.min_history
@@ -301,6 +305,6 @@ def estimate_variance(
     )
     spatial = np.maximum(filtered[..., 1] - filtered[..., 0] ** 2, np.float32(0.0)) / history[box]
     if halves is not None:
-        spatial = np.minimum(spatial, halves[box] / history[box])
+        spatial = np.minimum(spatial, halves(box) / history[box])
     variance[box][short[box]] = spatial[short[box]]
     return variance

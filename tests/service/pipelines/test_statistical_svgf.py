@@ -61,3 +61,34 @@ def test_svgf_history_survives_radiance_scale_jumps(tiny_layers):
         assert np.isfinite(out["color"]).all()
         assert np.isfinite(state.history).all()  # the output clamp would hide an overflowed history
         assert out["color"].max() <= scaled["color"].max() * 1.01  # the 1e20 history does not leak back
+
+
+@pytest.mark.parametrize("gain", [1.0, 1e20])
+def test_svgf_reads_the_halves_variance_in_the_filtered_colours_units(gain, monkeypatch):
+    """A flat frame (albedo 0.25) whose halves carry independent grey noise of sd 0.05 x gain: the halves'
+    estimate svgf hands its variance stage matches the variance of the luminance of the colour it filters
+    (demodulated, and divided by the safe-range scale at gain 1e20), within 10%."""
+    import service.pipelines.svgf as svgf_module
+
+    seen = {}
+    original = svgf_module.estimate_variance
+
+    def spy(moments, current, history, color, guides, params, halves=None):
+        seen["halves"], seen["color"] = halves, color
+        return original(moments, current, history, color, guides, params, halves)
+
+    monkeypatch.setattr(svgf_module, "estimate_variance", spy)
+    h, w = 64, 64
+    rng = np.random.default_rng(7)
+    noise_a, noise_b = (rng.standard_normal((h, w, 1)).astype(np.float32) * np.float32(0.05 * gain) for _ in range(2))
+    base = np.float32(0.5 * gain)
+    a, b = base + noise_a.repeat(3, -1), base + noise_b.repeat(3, -1)
+    frame = Frame.from_buffers({
+        "color": (a + b) / 2, "colorA": a, "colorB": b, "albedo": np.full((h, w, 3), 0.25, np.float32),
+        "normal": np.tile(np.float32([0, 0, 1]), (h, w, 1)), "depth": np.ones((h, w, 1), np.float32),
+        "motion": np.zeros((h, w, 2), np.float32)})
+    pipeline = pipelines.get("svgf")
+    pipeline.step(frame, pipeline.start(h, w))
+    halves = seen["halves"]((slice(0, h), slice(0, w)))
+    expected = float(np.var(seen["color"].mean(axis=-1)))  # grey: luminance = any channel
+    assert halves.mean() == pytest.approx(expected, rel=0.1)

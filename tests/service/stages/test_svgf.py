@@ -68,7 +68,7 @@ def test_halves_variance_is_the_means_variance_and_sees_no_edge_both_halves_show
     history = np.ones((h, w), np.float32)
     spatial = estimate_variance(current, current, history, picture, guides, TemporalParams())
     with_halves = estimate_variance(current, current, history, picture, guides, TemporalParams(),
-                                    halves_variance(picture, picture))
+                                    lambda box: halves_variance(picture[box], picture[box]))
     assert spatial[:, 30:34].min() > 0.1 and np.all(with_halves == 0.0)
 
 
@@ -80,7 +80,7 @@ def test_the_halves_only_lower_a_short_historys_variance():
     history[:3] = 2.0
     plain = estimate_variance(moments, current, history, color, guides, TemporalParams())
     halves = np.where(np.arange(w) % 2 == 0, 0.0, 1e3).astype(np.float32)[None].repeat(h, 0)
-    var = estimate_variance(moments, current, history, color, guides, TemporalParams(), halves)
+    var = estimate_variance(moments, current, history, color, guides, TemporalParams(), lambda box: halves[box])
     np.testing.assert_array_equal(var[3:], plain[3:])
     np.testing.assert_allclose(var[:3], np.minimum(plain[:3], halves[:3] / 2.0), rtol=1e-6)
     assert (var[:3, 0::2] == 0).all() and (var[:3, 1::2] == plain[:3, 1::2]).all()
