@@ -21,10 +21,11 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
   6. remodulation by the albedo
 The network sees zero radiance where nothing was hit (zero normal), and the pipeline step returns those pixels
 as they came (service.stages.background). Our training renders carry the directly seen environment in their
-`emission` layer, so the network learned radiance without it; a frame whose renderer writes no `emission` layer, or one
-without the environment (Blender's Emit pass), would otherwise hand it a sky of radiance / ALBEDO_EPS that
-it never saw (the `glints` hard case: a sky tile 16x worse than the noisy input). The environment seen
-directly is nearly noise-free in a path tracer (one lookup per sample), so passing it through costs little.
+`emission` layer, so the network learned radiance without it; a frame whose renderer writes no `emission`
+layer, or one without the environment (Blender's Emit pass), would otherwise hand it a sky of radiance /
+ALBEDO_EPS that it never saw (the `glints` hard case: a sky tile 16x worse than the noisy input). The
+environment seen directly is nearly noise-free in a path tracer (one lookup per sample), so passing it through
+costs little.
 State: the network's hidden states (explicit ONNX inputs and outputs, ModelInfo.state), zeros at the first
 frame of every sequence. A sequence has one size (Pipeline.check refuses a frame of another size, as the
 streaming sessions do), so a renderer that changes resolution starts a new sequence, and with it a new state.
