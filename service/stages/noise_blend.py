@@ -24,17 +24,22 @@ With Eo and Ec the tile's weighted sums of e and v,
 interpolated between tile centres (no seams). A small region the output got wrong (a mirror sphere's
 reflection blurred, a caustic smeared) can hide in a tile the output got right elsewhere, so t is also
 taken over half tiles, and where a half tile's t is below WORSE (its Eo above its Ec: the output
-estimated worse than the input there) the smaller of the two, each interpolated, is the weight; a half
-tile's estimate is noisier, and it only ever takes more of the input back where it says the output is
-worse, which an ordinary tile rarely says by chance. It needs NOISY_SHARE of its pixels to have halves
+estimated worse than the input there) it holds over the half tile's own pixels, eased over a ramp of
+2 HALF_RAMP + 1 pixels at its border (the mean of the half-tile weights over the (2 HALF_RAMP + 1)^2 box
+of pixels around), and the smaller of it and the interpolated t is the weight; a half tile's estimate is
+noisier, and it only ever takes more of the input back where it says the output is worse, which an
+ordinary tile rarely says by chance. Interpolated between half-tile centres instead, a rejected half
+tile's weight was diluted by its neighbours' 1 over half of its pixels: a mirror's reflection of the void,
+lifted by bmfr, stayed 1.16x worse than the input in its tile (hard case `bulb`), and a dark band
+crossregression blurred, 1.13x (`glints`). It needs NOISY_SHARE of its pixels to have halves
 that differ: where both halves of most pixels saw nothing (a dim region at 1 spp per half), Ec is about 0
 because the samples are few, not because the input is right. The result is c' + t (o - c'), with c' the
 input with its fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in
 one half only, while a light seen directly is in both): the part of the input the blend takes back should
 not bring them with it. A value the denoiser left as it came (an exact pixel, a background passed
 through) stays so; a frame whose halves agree everywhere comes back as its input. Interpolation lets a
-tile's neighbours lend it their t at its border, so a region the halves reject keeps some of the output
-within ~half a tile (a half tile's, where one overrides) of its edge.
+tile's neighbours lend it their t at its border, so a region the tiles reject keeps some of the output
+within ~half a tile of its edge.
 
 What it costs and gains on ordinary frames (`make bench`, 128x128, 4 spp; docs/benchmarks.md, "Noise
 blend"): the blend itself lowered every pipeline's relL2 overall; the 3x3 level and the half tiles,
@@ -66,6 +71,7 @@ LEVEL_RADIUS = 1  # the box mean of c that stands in for the reference's level: 
 PROXY_FLOOR = 0.25  # ... and the stand-in is at least this share of it (module docstring)
 WORSE = 0.5  # a half tile whose weight is below this (its output estimated worse than its input) overrides
 NOISY_SHARE = 0.25  # ... where at least this share of its pixels have halves that differ (module docstring)
+HALF_RAMP = 1  # ... over its own pixels, eased over the (2 r + 1)^2 box of the pixels around (module docstring)
 
 
 def blend_weights(error_out: np.ndarray, error_in: np.ndarray) -> np.ndarray:
@@ -117,8 +123,7 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     t_half = half_tile_weights(*fine, tile_counts(height, width, half)).astype(np.float32)
     result = np.empty_like(arrays[0])
     _blend_kernel(*arrays[:4], e, emission is not None, np.float32(FIREFLY_K), t, *_interpolation(height, tile),
-                  *_interpolation(width, tile), t_half, *_interpolation(height, half), *_interpolation(width, half),
-                  result)
+                  *_interpolation(width, tile), t_half, half, HALF_RAMP, result)
     return result
 
 
@@ -163,7 +168,8 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     t = blend_weights(tile_sums(pixel_out, tile)[0], tile_sums(pixel_in, tile)[0])
     noisy, pixels = tile_sums((variance > 0).any(axis=-1).astype(np.float64), half)
     t_half = half_tile_weights(tile_sums(pixel_out, half)[0], tile_sums(pixel_in, half)[0], noisy, pixels)
-    t = np.minimum(interpolate_tiles(t, tile, height, width), interpolate_tiles(t_half, half, height, width))[..., None]
+    own = np.repeat(np.repeat(t_half, half, axis=0), half, axis=1)[:height, :width, None].astype(np.float32)
+    t = np.minimum(interpolate_tiles(t, tile, height, width), box_mean(own, HALF_RAMP)[..., 0])[..., None]
     t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
     planes = np.ascontiguousarray(c.astype(np.float32).transpose(2, 0, 1))
     clipped = clamp_fireflies_reference(planes).transpose(1, 2, 0)
@@ -235,12 +241,13 @@ def _radiance_row(color, e, has_emission, y):  # pragma: no cover - jitted
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, col0, col1, col_w,
-                  tf, frow0, frow1, frow_w, fcol0, fcol1, fcol_w, result):  # pragma: no cover - jitted
-    """result = c' + w (out - c'), w the smaller of t and tf, each bilinear between its tiles' centres (the
-    `_interpolation` tables), c' the colour clipped like `outliers.clamp_fireflies` (k) where the halves
-    differ, on the colour less the emission e (with `has_emission`), which is added back. t: (th, tw) and
-    tf: (th', tw') float32 weights of the tiles and of the half tiles; row0, row1, row_w (H,) and col0,
-    col1, col_w (W,): `_interpolation`'s tables for t, the f-prefixed ones for tf. A task per row: the 3x3 neighbour
+                  tf, half, ramp, result):  # pragma: no cover - jitted
+    """result = c' + w (out - c'), w the smaller of t, bilinear between its tiles' centres (the `_interpolation`
+    tables), and of tf's mean over the in-frame (2 ramp + 1)^2 box of pixels, each pixel taking its own half
+    tile's; c' the colour clipped like `outliers.clamp_fireflies` (k) where the halves differ, on the colour
+    less the emission e (with `has_emission`), which is added back. t: (th, tw) and tf: (th', tw') float32
+    weights of the tiles and of the half tiles (side `half` pixels); row0, row1, row_w (H,) and col0, col1,
+    col_w (W,): `_interpolation`'s tables for t. A task per row: the 3x3 neighbour
     range of every value of the interleaved (W * C) row, then the blend (float64, within float32's range).
     The range is `outliers.clamp_fireflies`' 3x3 range, taken here on the (H, W, C) rows: through its
     (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
@@ -270,16 +277,23 @@ def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, co
         if height * width == 1:  # no neighbour: nothing to clip against
             lo[:], hi[:] = own, own
         fy = row_w[y]
+        y0, y1 = max(y - ramp, 0), min(y + ramp + 1, height)
+        band = np.zeros(tf.shape[1], np.float64)  # per half-tile column, the mean of tf over the rows y0..y1-1
+        for yy in range(y0, y1):
+            for j in range(tf.shape[1]):
+                band[j] += tf[yy // half, j]
+        band /= y1 - y0
         weights = np.empty(n, np.float32)
         for x in range(width):
             fx = col_w[x]
             top = t[row0[y], col0[x]] + fx * (t[row0[y], col1[x]] - t[row0[y], col0[x]])
             bottom = t[row1[y], col0[x]] + fx * (t[row1[y], col1[x]] - t[row1[y], col0[x]])
             w = top + fy * (bottom - top)
-            gx, gy = fcol_w[x], frow_w[y]
-            top = tf[frow0[y], fcol0[x]] + gx * (tf[frow0[y], fcol1[x]] - tf[frow0[y], fcol0[x]])
-            bottom = tf[frow1[y], fcol0[x]] + gx * (tf[frow1[y], fcol1[x]] - tf[frow1[y], fcol0[x]])
-            w = min(w, top + gy * (bottom - top))
+            x0, x1 = max(x - ramp, 0), min(x + ramp + 1, width)
+            own = 0.0
+            for xx in range(x0, x1):
+                own += band[xx // half]
+            w = min(w, np.float32(own / (x1 - x0)))
             if has_emission:  # a pixel with emission keeps the output, as the noise clamp leaves it
                 for c in range(channels):
                     if e[y, x, c] != 0:

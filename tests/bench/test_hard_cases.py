@@ -19,16 +19,11 @@ from service import pipelines
 from service.frame import Frame
 
 # Where a pipeline still fails the criterion, with its worst tile ratio as measured (`python -m bench.hard_cases
-# table`). bmfr on bulb: a mirror sphere's black reflection of the void, lifted by a regression on albedo,
-# normal and depth, which no G-buffer shows, where at 1 spp per half the halves are too noisy for the noise
-# blend (service/stages/noise_blend.py) to weigh it against. glints: the sky's thin reflections in near-mirror
-# metal under a sun, which no G-buffer shows either, blurred. A listed pair may not get worse than recorded
-# (test below), and one that passes must leave the list; those within 20% of the limit may pass or fail
-# (another CPU's rounding).
-KNOWN_FAILURES: dict[tuple[str, str], float] = {
-    ("bmfr", "bulb"): 1.16, ("bmfr", "bulb_emission"): 1.16,
-    ("crossregression", "glints"): 1.13,
-}
+# table`). A listed pair may not get worse than recorded (test below), and one that passes must leave the list;
+# those within 20% of the limit may pass or fail (another CPU's rounding). Empty since the noise blend's half
+# tiles hold their weight over their own pixels (service/stages/noise_blend.py): bmfr on bulb (1.16x) and
+# crossregression on glints (1.13x) were the last.
+KNOWN_FAILURES: dict[tuple[str, str], float] = {}
 
 
 def _params() -> list:
