@@ -4,19 +4,23 @@ reference-free error estimate (service/stages/error_estimate.py) ranks denoisers
 Per sequence, every candidate runs through its own state on the frames as they are, giving f(C), and at
 every frame, from a copy of that state before the frame, on the frame whose `color` is half A alone or
 half B alone (the halves removed), giving f(A) and f(B): as `auto` evaluates a candidate it runs, here at
-every frame. Per frame and tile, with scale the median of the candidates' f(A) and f(B):
+every frame. Per frame and tile, with scale the median of the candidates' f(A) and f(B), and m the median of
+their f(C):
 - one way: `tile_error(f(A), colorA, colorB, scale, cap=FIREFLY_CAP)`;
-- both ways: `cross_tile_error(f(A), f(B), ...)`, the estimate auto's is made of
-  (service/pipelines/tiled.py);
-- averaged: both ways, averaged with the previous frame's average (weights 1/2, 1/2), as auto averages an
-  evaluation with the previous one. Not auto's exact estimate: here every candidate runs, and is
-  evaluated, at every frame, while auto evaluates at the first two frames and every `every` frames, a
-  temporal candidate it does not run from a state stepped through the previous frame only;
+- both ways: `cross_tile_error(f(A), f(B), ...)`, the estimate auto chooses by (service/pipelines/tiled.py);
+- controlled: both ways with m as scale and control variate (`control=m`), the estimate auto's `error` layer
+  is made of (there m is the median of the candidates it evaluates);
+- averaged: controlled, averaged with the previous frame's (weights 1/2, 1/2) in the tiles whose content moved
+  by at most `tiled.MOVED` pixels (`motion`), from the third frame on, as auto averages an evaluation with the
+  previous one. Not auto's exact estimate: here every candidate runs, and is evaluated, at every frame, while
+  auto evaluates at the first two frames and every `every` frames, a temporal candidate it does not run from
+  a state stepped through the previous frame only;
 - the truth: the tile's relL2 of f(C) against the reference (what a per-tile choice would serve), and of
   f(A) (what the one-way estimate estimates).
 Printed per sequence: Spearman's rank correlation between each estimate and the truth over the (frame,
-tile) pairs of each candidate, its median over candidates ("rho 1-way", "rho both", "rho avg"), and the
-averaged estimate's over all (frame, tile, candidate) triples; then, for the averaged estimate, the share
+tile) pairs of each candidate, its median over candidates ("rho 1-way", "rho both", "rho ctrl", "rho avg"),
+and the averaged estimate's over all (frame, tile, candidate) triples; then, for both ways averaged the
+same way (the control variate is the same for every candidate in a tile, so it changes no choice), the share
 of tiles whose estimated best candidate is the true best and the relL2 of a frame assembled per tile from
 the estimated best candidate's f(C) ("chosen"), beside the best single candidate's and the per-tile
 oracle's. Candidates must run without the half buffers (not crossregression or crossreg, which need them).
@@ -33,7 +37,7 @@ import numpy as np
 from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import rel_l2, rel_l2_map
-from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP, HALVES, one_half, run_half
+from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP, HALVES, MOVED, one_half, run_half
 from service.process import configure
 from service.stages.error_estimate import TILE, cross_tile_error, tile_error, tile_means
 
@@ -59,7 +63,8 @@ class SequenceReport:
     candidates: list[str]
     one_way: list[float]  # Spearman, one-way estimate vs f(C) truth over (frame, tile), per candidate
     both_ways: list[float]  # the same for the estimate both ways
-    per_candidate: list[float]  # the same for the averaged estimate both ways
+    controlled: list[float]  # the same both ways with the control variate
+    per_candidate: list[float]  # the same for the averaged controlled estimate
     pooled: float  # Spearman of the averaged estimate over (frame, tile, candidate)
     pooled_half: float  # the one-way estimate's against f(A)'s true error
     best_match: float  # share of (frame, tile) whose estimated best (averaged) is the true best (f(C))
@@ -76,16 +81,21 @@ def evaluate(folder: Path, names: list[str], tile: int = TILE) -> SequenceReport
         raise ValueError(f"{folder}: frames need 'reference', 'colorA' and 'colorB'")
     runs = {n: _run(pipelines.get(n), frames) for n in names}
     full, half_a, half_b = ({n: run[k] for n, run in runs.items()} for k in range(3))
-    one, both, avg, truth, truth_half = [], [], [], [], []
+    one, both, ctrl, avg, avg_ctrl, truth, truth_half = [], [], [], [], [], [], []
     chosen, oracle, single = [], [], {n: [] for n in names}
     for i, frame in enumerate(frames):
         a, b = frame["colorA"], frame["colorB"]
         outs = np.stack([full[n][i] for n in names])
         scale = np.median([half_a[n][i] for n in names] + [half_b[n][i] for n in names], axis=0)
+        consensus = np.median(outs, axis=0)
         one.append(np.stack([tile_error(half_a[n][i], a, b, scale, tile, cap=FIREFLY_CAP).mean for n in names]))
         both.append(np.stack([cross_tile_error(half_a[n][i], half_b[n][i], a, b, scale, tile, cap=FIREFLY_CAP).mean
                               for n in names]))
-        avg.append(both[-1] if i == 0 else 0.5 * (avg[-1] + both[-1]))
+        ctrl.append(np.stack([cross_tile_error(half_a[n][i], half_b[n][i], a, b, consensus, tile, cap=FIREFLY_CAP,
+                                               control=consensus).mean for n in names]))
+        keep = i > 1 and _static(frame, tile)
+        avg.append(np.where(keep, 0.5 * (avg[-1] + both[-1]), both[-1]) if i else both[-1])
+        avg_ctrl.append(np.where(keep, 0.5 * (avg_ctrl[-1] + ctrl[-1]), ctrl[-1]) if i else ctrl[-1])
         t = np.stack([tile_means(rel_l2_map(full[n][i], frame["reference"]), tile) for n in names])
         truth.append(t)
         truth_half.append(np.stack([tile_means(rel_l2_map(half_a[n][i], frame["reference"]), tile) for n in names]))
@@ -94,7 +104,8 @@ def evaluate(folder: Path, names: list[str], tile: int = TILE) -> SequenceReport
         for n in names:
             single[n].append(rel_l2(full[n][i], frame["reference"]))
     # (K, frames, th, tw)
-    one, both, est, truth, truth_half = (np.stack(x, axis=1) for x in (one, both, avg, truth, truth_half))
+    one, both, ctrl, avg, est, truth, truth_half = (np.stack(x, axis=1)
+                                                    for x in (one, both, ctrl, avg, avg_ctrl, truth, truth_half))
     means = {n: float(np.mean(v)) for n, v in single.items()}
     best = min(means, key=means.get)
 
@@ -102,11 +113,19 @@ def evaluate(folder: Path, names: list[str], tile: int = TILE) -> SequenceReport
         return [spearman(e[k].ravel(), truth[k].ravel()) for k in range(len(names))]
 
     return SequenceReport(
-        folder.name, names, per_candidate(one), per_candidate(both), per_candidate(est),
+        folder.name, names, per_candidate(one), per_candidate(both), per_candidate(ctrl), per_candidate(est),
         spearman(est.ravel(), truth.ravel()), spearman(one.ravel(), truth_half.ravel()),
-        float((est.argmin(axis=0) == truth.argmin(axis=0)).mean()),
+        float((avg.argmin(axis=0) == truth.argmin(axis=0)).mean()),
         float(np.mean(chosen)), (best, means[best]), float(np.mean(oracle)),
     )
+
+
+def _static(frame: Frame, tile: int) -> np.ndarray | bool:
+    """Per tile, whether `frame`'s content moved by at most MOVED pixels on average since the previous frame
+    (`motion`; without it, everywhere), as auto decides what to average."""
+    if "motion" not in frame:
+        return True
+    return tile_means(np.abs(frame["motion"]).max(axis=-1).astype(np.float64), tile) <= MOVED
 
 
 def _run(pipeline, frames: list[Frame]) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
@@ -131,11 +150,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tile", type=int, default=TILE)
     args = parser.parse_args(argv)
     print(f"tile {args.tile}; candidates {', '.join(args.pipelines)}")
-    print(f"{'sequence':14s} {'rho 1-way':>9s} {'rho both':>8s} {'rho avg':>7s} {'rho all':>7s} {'rho f(A)':>8s} "
-          f"{'best hit':>8s} {'chosen':>8s} {'best single':>22s} {'oracle':>8s}")
+    print(f"{'sequence':14s} {'rho 1-way':>9s} {'rho both':>8s} {'rho ctrl':>8s} {'rho avg':>7s} {'rho all':>7s} "
+          f"{'rho f(A)':>8s} {'best hit':>8s} {'chosen':>8s} {'best single':>22s} {'oracle':>8s}")
     for folder in args.sequences:
         r = evaluate(folder, args.pipelines, args.tile)
-        print(f"{r.name:14s} {np.median(r.one_way):9.3f} {np.median(r.both_ways):8.3f} "
+        print(f"{r.name:14s} {np.median(r.one_way):9.3f} {np.median(r.both_ways):8.3f} {np.median(r.controlled):8.3f} "
               f"{np.median(r.per_candidate):7.3f} {r.pooled:7.3f} {r.pooled_half:8.3f} {r.best_match:8.2f} "
               f"{r.chosen:8.4f} {r.best_single[0]:>12s} {r.best_single[1]:8.4f} {r.oracle:8.4f}")
         print(" " * 15 + "rho avg per candidate: " + ", ".join(

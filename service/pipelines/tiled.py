@@ -10,7 +10,9 @@ estimated from the halves, both ways (half the variance of one way; a candidate 
 of its own, so svgf is judged without its halves' variance: a little worse than it runs where its history is
 short), normalised by the median of the candidates' outputs (the same for all; halves clipped at FIREFLY_CAP
 times that level, so that fireflies do not decide), averaged with the previous evaluation's except the first
-frame's (made without history). `service.stages.candidate_blend.choose` then picks the set of candidates to
+frame's (made without history) and in the tiles whose content moved more than MOVED pixels since (`motion`
+times the frames between: there the previous estimate is of other content).
+`service.stages.candidate_blend.choose` then picks the set of candidates to
 run (the last one while its summed estimate stays within `tolerance` of the lowest, else the cheapest that is,
 costing at most `budget` times the one it weighs most, by COSTS) and per tile their convex weights of least
 estimated error: two candidates whose errors are not fully correlated blend to less error than either. Every
@@ -19,13 +21,18 @@ member, and starts afresh when it joins again) and their outputs are blended wit
 between tile centres, so that tiles meet without seams.
 
 Outputs: `color`, and `error` (H, W, 1): the blend's estimate per tile from the last evaluation (up to
-`every` - 1 frames old, at fixed tile positions), w^T C w, at least the standard error of that estimate
-(this evaluation's, its variance scaled as the running average scales it), interpolated the same way: the
-estimated relL2 of the blend run on half the samples without the guards (FRAME_FORMAT.md's `error`: a
-relative scale to send more samples by, not the error of `color` itself). The floor keeps a tile whose
-estimate fell to zero or below by chance (at 2 spp per half, 5-22% of 32x32 tiles) from reading as
-error-free: on the benchmark sequences the log of max(estimate, its sd) follows the log of the true error
-more closely than the estimate clipped at 1e-6 (kpn and bmfr, frames 0-3, all four sequences but kpn on
+`every` - 1 frames old, at fixed tile positions): its halves' outputs (the members' f(A) and f(B) blended)
+against the halves both ways, with the median of every candidate's output for the whole frame (the running
+ones stepped through it for real at the evaluation, the others from copies, so an evaluation runs each
+candidate three times) as scale and control variate (service/stages/error_estimate.py: it ranks tiles
+closer to the truth, and reads higher than the blend's error where the median keeps its own samples' noise),
+averaged as the covariance is, at least the standard error of that estimate (this evaluation's, its variance
+scaled per tile as the running average scales it), interpolated the same way: the estimated relL2 of the
+blend run on half the samples without the guards (FRAME_FORMAT.md's `error`: a relative scale to send more
+samples by, not the error of `color` itself). The floor keeps a tile whose
+estimate fell to zero or below by chance from reading as error-free (before the control variate, 5-22%
+of 32x32 tiles at 2 spp per half, where the log of max(estimate, its sd) followed the log of the true error
+more closely than the estimate clipped at 1e-6: kpn and bmfr, frames 0-3, all four sequences but kpn on
 shadows). Without `colorA`/`colorB`, or with no candidate the frame can feed, the sequence goes to
 `service.pipelines.auto(layers)`'s choice whole, as the CLI did before this pipeline, and there is no `error` layer.
 """
@@ -49,6 +56,7 @@ from service.stages.error_estimate import (
     interpolate_tiles,
     tile_covariance,
     tile_error,
+    tile_means,
 )
 
 # Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest first,
@@ -59,6 +67,7 @@ COSTS = {"flr": 54.0, "bmfr": 61.0, "svgf": 206.0, "kpn": 404.0}
 CANDIDATES = tuple(COSTS)
 HALVES = ("colorA", "colorB")
 FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (error_estimate `cap`)
+MOVED = 3.0  # pixels a tile's content may have moved since the last evaluation for its estimate to be averaged in
 
 
 @dataclass(frozen=True)
@@ -85,8 +94,9 @@ class AutoState(SequenceState):
     blend: np.ndarray | None = None  # (K, th, tw) float64 per-tile weights of the candidates, summing to 1
     weights: np.ndarray | None = None  # (K, H, W) float32 `blend` interpolated between tile centres
     error: np.ndarray | None = None  # (H, W, 1) float32 the blend's estimate per tile, at least its sd, interpolated
-    # the running average's variance against one evaluation's: 1, then f <- f / 4 + 1 / 4 at each average
-    variance_factor: float = 1.0
+    error_tiles: np.ndarray | None = None  # (th, tw) float64 the blend's running per-tile estimate
+    # per tile, the running average's variance against one evaluation's: 1, then f <- f / 4 + 1 / 4 at each average
+    variance_factor: np.ndarray | None = None
     members: tuple[int, ...] | None = None  # indices of the candidates the blend runs
     evaluated: int | None = None  # the frame index of the last evaluation
     previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
@@ -143,8 +153,7 @@ class AutoPipeline(Pipeline):
         if state.fallback is not None:
             out, state.fallback_state = state.fallback.step(frame, state.fallback_state)
             return {"color": out["color"]}, state
-        if self.evaluates(state.frame_index):
-            self._evaluate(frame, state)
+        stepped = self._evaluate(frame, state) if self.evaluates(state.frame_index) else {}
         names = list(state.candidates)
         for index, name in enumerate(names):  # a candidate that left the blend loses its history
             if index not in state.members and name in state.states:
@@ -153,10 +162,13 @@ class AutoPipeline(Pipeline):
         color = np.zeros((frame.height, frame.width, 3), np.float32)
         for index in state.members:
             name = names[index]
-            pipeline = state.candidates[name]
-            sub = state.states.get(name) or pipeline.start(frame.height, frame.width)
-            out, state.states[name] = pipeline.step(frame, sub)
-            color += weights[index][..., None] * out["color"]
+            out = stepped.get(name)  # a running member the evaluation already stepped through this frame
+            if out is None:
+                pipeline = state.candidates[name]
+                sub = state.states.get(name) or pipeline.start(frame.height, frame.width)
+                out, state.states[name] = pipeline.step(frame, sub)
+                out = out["color"]
+            color += weights[index][..., None] * out
         state.previous = frame if self.evaluates(state.frame_index + 1) else None  # for the next evaluation only
         return {"color": color, "error": state.error.copy()}, state
 
@@ -167,7 +179,7 @@ class AutoPipeline(Pipeline):
     def _setup(self, frame: Frame, state: AutoState) -> None:
         state.close()  # a first frame that failed may have set some of it
         state.fallback = state.fallback_state = state.covariance = state.blend = None
-        state.previous = state.members = state.evaluated = None
+        state.previous = state.members = state.evaluated = state.error_tiles = state.variance_factor = None
         state.candidates, state.states = {}, {}
         layers = set(frame.buffers)
         names = [n for n in CANDIDATES if set(pipelines.pipeline_class(n).requires) <= layers]
@@ -177,13 +189,25 @@ class AutoPipeline(Pipeline):
             return
         state.candidates = {n: pipelines.get(n) for n in names}
 
-    def _evaluate(self, frame: Frame, state: AutoState) -> None:
-        """Estimate the candidates' per-tile error covariance on the halves (`run_half`) and blend per tile."""
+    def _evaluate(self, frame: Frame, state: AutoState) -> dict[str, np.ndarray]:
+        """Estimate the candidates' per-tile error covariance on the halves (`run_half`) and blend per tile; then
+        each candidate's output for the whole frame, the running ones stepped through it for real, and the
+        `error` layer from their median. Returns {name: (H, W, 3) output} of the running candidates stepped."""
         halves = HALVES if self.options.both_halves else HALVES[:1]
         histories = {name: self._history(name, state) for name in state.candidates}
+        stepped: dict[str, np.ndarray] = {}
         try:
             outputs = {h: [run_half(pipeline, one_half(frame, h), histories[name])
                            for name, pipeline in state.candidates.items()] for h in halves}
+            full = []  # every candidate on the whole frame: the running ones for real, the others from a copy
+            for name, pipeline in state.candidates.items():
+                if name in state.states:
+                    out, state.states[name] = pipeline.step(frame, state.states[name])
+                    stepped[name] = out["color"]
+                    histories[name] = state.states[name]
+                    full.append(stepped[name])
+                else:
+                    full.append(run_half(pipeline, frame, histories[name]))
         finally:
             for name, history in histories.items():
                 if history is not None and history is not state.states.get(name):
@@ -193,11 +217,10 @@ class AutoPipeline(Pipeline):
         scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
         outs_b = outputs.get("colorB")
         covariance = tile_covariance(outputs["colorA"], a, b, scale, tile, cap=FIREFLY_CAP, outs_b=outs_b)
-        if state.covariance is not None and state.frame_index > 1:  # not with the first frame's, made without history
-            covariance = 0.5 * (state.covariance + covariance)
-            state.variance_factor = 0.25 * state.variance_factor + 0.25
-        else:
-            state.variance_factor = 1.0
+        keep = self._kept(frame, state)  # per tile, whether the last evaluation's estimate is of the same content
+        first = state.covariance is None or state.frame_index <= 1  # the first frame's is made without history
+        if not first:
+            covariance = np.where(keep, 0.5 * (state.covariance + covariance), covariance)
         state.covariance, state.evaluated = covariance, state.frame_index
         costs = np.array([COSTS[name] for name in state.candidates])
         # frame 0's members stay at frame 1 while near the lowest: made without history, it still tells (fireflies:
@@ -206,16 +229,31 @@ class AutoPipeline(Pipeline):
                                             state.members)
         height, width = frame.height, frame.width
         state.weights = interpolate_tiles(state.blend, tile, height, width).astype(np.float32)
-        # the blend's estimate w^T C w per tile, at least its sd: this evaluation's, scaled as the average scales it
-        estimate = np.einsum("jyx,jkyx,kyx->yx", state.blend, covariance, state.blend)
+        # the error layer: the blend's estimate on the halves against the candidates' median on the whole frame
+        consensus = np.median(full, axis=0)
         pixel_blend = np.repeat(np.repeat(state.blend, tile, axis=1), tile, axis=2)[:, :height, :width, None]
         blended = [sum(w * out for w, out in zip(pixel_blend, outs, strict=True)) for outs in outputs.values()]
         if outs_b is not None:
-            spread = cross_tile_error(blended[0], blended[1], a, b, scale, tile, cap=FIREFLY_CAP).variance
+            estimate = cross_tile_error(*blended, a, b, consensus, tile, cap=FIREFLY_CAP, control=consensus)
         else:
-            spread = tile_error(blended[0], a, b, scale, tile, cap=FIREFLY_CAP).variance
-        floored = np.maximum(estimate, np.sqrt(state.variance_factor * spread))
+            estimate = tile_error(blended[0], a, b, consensus, tile, cap=FIREFLY_CAP, control=consensus)
+        if first:
+            state.error_tiles, state.variance_factor = estimate.mean, np.ones_like(estimate.mean)
+        else:
+            state.error_tiles = np.where(keep, 0.5 * (state.error_tiles + estimate.mean), estimate.mean)
+            state.variance_factor = np.where(keep, 0.25 * state.variance_factor + 0.25, 1.0)
+        floored = np.maximum(state.error_tiles, np.sqrt(state.variance_factor * estimate.variance))
         state.error = interpolate_tiles(floored, tile, height, width)[..., None].astype(np.float32)
+        return stepped
+
+    def _kept(self, frame: Frame, state: AutoState) -> np.ndarray | bool:
+        """Per tile ((th, tw) bool), whether the last evaluation's estimate is averaged into this one's: where the
+        frame's `motion`, times the frames since that evaluation, moves the tile's content by at most MOVED
+        pixels on average (without `motion`, everywhere)."""
+        if "motion" not in frame or state.evaluated is None:
+            return True
+        shift = np.abs(frame["motion"]).max(axis=-1).astype(np.float64) * (state.frame_index - state.evaluated)
+        return tile_means(shift, self.options.tile) <= MOVED
 
     @staticmethod
     def _history(name: str, state: AutoState) -> SequenceState | None:
@@ -232,8 +270,8 @@ class AutoPipeline(Pipeline):
 
 
 def run_half(pipeline: Pipeline, frame: Frame, running: SequenceState | None) -> np.ndarray:
-    """(H, W, 3) float32: `pipeline`'s output for `frame` (one half, `one_half`) from a copy of its running
-    state (its history is made of earlier frames' samples, independent of this frame's halves, so the
+    """(H, W, 3) float32: `pipeline`'s output for `frame` (one half, `one_half`, or the whole) from a copy of its
+    running state (its history is made of earlier frames' samples, independent of this frame's halves, so the
     estimate stays unbiased), or from a fresh state when it has none."""
     sub = copy.deepcopy(running) if running is not None else pipeline.start(frame.height, frame.width)
     out, sub = pipeline.step(frame, sub)

@@ -36,8 +36,8 @@ def test_one_half_serves_that_half_as_the_colour_without_the_halves(tiny_sequenc
 def test_evaluation_of_a_small_sequence(tiny_sequence_dir: Path):
     report = evaluate(tiny_sequence_dir, ["bilateral", "flr"], tile=8)
     assert report.candidates == ["bilateral", "flr"]
-    assert len(report.one_way) == len(report.both_ways) == len(report.per_candidate) == 2
-    assert all(-1.0 <= v <= 1.0 for v in (*report.one_way, *report.both_ways, *report.per_candidate,
+    assert len(report.one_way) == len(report.both_ways) == len(report.controlled) == len(report.per_candidate) == 2
+    assert all(-1.0 <= v <= 1.0 for v in (*report.one_way, *report.both_ways, *report.controlled, *report.per_candidate,
                                           report.pooled, report.pooled_half))
     assert 0.0 <= report.best_match <= 1.0
     assert report.oracle <= report.best_single[1] + 1e-12  # the per-tile oracle is at least the best single one

@@ -67,7 +67,7 @@ def test_with_halves_it_blends_per_tile_reevaluates_every_k_frames_and_outputs_i
     calls = []
     evaluate = tiled.AutoPipeline._evaluate
     monkeypatch.setattr(tiled.AutoPipeline, "_evaluate", lambda self, f, s: (calls.append(s.frame_index),
-                                                                                evaluate(self, f, s)))
+                                                                                evaluate(self, f, s))[1])
     outs, state = _run(pipelines.get("auto", tile=16, every=2), frames)
     assert calls == [0, 1, 2, 4]
     assert list(state.candidates) == list(CANDIDATES) and state.blend.shape == (len(CANDIDATES), 3, 5)
@@ -155,6 +155,27 @@ def test_each_evaluation_averages_with_the_previous_one_but_the_first(frames, mo
     assert calls == [both_halves] * 3
 
 
+def test_tiles_whose_content_moved_since_the_last_evaluation_are_not_averaged(frames, monkeypatch):
+    """Where `motion` times the frames since the last evaluation moves a tile's content by more than MOVED pixels
+    on average, the last evaluation's estimate (of other content) is not averaged in; elsewhere it is."""
+    calls = []
+
+    def fake(outs_a, *args, **kwargs):
+        calls.append(1)
+        return np.full((len(outs_a), len(outs_a), 3, 5), float(len(calls)))
+
+    monkeypatch.setattr(tiled, "tile_covariance", fake)
+    moving = []
+    for frame in frames[:3]:
+        motion = np.zeros((40, 72, 2), np.float32)
+        motion[:, 48:, 0] = tiled.MOVED + 1.0  # the last two columns of 16x16 tiles move, the rest stays
+        moving.append(frame.replace(motion=motion))
+    _, state = _run(pipelines.get("auto", tile=16, every=2), moving)  # evaluations at frames 0, 1 and 2
+    np.testing.assert_allclose(state.covariance[..., :3], 0.5 * (2.0 + 3.0))
+    np.testing.assert_allclose(state.covariance[..., 3:], 3.0)
+    assert np.all(state.variance_factor[:, :3] == 0.5) and np.all(state.variance_factor[:, 3:] == 1.0)
+
+
 def test_the_estimate_both_ways_compares_each_candidate_on_half_a_and_on_half_b(frames):
     """At the first frame each candidate's f(A) and f(B) (from fresh states) give the error covariance both ways,
     whose diagonal is each candidate's `cross_tile_error`; the `error` layer is the blend's estimate."""
@@ -171,12 +192,14 @@ def test_the_estimate_both_ways_compares_each_candidate_on_half_a_and_on_half_b(
                                     cap=tiled.FIREFLY_CAP).mean
         np.testing.assert_allclose(state.covariance[k, k], expected, rtol=1e-9, atol=1e-15)
     np.testing.assert_array_equal(state.covariance, state.covariance.transpose(1, 0, 2, 3))
-    # the error layer: the blend's estimate w^T C w, at least the sd of the blended halves' estimate
+    # the error layer: the blended halves' estimate against the candidates' median on the whole frame (scale and
+    # control variate), at least its sd
     blend = state.blend
     per_pixel = np.repeat(np.repeat(blend, 16, axis=1), 16, axis=2)[:, :40, :72, None]
     blended = [sum(w * o for w, o in zip(per_pixel, outputs[h], strict=True)) for h in ("colorA", "colorB")]
-    spread = cross_tile_error(*blended, a, b, scale, 16, cap=tiled.FIREFLY_CAP).variance
-    floored = np.maximum(np.einsum("jyx,jkyx,kyx->yx", blend, state.covariance, blend), np.sqrt(spread))
+    consensus = np.median([_run(pipelines.get(n), [frame])[0][0]["color"] for n in CANDIDATES], axis=0)
+    estimate = cross_tile_error(*blended, a, b, consensus, 16, cap=tiled.FIREFLY_CAP, control=consensus)
+    floored = np.maximum(estimate.mean, np.sqrt(estimate.variance))
     np.testing.assert_allclose(state.error[..., 0], interpolate_tiles(floored, 16, 40, 72), rtol=1e-5)
 
 
@@ -191,7 +214,7 @@ def test_a_running_candidate_is_judged_from_a_copy_of_its_state(frames, monkeypa
     def spy(pipeline, frame, running):
         before = copy.deepcopy(running)
         out = run_half(pipeline, frame, running)
-        if pipeline.name == "svgf":
+        if pipeline.name == "svgf" and "colorA" not in frame:  # a half (the whole frame: the error layer's median)
             seen.append((frame, before, out))
             if running is not None:  # untouched by the evaluation
                 assert running.frame_index == before.frame_index
@@ -215,7 +238,8 @@ def test_a_temporal_candidate_not_running_is_judged_with_a_history_through_the_p
     seen = []
 
     def spy(pipeline, frame, running):
-        seen.append((pipeline.name, frame, None if running is None else copy.deepcopy(running)))
+        if "colorA" not in frame:  # a half (the whole frame: the error layer's median)
+            seen.append((pipeline.name, frame, None if running is None else copy.deepcopy(running)))
         return run_half(pipeline, frame, running)
 
     monkeypatch.setattr(tiled, "run_half", spy)
@@ -279,14 +303,9 @@ def test_the_error_layer_is_at_least_the_estimates_standard_error(frames, monkey
     (the first is not averaged into the second), then scaled by 1/2, 3/8, ... as averages are taken."""
     from service.stages.error_estimate import TileError
 
-    def covariance(outs_a, *args, **kwargs):
-        value = np.full((len(outs_a), len(outs_a), 3, 5), -1.0)
-        value[..., 3:] = 5.0
-        return value
-
-    monkeypatch.setattr(tiled, "tile_covariance", covariance)
-    monkeypatch.setattr(tiled, "cross_tile_error", lambda *args, **kwargs: TileError(np.zeros((3, 5)),
-                                                                                      np.full((3, 5), 4.0), 16))
+    mean = np.full((3, 5), -1.0)
+    mean[:, 3:] = 5.0
+    monkeypatch.setattr(tiled, "cross_tile_error", lambda *args, **kwargs: TileError(mean, np.full((3, 5), 4.0), 16))
     outs, _ = _run(pipelines.get("auto", tile=16, every=2), frames)  # evaluations at frames 0, 1, 2 and 4
     for out, factor in zip(outs, (1.0, 1.0, 0.5, 0.5, 0.375), strict=True):
         error = out["error"][..., 0]
