@@ -10,8 +10,8 @@ estimated from the halves, both ways (half the variance of one way; a candidate 
 of its own, so svgf is judged without its halves' variance: a little worse than it runs where its history is
 short), normalised by the median of the candidates' outputs (the same for all; halves clipped at FIREFLY_CAP
 times that level, so that fireflies do not decide), averaged with the previous evaluation's except the first
-frame's (made without history) and in the tiles whose content moved more than MOVED pixels since (`motion`
-times the frames between: there the previous estimate is of other content).
+frame's (made without history) and in the tiles whose content moved more than MOVED pixels since (the
+frames' `motion` summed: there the previous estimate is of other content).
 `service.stages.candidate_blend.choose` then picks the set of candidates to
 run (the last one while its summed estimate stays within `tolerance` of the lowest, else the cheapest that is,
 costing at most `budget` times the one it weighs most, by COSTS) and per tile their convex weights of least
@@ -23,13 +23,13 @@ between tile centres, so that tiles meet without seams.
 Outputs: `color`, and `error` (H, W, 1): the blend's estimate per tile from the last evaluation (up to
 `every` - 1 frames old, at fixed tile positions): its halves' outputs (the members' f(A) and f(B) blended)
 against the halves both ways, with the median of every candidate's output for the whole frame (the running
-ones stepped through it for real at the evaluation, the others from copies, so an evaluation runs each
-candidate three times) as scale and control variate (service/stages/error_estimate.py: it ranks tiles
-closer to the truth, and reads higher than the blend's error where the median keeps its own samples' noise),
-averaged as the covariance is, at least the standard error of that estimate (this evaluation's, its variance
-scaled per tile as the running average scales it), interpolated the same way: the estimated relL2 of the
-blend run on half the samples without the guards (FRAME_FORMAT.md's `error`: a relative scale to send more
-samples by, not the error of `color` itself). The floor keeps a tile whose
+ones stepped through it for real at the evaluation, the others from copies: one more run of each candidate
+that is not running) as scale and control variate (service/stages/error_estimate.py: it ranks tiles closer
+to the truth, and reads higher than the blend's error where the median keeps its own samples' noise),
+averaged as the covariance is where the blend it estimates is the same, at least the standard error of that
+estimate (this evaluation's, its variance scaled per tile as the running average scales it), interpolated the
+same way: the estimated relL2 of the blend run on half the samples without the guards (FRAME_FORMAT.md's
+`error`: a relative scale to send more samples by, not the error of `color` itself). The floor keeps a tile whose
 estimate fell to zero or below by chance from reading as error-free (before the control variate, 5-22%
 of 32x32 tiles at 2 spp per half, where the log of max(estimate, its sd) followed the log of the true error
 more closely than the estimate clipped at 1e-6: kpn and bmfr, frames 0-3, all four sequences but kpn on
@@ -76,7 +76,7 @@ class AutoOptions:
     every: int = option(8, low=1, high=1000)  # frames between two evaluations of the candidates
     # a set of candidates is near-best where its summed estimate is within tolerance x |lowest| of the lowest
     tolerance: float = option(0.05, low=0.0, high=10.0)
-    # run every candidate on both halves at an evaluation (twice its cost, half the estimate's variance)
+    # run every candidate on both halves at an evaluation (one more run each, half the estimate's variance)
     both_halves: bool = option(True)
     # the candidates run on a frame cost at most this times the one of largest weight (COSTS)
     budget: float = option(1.25, low=1.0, high=100.0)
@@ -97,6 +97,7 @@ class AutoState(SequenceState):
     error_tiles: np.ndarray | None = None  # (th, tw) float64 the blend's running per-tile estimate
     # per tile, the running average's variance against one evaluation's: 1, then f <- f / 4 + 1 / 4 at each average
     variance_factor: np.ndarray | None = None
+    moved: np.ndarray | None = None  # (th, tw) float64 pixels each tile's content moved since the last evaluation
     members: tuple[int, ...] | None = None  # indices of the candidates the blend runs
     evaluated: int | None = None  # the frame index of the last evaluation
     previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
@@ -153,6 +154,8 @@ class AutoPipeline(Pipeline):
         if state.fallback is not None:
             out, state.fallback_state = state.fallback.step(frame, state.fallback_state)
             return {"color": out["color"]}, state
+        if state.evaluated is not None:  # the first frame's motion points before the sequence
+            self._track_motion(frame, state)
         stepped = self._evaluate(frame, state) if self.evaluates(state.frame_index) else {}
         names = list(state.candidates)
         for index, name in enumerate(names):  # a candidate that left the blend loses its history
@@ -180,6 +183,7 @@ class AutoPipeline(Pipeline):
         state.close()  # a first frame that failed may have set some of it
         state.fallback = state.fallback_state = state.covariance = state.blend = None
         state.previous = state.members = state.evaluated = state.error_tiles = state.variance_factor = None
+        state.moved = None
         state.candidates, state.states = {}, {}
         layers = set(frame.buffers)
         names = [n for n in CANDIDATES if set(pipelines.pipeline_class(n).requires) <= layers]
@@ -191,14 +195,29 @@ class AutoPipeline(Pipeline):
 
     def _evaluate(self, frame: Frame, state: AutoState) -> dict[str, np.ndarray]:
         """Estimate the candidates' per-tile error covariance on the halves (`run_half`) and blend per tile; then
-        each candidate's output for the whole frame, the running ones stepped through it for real, and the
-        `error` layer from their median. Returns {name: (H, W, 3) output} of the running candidates stepped."""
+        each candidate's output for the whole frame, the running ones stepped through it for real (after the
+        choice, so that a choice that fails leaves them as they were), and the `error` layer from their median.
+        Returns {name: (H, W, 3) output} of the running candidates stepped."""
         halves = HALVES if self.options.both_halves else HALVES[:1]
         histories = {name: self._history(name, state) for name in state.candidates}
         stepped: dict[str, np.ndarray] = {}
         try:
             outputs = {h: [run_half(pipeline, one_half(frame, h), histories[name])
                            for name, pipeline in state.candidates.items()] for h in halves}
+            a, b, tile = frame["colorA"], frame["colorB"], self.options.tile
+            # robust to one candidate blowing up (a sky through a window); with the emission, as relL2's reference
+            scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
+            outs_b = outputs.get("colorB")
+            covariance = tile_covariance(outputs["colorA"], a, b, scale, tile, cap=FIREFLY_CAP, outs_b=outs_b)
+            keep = state.moved is None or state.moved <= MOVED  # per tile: the last estimate is of the same content
+            first = state.covariance is None or state.frame_index <= 1  # the first frame's is made without history
+            if not first:
+                covariance = np.where(keep, 0.5 * (state.covariance + covariance), covariance)
+            costs = np.array([COSTS[name] for name in state.candidates])
+            # frame 0's members stay at frame 1 while near the lowest: made without history, it still tells
+            # (fireflies: kpn, fresh, best at frame 0, svgf within 1% at frame 1; kpn 0.0220 against svgf's
+            # 0.0327 over the sequence)
+            blend, members = choose(covariance, costs, self.options.tolerance, self.options.budget, state.members)
             full = []  # every candidate on the whole frame: the running ones for real, the others from a copy
             for name, pipeline in state.candidates.items():
                 if name in state.states:
@@ -212,26 +231,14 @@ class AutoPipeline(Pipeline):
             for name, history in histories.items():
                 if history is not None and history is not state.states.get(name):
                     history.close()
-        a, b, tile = frame["colorA"], frame["colorB"], self.options.tile
-        # robust to one candidate blowing up (a sky through a window); with the emission, as relL2's reference
-        scale = np.median([out for outs in outputs.values() for out in outs], axis=0)
-        outs_b = outputs.get("colorB")
-        covariance = tile_covariance(outputs["colorA"], a, b, scale, tile, cap=FIREFLY_CAP, outs_b=outs_b)
-        keep = self._kept(frame, state)  # per tile, whether the last evaluation's estimate is of the same content
-        first = state.covariance is None or state.frame_index <= 1  # the first frame's is made without history
-        if not first:
-            covariance = np.where(keep, 0.5 * (state.covariance + covariance), covariance)
-        state.covariance, state.evaluated = covariance, state.frame_index
-        costs = np.array([COSTS[name] for name in state.candidates])
-        # frame 0's members stay at frame 1 while near the lowest: made without history, it still tells (fireflies:
-        # kpn, fresh, best at frame 0, svgf within 1% at frame 1; kpn 0.0220 against svgf's 0.0327 over the sequence)
-        state.blend, state.members = choose(covariance, costs, self.options.tolerance, self.options.budget,
-                                            state.members)
+        same_blend = state.blend is not None and np.all(np.abs(blend - state.blend) <= 1e-9, axis=0)
+        state.covariance, state.evaluated, state.moved = covariance, state.frame_index, None
+        state.blend, state.members = blend, members
         height, width = frame.height, frame.width
-        state.weights = interpolate_tiles(state.blend, tile, height, width).astype(np.float32)
+        state.weights = interpolate_tiles(blend, tile, height, width).astype(np.float32)
         # the error layer: the blend's estimate on the halves against the candidates' median on the whole frame
         consensus = np.median(full, axis=0)
-        pixel_blend = np.repeat(np.repeat(state.blend, tile, axis=1), tile, axis=2)[:, :height, :width, None]
+        pixel_blend = np.repeat(np.repeat(blend, tile, axis=1), tile, axis=2)[:, :height, :width, None]
         blended = [sum(w * out for w, out in zip(pixel_blend, outs, strict=True)) for outs in outputs.values()]
         if outs_b is not None:
             estimate = cross_tile_error(*blended, a, b, consensus, tile, cap=FIREFLY_CAP, control=consensus)
@@ -239,21 +246,21 @@ class AutoPipeline(Pipeline):
             estimate = tile_error(blended[0], a, b, consensus, tile, cap=FIREFLY_CAP, control=consensus)
         if first:
             state.error_tiles, state.variance_factor = estimate.mean, np.ones_like(estimate.mean)
-        else:
-            state.error_tiles = np.where(keep, 0.5 * (state.error_tiles + estimate.mean), estimate.mean)
-            state.variance_factor = np.where(keep, 0.25 * state.variance_factor + 0.25, 1.0)
+        else:  # averaged where the content stayed and the blend it estimates is the same
+            averaged = keep & same_blend
+            state.error_tiles = np.where(averaged, 0.5 * (state.error_tiles + estimate.mean), estimate.mean)
+            state.variance_factor = np.where(averaged, 0.25 * state.variance_factor + 0.25, 1.0)
         floored = np.maximum(state.error_tiles, np.sqrt(state.variance_factor * estimate.variance))
         state.error = interpolate_tiles(floored, tile, height, width)[..., None].astype(np.float32)
         return stepped
 
-    def _kept(self, frame: Frame, state: AutoState) -> np.ndarray | bool:
-        """Per tile ((th, tw) bool), whether the last evaluation's estimate is averaged into this one's: where the
-        frame's `motion`, times the frames since that evaluation, moves the tile's content by at most MOVED
-        pixels on average (without `motion`, everywhere)."""
-        if "motion" not in frame or state.evaluated is None:
-            return True
-        shift = np.abs(frame["motion"]).max(axis=-1).astype(np.float64) * (state.frame_index - state.evaluated)
-        return tile_means(shift, self.options.tile) <= MOVED
+    def _track_motion(self, frame: Frame, state: AutoState) -> None:
+        """Add the frame's per-tile mean `motion` (the larger of |x| and |y|, pixels) to `state.moved`, the
+        distance each tile's content moved since the last evaluation; a frame without `motion` adds none."""
+        if "motion" not in frame:
+            return
+        shift = tile_means(np.abs(frame["motion"]).max(axis=-1).astype(np.float64), self.options.tile)
+        state.moved = shift if state.moved is None else state.moved + shift
 
     @staticmethod
     def _history(name: str, state: AutoState) -> SequenceState | None:
