@@ -25,8 +25,10 @@ interpolated between tile centres (no seams). A small region the output got wron
 reflection blurred, a caustic smeared) can hide in a tile the output got right elsewhere, so t is also
 taken over half tiles, and where a half tile's t is below WORSE (its Eo above its Ec: the output
 estimated worse than the input there) it holds over the half tile's own pixels, eased over a ramp of
-2 HALF_RAMP + 1 pixels at its border (the mean of the half-tile weights over the (2 HALF_RAMP + 1)^2 box
-of pixels around), and the smaller of it and the interpolated t is the weight; a half tile's estimate is
+2 HALF_RAMP + 1 pixels across its border (the mean of the half-tile weights over the (2 HALF_RAMP + 1)^2
+box of pixels around: with HALF_RAMP 1 and a neighbour of weight 1, a rejected half tile's edge pixels take
+(2 w + 1) / 3, its corners (4 w + 5) / 9, and the pixels just outside (w + 2) / 3), and the smaller of it
+and the interpolated t is the weight; a half tile's estimate is
 noisier, and it only ever takes more of the input back where it says the output is worse, which an
 ordinary tile rarely says by chance. Interpolated between half-tile centres instead, a rejected half
 tile's weight was diluted by its neighbours' 1 over half of its pixels: a mirror's reflection of the void,
@@ -283,6 +285,10 @@ def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, co
             for j in range(tf.shape[1]):
                 band[j] += tf[yy // half, j]
         band /= y1 - y0
+        held = np.empty(width, np.float64)  # per pixel of the row, its half tile's value of band
+        for j in range(tf.shape[1]):
+            for x in range(j * half, min((j + 1) * half, width)):
+                held[x] = band[j]
         weights = np.empty(n, np.float32)
         for x in range(width):
             fx = col_w[x]
@@ -290,10 +296,10 @@ def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, co
             bottom = t[row1[y], col0[x]] + fx * (t[row1[y], col1[x]] - t[row1[y], col0[x]])
             w = top + fy * (bottom - top)
             x0, x1 = max(x - ramp, 0), min(x + ramp + 1, width)
-            own = 0.0
+            total = 0.0
             for xx in range(x0, x1):
-                own += band[xx // half]
-            w = min(w, np.float32(own / (x1 - x0)))
+                total += held[xx]
+            w = min(w, np.float32(total / (x1 - x0)))
             if has_emission:  # a pixel with emission keeps the output, as the noise clamp leaves it
                 for c in range(channels):
                     if e[y, x, c] != 0:

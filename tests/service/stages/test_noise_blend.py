@@ -275,3 +275,25 @@ def test_pixels_darkened_to_zero_do_not_hide_a_row_lifted_beside_a_window(monkey
     assert float(rel_l2_map(blended, truth)[room].mean()) < 0.25 * float(rel_l2_map(unfloored, truth)[room].mean())
     far = (slice(20, 32), slice(20, 32))
     assert float(rel_l2_map(blended, out)[far].mean()) < 0.01 * float(rel_l2_map(color, truth)[far].mean())
+
+
+def test_a_rejected_half_tile_holds_its_weight_over_its_own_pixels():
+    """A denoiser wrong on one grid-aligned 8x8 half tile only (lifted by 4 where the truth is 1): its weight w
+    holds over the half tile's inner pixels (one value, near 0), its edge pixel beside a neighbour of weight
+    1 takes (2 w + 1) / 3 and the pixel beyond at most (w + 2) / 3 (the 3-pixel ramp; the tiles' own
+    interpolated weight may be lower there), and far off the output is kept. Interpolated between half-tile
+    centres, as before, the inner pixels ranged from w to ~(w + 1) / 2. The weight is read back as
+    (blend - input) / (output - input)."""
+    rng = np.random.default_rng(6)
+    truth = np.ones((64, 64, 3), np.float32)
+    a, b, color = _halves(rng, truth, 0.3)
+    out = truth.copy()
+    out[24:32, 24:32] += 4.0
+    blended = noise_blend(out, color, a, b)
+    weight = ((blended - color) / (out - color)).mean(axis=-1)  # out - color: ~1 outside, ~4 inside
+    inner = weight[25:31, 25:31]
+    assert inner.max() - inner.min() < 1e-4 and inner.max() < 0.1
+    w = float(inner.mean())
+    np.testing.assert_allclose(weight[27, 31], (2 * w + 1) / 3, atol=0.01)  # the half tile's right edge
+    assert weight[27, 32] <= (w + 2) / 3 + 0.01  # just outside it
+    assert weight[27, 44:].min() > 0.9
