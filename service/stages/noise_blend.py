@@ -38,10 +38,15 @@ that differ: where both halves of most pixels saw nothing (a dim region at 1 spp
 because the samples are few, not because the input is right. The result is c' + t (o - c'), with c' the
 input with its fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in
 one half only, while a light seen directly is in both): the part of the input the blend takes back should
-not bring them with it. A value the denoiser left as it came (an exact pixel, a background passed
-through) stays so; a frame whose halves agree everywhere comes back as its input. Interpolation lets a
-tile's neighbours lend it their t at its border, so a region the tiles reject keeps some of the output
-within ~half a tile of its edge.
+not bring them with it. Lights (pixels with emission) are left out of their neighbours' ranges: beside a
+light whose emission pass took other samples than its colour (emission 666, colour 1335 on the 64-frame
+`fireflies` benchmark sequence), its remainder widened the range enough to let a one-half sample of 750
+through where the truth was 25, in one pixel, which alone made up a quarter of the sequence's temporal error
+(crossreg 0.879 -> 0.668, svgf 0.906 -> 0.695, kpn 0.875 -> 0.664 with them left out; relL2 and the
+8-frame benchmark unchanged to 4 digits; `make bench-long`). A value the denoiser left as it came (an exact
+pixel, a background passed through) stays so; a frame whose halves agree everywhere comes back as its
+input. Interpolation lets a tile's neighbours lend it their t at its border, so a region the tiles reject
+keeps some of the output within ~half a tile of its edge.
 
 What it costs and gains on ordinary frames (`make bench`, 128x128, 4 spp; docs/benchmarks.md, "Noise
 blend"): the blend itself lowered every pipeline's relL2 overall; the 3x3 level and the half tiles,
@@ -54,7 +59,7 @@ fireflies alone, and took bmfr's worst tile on the window hard case from 2.78x t
 The half tiles' own weights over their pixels (instead of interpolated between their centres) lowered relL2
 on `shadows` and `fireflies` by up to 6% (bilateral, bmfr, statistical), raised it by at most 1.3%
 elsewhere, and raised the temporal error on `shadows` by 2-7% (and on the 64-frame `fireflies` of `make
-bench-long` by 7%, crossregression).
+bench-long` by 7%, crossregression, before lights were left out of the clip).
 numba kernels; `noise_blend_reference` is the numpy twin.
 """
 
@@ -178,7 +183,7 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     t = np.minimum(interpolate_tiles(t, tile, height, width), box_mean(own, HALF_RAMP)[..., 0])[..., None]
     t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
     planes = np.ascontiguousarray(c.astype(np.float32).transpose(2, 0, 1))
-    clipped = clamp_fireflies_reference(planes).transpose(1, 2, 0)
+    clipped = clamp_fireflies_reference(planes, excluded=(e != 0).transpose(2, 0, 1)).transpose(1, 2, 0)
     moved = (color_a != color_b) & (clipped != c.astype(np.float32))
     taken = np.where(moved, e + clipped, color.astype(np.float64))
     blended = np.clip((1.0 - t) * taken + t * out.astype(np.float64), -FLOAT32_MAX, FLOAT32_MAX)
@@ -245,13 +250,29 @@ def _radiance_row(color, e, has_emission, y):  # pragma: no cover - jitted
     return row - e[y].reshape(row.size) if has_emission else row.copy()
 
 
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _widen(lo, hi, src, lit, has_emission):  # pragma: no cover - jitted
+    """lo, hi (N,) float32: widened to take in the values of src (N,) float32, but for lights (`lit` (N,), the
+    emission, nonzero) with `has_emission`: a light is no level for its neighbours' firefly clip."""
+    if has_emission:
+        for i in range(src.shape[0]):
+            if lit[i] == 0:
+                lo[i] = min(lo[i], src[i])
+                hi[i] = max(hi[i], src[i])
+    else:
+        for i in range(src.shape[0]):  # contiguous, vectorises
+            lo[i] = min(lo[i], src[i])
+            hi[i] = max(hi[i], src[i])
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, col0, col1, col_w,
                   tf, half, ramp, result):  # pragma: no cover - jitted
     """result = c' + w (out - c'), w the smaller of t, bilinear between its tiles' centres (the `_interpolation`
     tables), and of tf's mean over the in-frame (2 ramp + 1)^2 box of pixels, each pixel taking its own half
     tile's; c' the colour clipped like `outliers.clamp_fireflies` (k) where the halves differ, on the colour
-    less the emission e (with `has_emission`), which is added back. t: (th, tw) and tf: (th', tw') float32
+    less the emission e (with `has_emission`), which is added back, the lights (e nonzero) left out of the
+    ranges (`_widen`; a value with no neighbour left keeps itself). t: (th, tw) and tf: (th', tw') float32
     weights of the tiles and of the half tiles (side `half` pixels); row0, row1, row_w (H,) and col0, col1,
     col_w (W,): `_interpolation`'s tables for t. A task per row: the 3x3 neighbour
     range of every value of the interleaved (W * C) row, then the blend (float64, within float32's range).
@@ -261,18 +282,14 @@ def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, co
     n = width * channels
     for y in numba.prange(height):
         own = _radiance_row(color, e, has_emission, y)
-        other_lo = filled(n, np.inf, np.float32)  # over the rows above and below
+        other_lo = filled(n, np.inf, np.float32)  # over the rows above and below, lights left out
         other_hi = filled(n, -np.inf, np.float32)
         for yy in (y - 1, y + 1):
             if 0 <= yy < height:
                 src = _radiance_row(color, e, has_emission, yy)
-                for i in range(n):  # contiguous, vectorises
-                    other_lo[i] = min(other_lo[i], src[i])
-                    other_hi[i] = max(other_hi[i], src[i])
-        all_lo, all_hi = np.empty(n, np.float32), np.empty(n, np.float32)  # over the three rows
-        for i in range(n):
-            all_lo[i] = min(other_lo[i], own[i])
-            all_hi[i] = max(other_hi[i], own[i])
+                _widen(other_lo, other_hi, src, e[yy].reshape(n), has_emission)
+        all_lo, all_hi = other_lo.copy(), other_hi.copy()  # over the three rows
+        _widen(all_lo, all_hi, own, e[y].reshape(n), has_emission)
         lo, hi = other_lo.copy(), other_hi.copy()  # the 8 neighbours: the columns left and right too
         for i in range(channels, n):
             lo[i] = min(lo[i], all_lo[i - channels])
@@ -316,7 +333,7 @@ def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, co
         for i in range(n):  # branch-free: vectorises
             v = rc[i] - base[i]
             spread = k * (hi[i] - lo[i])
-            clipped = min(max(v, lo[i] - spread), hi[i] + spread)
+            clipped = min(max(v, lo[i] - spread), hi[i] + spread) if lo[i] <= hi[i] else v  # no dark neighbour
             taken = np.float64(base[i]) + clipped if (ra[i] != rb[i]) & (clipped != v) else np.float64(rc[i])
             w = np.float64(weights[i])
             mixed = (1.0 - w) * taken + w * ro[i]  # float64, then within float32's range

@@ -59,8 +59,10 @@ def clamp_fireflies(planes: np.ndarray, k: float = FIREFLY_K) -> np.ndarray:
     return out
 
 
-def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K) -> np.ndarray:
-    """Plain-numpy twin of `clamp_fireflies`."""
+def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K,
+                              excluded: np.ndarray | None = None) -> np.ndarray:
+    """Plain-numpy twin of `clamp_fireflies`. excluded: (C, H, W) bool or None, values left out of their
+    neighbours' ranges (the noise blend's lights); a value with no neighbour left keeps itself."""
     _, height, width = planes.shape
     lo, hi = np.full_like(planes, np.inf), np.full_like(planes, -np.inf)
     for dy, dx in window_offsets(1):
@@ -68,11 +70,14 @@ def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K) -> np.nd
         if pair is None:
             continue
         (cy, cx), (ny, nx) = pair
-        lo[:, cy, cx] = np.minimum(lo[:, cy, cx], planes[:, ny, nx])
-        hi[:, cy, cx] = np.maximum(hi[:, cy, cx], planes[:, ny, nx])
-    spread = np.float32(k) * (hi - lo)
-    out = np.clip(planes, lo - spread, hi + spread)
-    return np.where(np.isfinite(lo), out, planes).astype(np.float32)
+        src = planes[:, ny, nx]
+        out_of_range = np.zeros(src.shape, bool) if excluded is None else excluded[:, ny, nx]
+        lo[:, cy, cx] = np.minimum(lo[:, cy, cx], np.where(out_of_range, np.inf, src))
+        hi[:, cy, cx] = np.maximum(hi[:, cy, cx], np.where(out_of_range, -np.inf, src))
+    ok = lo <= hi
+    spread = np.float32(k) * np.where(ok, hi - lo, 0)
+    out = np.clip(planes, np.where(ok, lo, planes) - spread, np.where(ok, hi, planes) + spread)
+    return np.where(ok, out, planes).astype(np.float32)
 
 
 @numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")

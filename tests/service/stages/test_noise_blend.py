@@ -297,3 +297,25 @@ def test_a_rejected_half_tile_holds_its_weight_over_its_own_pixels():
     np.testing.assert_allclose(weight[27, 31], (2 * w + 1) / 3, atol=0.01)  # the half tile's right edge
     assert weight[27, 32] <= (w + 2) / 3 + 0.01  # just outside it
     assert weight[27, 44:].min() > 0.9
+
+
+def test_a_one_half_firefly_beside_a_light_is_clipped_to_its_unlit_neighbours():
+    """The firefly clip of what the blend takes back leaves lights (pixels with emission) out of a pixel's range:
+    beside a light whose emission pass took other samples than its colour (emission 666, colour 1335), a pixel
+    whose half A hit the light (1500) and half B did not (1.3), with no emission of its own, is clipped to its
+    unlit neighbours' level, not let through at 750 (the 64-frame `fireflies` benchmark's case)."""
+    rng = np.random.default_rng(9)
+    truth = np.ones((32, 32, 3), np.float32)
+    a, b, _ = _halves(rng, truth, 0.05)
+    emission = np.zeros_like(truth)
+    a[10:13, 10:14] = b[10:13, 10:14] = 1001.0
+    emission[10:13, 10:14] = 1000.0
+    a[12, 11] = b[12, 11] = 1335.0
+    emission[12, 11] = 666.0
+    a[13, 11], b[13, 11] = 1500.0, 1.3
+    color = ((a + b) / 2).astype(np.float32)
+    out = np.where(emission != 0, color, np.float32(6.0)).astype(np.float32)  # wrong off the light: taken back
+    for blend in (noise_blend, noise_blend_reference):
+        blended = blend(out, color, a, b, emission)
+        assert blended[13, 11].max() < 10.0
+        np.testing.assert_array_equal(blended[emission != 0], color[emission != 0])  # the light as it came
