@@ -37,7 +37,7 @@ import numpy as np
 from service.exr import list_sequence, read_frame
 from service.frame import Frame
 from service.metrics import rel_l2, rel_l2_map
-from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP, HALVES, MOVED, one_half, run_half
+from service.pipelines.tiled import CANDIDATES, FIREFLY_CAP, HALVES, MOVED, one_half, run_half, tile_motion
 from service.process import configure
 from service.stages.error_estimate import TILE, cross_tile_error, tile_error, tile_means
 
@@ -125,7 +125,7 @@ def _static(frame: Frame, tile: int) -> np.ndarray | bool:
     (`motion`; without it, everywhere), as auto decides what to average."""
     if "motion" not in frame:
         return True
-    return tile_means(np.abs(frame["motion"]).max(axis=-1).astype(np.float64), tile) <= MOVED
+    return tile_motion(frame["motion"], tile) <= MOVED
 
 
 def _run(pipeline, frames: list[Frame]) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:

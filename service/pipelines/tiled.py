@@ -259,7 +259,7 @@ class AutoPipeline(Pipeline):
         distance each tile's content moved since the last evaluation; a frame without `motion` adds none."""
         if "motion" not in frame:
             return
-        shift = tile_means(np.abs(frame["motion"]).max(axis=-1).astype(np.float64), self.options.tile)
+        shift = tile_motion(frame["motion"], self.options.tile)
         state.moved = shift if state.moved is None else state.moved + shift
 
     @staticmethod
@@ -274,6 +274,12 @@ class AutoPipeline(Pipeline):
             return None
         _, history = pipeline.step(state.previous, pipeline.start(state.previous.height, state.previous.width))
         return history
+
+
+def tile_motion(motion: np.ndarray, tile: int) -> np.ndarray:
+    """Per tile x tile tile, the mean over its pixels of the larger of |x| and |y| of `motion` ((H, W, 2) float32
+    pixels): how far its content moved in one frame, (ceil(H / tile), ceil(W / tile)) float64."""
+    return tile_means(np.abs(motion).max(axis=-1).astype(np.float64), tile)
 
 
 def run_half(pipeline: Pipeline, frame: Frame, running: SequenceState | None) -> np.ndarray:

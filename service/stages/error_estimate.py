@@ -117,9 +117,12 @@ def pixel_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, sca
     channels. out_a: (H, W, 3) a denoiser's output from half A alone; color_a, color_b: (H, W, 3) the halves;
     scale: (H, W, 3) the image whose channel mean normalises (module docstring); all linear radiance. cap:
     clip the halves at cap x (that mean + sqrt(eps)) first (fireflies, module docstring); None: unbiased."""
-    a, b, weight = _normalised(color_a, color_b, scale, eps, cap)
-    d = ((out_a.astype(np.float64) - b) ** 2 - 0.5 * (a - b) ** 2) * weight
-    return d.mean(axis=-1)
+    return _pixel_d(out_a, *_normalised(color_a, color_b, scale, eps, cap))
+
+
+def _pixel_d(out_a: np.ndarray, a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """`pixel_error` of out_a on the halves as `_normalised` gives them (a, b float64 (H, W, 3), weight (H, W, 1))."""
+    return (((out_a.astype(np.float64) - b) ** 2 - 0.5 * (a - b) ** 2) * weight).mean(axis=-1)
 
 
 def _normalised(color_a: np.ndarray, color_b: np.ndarray, scale: np.ndarray, eps: float,
@@ -139,7 +142,11 @@ def control_term(color_a: np.ndarray, color_b: np.ndarray, control: np.ndarray, 
     """(H, W) float64 per-pixel (A - m)(B - m), scaled and clipped as `pixel_error`, m = `control` ((H, W, 3)
     linear radiance, an estimate of the pixel mean made from both halves): the control variate of the module
     docstring, subtracted from d where the estimate ranks tiles."""
-    a, b, weight = _normalised(color_a, color_b, scale, eps, cap)
+    return _control(control, *_normalised(color_a, color_b, scale, eps, cap))
+
+
+def _control(control: np.ndarray, a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """`control_term` on the halves as `_normalised` gives them."""
     m = control.astype(np.float64)
     return ((a - m) * (b - m) * weight).mean(axis=-1)
 
@@ -148,9 +155,10 @@ def tile_error(out_a: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, scal
                eps: float = REL_L2_EPS, cap: float | None = None, control: np.ndarray | None = None) -> TileError:
     """Per-tile estimated relL2 of `out_a` and the variance of each estimate (arguments as `pixel_error`;
     `control`: `control_term`'s m, or None for none)."""
-    d = pixel_error(out_a, color_a, color_b, scale, eps, cap)
+    a, b, weight = _normalised(color_a, color_b, scale, eps, cap)
+    d = _pixel_d(out_a, a, b, weight)
     if control is not None:
-        d = d - control_term(color_a, color_b, control, scale, eps, cap)
+        d -= _control(control, a, b, weight)
     return _tiled(d, tile)
 
 
@@ -160,10 +168,10 @@ def cross_tile_error(out_a: np.ndarray, out_b: np.ndarray, color_a: np.ndarray, 
     """Per-tile estimated relL2 of a denoiser on half the samples, both ways (module docstring): out_a and
     out_b (H, W, 3) are its outputs from half A alone and from half B alone; the other arguments as
     `tile_error`. The variance takes the pixels' mean of the two ways as independent, as `tile_error` does."""
-    d = 0.5 * (pixel_error(out_a, color_a, color_b, scale, eps, cap)
-               + pixel_error(out_b, color_b, color_a, scale, eps, cap))
+    a, b, weight = _normalised(color_a, color_b, scale, eps, cap)
+    d = 0.5 * (_pixel_d(out_a, a, b, weight) + _pixel_d(out_b, b, a, weight))
     if control is not None:
-        d = d - control_term(color_a, color_b, control, scale, eps, cap)
+        d -= _control(control, a, b, weight)
     return _tiled(d, tile)
 
 
