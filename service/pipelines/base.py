@@ -10,7 +10,8 @@ and the sequence size (before any work), find the exact pixels when the frame ha
 radiance layers, call the denoiser's `denoise`, add emission back, return the pixels where nothing was hit
 and no emission is given as they came (`service.stages.background`), keep the result within the noise the
 halves show (`service.stages.noise_clamp`), blend it per tile with the input by the weight the halves
-say is best (`service.stages.noise_blend`), and make sure nothing non-finite leaves.
+say is best (`service.stages.noise_blend`; a temporal pipeline's input accumulated over the sequence where
+the halves say it is better, `service.stages.input_history`), and make sure nothing non-finite leaves.
 The split is `Pipeline.denoise_split`, which a denoiser able to do it inside its own passes overrides.
 """
 
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -29,6 +30,7 @@ from service.pipelines.options import describe as describe_options
 from service.stages.background import pass_background
 from service.stages.emission import add_emission, subtract_emission
 from service.stages.exact import exact_emission
+from service.stages.input_history import InputHistory
 from service.stages.noise_blend import noise_blend
 from service.stages.noise_clamp import noise_clamp
 
@@ -40,6 +42,7 @@ class SequenceState:
     height: int
     width: int
     frame_index: int = 0  # frames completed in this sequence
+    input_history: InputHistory = field(default_factory=InputHistory)  # a temporal pipeline's, for the blend
 
     def close(self) -> None:
         """Release what the state holds (an online worker); called once the sequence ends."""
@@ -80,8 +83,10 @@ class Pipeline(ABC):
     def reads(cls) -> tuple[str, ...]:
         """Every layer the pipeline's step may read: `color` (the frame contract fills it in), required,
         optional, and with `guards` the halves, `emission` (exact pixels, noise clamp) and `normal` (the
-        background). Readers decode only these (service/api/codec.py)."""
+        background), and for a temporal pipeline `motion` and `depth` (the blend's accumulated input). Readers
+        decode only these (service/api/codec.py)."""
         guarded = ("colorA", "colorB", "emission", "normal") if cls.guards else ()
+        guarded += ("motion", "depth") if cls.guards and cls.temporal else ()
         return tuple(dict.fromkeys((*cls.declared(), *guarded)))
 
     def start(self, height: int, width: int) -> SequenceState:
@@ -123,7 +128,12 @@ class Pipeline(ABC):
             halves = given["colorA"], given["colorB"]  # (finite in, finite out: the band is finite or +inf)
             exact = "emission" in frame  # the renderer's, or the exact pixels `with_exact_emission` found
             clamped = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"), exact=exact)
-            buffers["color"] = noise_blend(clamped, given["color"], *halves, frame.buffers.get("emission"))
+            history = state.input_history if self.temporal else None  # the accumulated input it may take back
+            buffers["color"] = noise_blend(clamped, given["color"], *halves, frame.buffers.get("emission"),
+                                           history=history, motion=given.get("motion"), depth=given.get("depth"),
+                                           normal=given.get("normal"))
+        else:  # no blend: the accumulated input has a gap
+            state.input_history.clear()
         state.frame_index += 1
         return Frame(buffers, dict(frame.nonfinite)), state
 

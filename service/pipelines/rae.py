@@ -16,7 +16,10 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
      is unsure, and the clipped average steadies it. Demodulated, so that texture is not blurred by the
      bilinear reprojection; without `motion` nothing is blended (an absent motion is not a still camera).
      History 0.3 against none, the benchmark's sequences (docs/training.md): temporal error 2-5% lower, and
-     relL2 as low or lower; larger weights raised relL2 on shadows and the error on the Blender fixture.
+     relL2 as low or lower. Since the noise blend takes back an accumulated input (Pipeline.step), 0.4
+     against 0.3: temporal error 0.5-1.3% lower on shadows, fireflies and textures, relL2 up to 1.5% higher
+     (shadows, fireflies) or 0.3% lower (textures), relL2 on the Blender fixture 0.6% higher; 0.5 raised
+     relL2 on shadows and fireflies by 3-4%.
      Blended in radiance rather than demodulated, textures' relL2 rose.
   6. remodulation by the albedo
 The network sees zero radiance where nothing was hit (zero normal), and the pipeline step returns those pixels
@@ -53,7 +56,7 @@ from service.stages.rae_inputs import lighting_from_output
 
 NETWORK = "rae"  # the network a `weights` file must hold (its ONNX metadata)
 DEFAULT_WEIGHTS = "rae"  # models/weights/rae.onnx (manifest: rae.json)
-HISTORY = 0.3  # default weight of the previous output in step 5 (module docstring)
+HISTORY = 0.4  # default weight of the previous output in step 5 (module docstring)
 
 
 @dataclass(frozen=True)

@@ -43,9 +43,13 @@ light whose emission pass took other samples than its colour (emission 666, colo
 `fireflies` benchmark sequence), its remainder widened the range enough to let a one-half sample of 750
 through where the truth was 25, in one pixel, which alone made up a quarter of the sequence's temporal error
 (crossreg 0.879 -> 0.668, svgf 0.906 -> 0.695, kpn 0.875 -> 0.664 with them left out; relL2 and the
-8-frame benchmark unchanged to 4 digits; `make bench-long`). A value the denoiser left as it came (an exact
-pixel, a background passed through) stays so; a frame whose halves agree everywhere comes back as its
-input. Interpolation lets a tile's neighbours lend it their t at its border, so a region the tiles reject
+8-frame benchmark unchanged to 4 digits; `make bench-long`). A temporal pipeline gives its sequence's
+accumulated input (`service.stages.input_history`: c' averaged over the frames before, reprojected, with a
+per-pixel estimate of its error): per tile, where the weighted mean of the per-pixel differences d between
+that estimate and v, plus CONFIDENCE standard errors of it, is below 0, c' is the accumulated input and Ec
+the sum of its estimated error (at least 0) in that tile and its half tiles. A value the denoiser left as it
+came (an exact pixel, a background passed through) stays so; a frame whose halves agree everywhere comes
+back as its input. Interpolation lets a tile's neighbours lend it their t at its border, so a region the tiles reject
 keeps some of the output within ~half a tile of its edge.
 
 What it costs and gains on ordinary frames (`make bench`, 128x128, 4 spp; docs/benchmarks.md, "Noise
@@ -73,6 +77,7 @@ import numpy as np
 from service.kernels.fill import filled
 from service.metrics import REL_L2_EPS
 from service.stages.error_estimate import interpolate_tiles, interpolation_matrix, tile_counts, tile_sums
+from service.stages.input_history import CONFIDENCE, InputHistory, accumulate
 from service.stages.outliers import FIREFLY_K, clamp_fireflies_reference
 from service.stages.svgf import box_mean
 
@@ -101,27 +106,43 @@ def _check(arrays: list[np.ndarray], tile: int) -> None:
 
 
 def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
-                emission: np.ndarray | None = None, tile: int = TILE) -> np.ndarray:
+                emission: np.ndarray | None = None, tile: int = TILE, history: InputHistory | None = None,
+                motion: np.ndarray | None = None, depth: np.ndarray | None = None,
+                normal: np.ndarray | None = None) -> np.ndarray:
     """`out` blended per tile with `color` (module docstring). out: (H, W, C) float32 denoised radiance;
     color, color_a, color_b: (H, W, C) float32 noisy radiance and its two halves; emission: (H, W, C)
     float32 or None, the emission in all four (a light's value is no level for its neighbours' weights
     nor for their firefly clip: the blend runs on the radiance less it, and adds it back; a pixel with
     emission keeps `out`, as `noise_clamp` leaves it: there the halves' disagreement is the emitter's
-    coverage, not noise the output should take back); all linear, finite. Returns a new (H, W, C)
-    float32 array."""
+    coverage, not noise the output should take back); all linear, finite. history: a temporal pipeline's
+    accumulated input (`service.stages.input_history`), which this frame joins when it has `motion` ((H, W, 2)
+    float32, pixels; depth (H, W, 1) and normal (H, W, 3) float32 check the reprojection where given) and
+    forgets otherwise. Returns a new (H, W, C) float32 array."""
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (out, color, color_a, color_b)]
     if emission is not None:
         arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
     _check(arrays, tile)
-    e = arrays[4] if emission is not None else arrays[1]  # not read without emission
+    has_emission = emission is not None
+    e = arrays[4] if has_emission else arrays[1]  # not read without emission
     height, width = arrays[0].shape[:2]
     level = np.empty((height, width), np.float32)
-    _level_kernel(arrays[1], e, emission is not None, LEVEL_RADIUS, level)
+    _level_kernel(arrays[1], e, has_emission, LEVEL_RADIUS, level)
+    clipped = np.empty_like(arrays[1])
+    _clip_kernel(arrays[1], arrays[2], arrays[3], e, has_emission, np.float32(FIREFLY_K), clipped)
+    choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, False)
+    if choice is None:
+        accumulated, input_error, use = clipped, np.zeros((1, 1)), np.zeros((1, 1), np.bool_)
+    else:
+        accumulated, input_error = choice
+        stats = np.zeros((3, -(-height // tile), -(-width // tile)), np.float64)
+        _choice_kernel(*arrays[:4], e, has_emission, level, input_error, tile, REL_L2_EPS, PROXY_FLOOR, stats)
+        use = takes_accumulated(stats)
     half = half_tile(tile)
 
     def sums(side: int) -> np.ndarray:  # (3, th, tw): the weighted sums of e and v, the pixels whose halves differ
         out = np.zeros((3, -(-height // side), -(-width // side)), np.float64)
-        _tile_kernel(*arrays[:4], e, emission is not None, level, side, REL_L2_EPS, PROXY_FLOOR, out)
+        _tile_kernel(*arrays[:4], e, has_emission, level, input_error, use, tile, choice is not None, side,
+                     REL_L2_EPS, PROXY_FLOOR, out)
         return out
 
     fine = sums(half)
@@ -130,12 +151,38 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
         coarse = padded.reshape(3, padded.shape[1] // 2, 2, padded.shape[2] // 2, 2).sum(axis=(2, 4))
     else:
         coarse = fine if tile == half else sums(tile)
-    t = blend_weights(coarse[0], coarse[1]).astype(np.float32)
-    t_half = half_tile_weights(*fine, tile_counts(height, width, half)).astype(np.float32)
+    t = blend_weights(coarse[0], np.maximum(coarse[1], 0.0)).astype(np.float32)
+    t_half = half_tile_weights(fine[0], np.maximum(fine[1], 0.0), fine[2],
+                               tile_counts(height, width, half)).astype(np.float32)
     result = np.empty_like(arrays[0])
-    _blend_kernel(*arrays[:4], e, emission is not None, np.float32(FIREFLY_K), t, *_interpolation(height, tile),
-                  *_interpolation(width, tile), t_half, half, HALF_RAMP, result)
+    _blend_kernel(*arrays[:4], e, has_emission, clipped, accumulated, use, tile, choice is not None, t,
+                  *_interpolation(height, tile), *_interpolation(width, tile), t_half, half, HALF_RAMP, result)
     return result
+
+
+def _accumulated(history: InputHistory | None, clipped: np.ndarray, arrays: list[np.ndarray],
+                 emission: np.ndarray | None, motion: np.ndarray | None, depth: np.ndarray | None,
+                 normal: np.ndarray | None, reference: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    """`input_history.accumulate` of the frame (arrays: out, color and its halves) into `history`, or None: no
+    history, its first frame, or a frame without motion (the history is forgotten)."""
+    if history is None:
+        return None
+    if motion is None:
+        history.clear()
+        return None
+    return accumulate(history, clipped, arrays[1], emission, arrays[2], arrays[3], motion, depth, normal,
+                      reference=reference)
+
+
+def takes_accumulated(stats: np.ndarray) -> np.ndarray:
+    """Per tile whether the blend takes the accumulated input back: the mean of the per-pixel differences d of
+    its weighted error and the plain input's, plus CONFIDENCE standard errors, is below 0. stats: (3, th, tw)
+    float64, per tile the sum of d, of d^2 and the pixels. Returns (th, tw) bool."""
+    total, square, count = stats
+    count = np.maximum(count, 1.0)
+    mean = total / count
+    spread = np.sqrt(np.maximum(square / count - mean * mean, 0.0) / count)
+    return mean + CONFIDENCE * spread < 0
 
 
 def half_tile_weights(error_out: np.ndarray, error_in: np.ndarray, noisy: np.ndarray, pixels: np.ndarray) -> np.ndarray:
@@ -163,7 +210,9 @@ def _interpolation(size: int, tile: int) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
-                          emission: np.ndarray | None = None, tile: int = TILE) -> np.ndarray:
+                          emission: np.ndarray | None = None, tile: int = TILE, history: InputHistory | None = None,
+                          motion: np.ndarray | None = None, depth: np.ndarray | None = None,
+                          normal: np.ndarray | None = None) -> np.ndarray:
     """Plain-numpy twin of `noise_blend`."""
     given = [out, color, color_a, color_b] + ([] if emission is None else [emission])
     _check(given, tile)
@@ -175,17 +224,28 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     weight = 1.0 / (proxy * proxy + REL_L2_EPS)
     variance = ((a - b) * 0.5) ** 2
     pixel_out, pixel_in = weight * ((o - c) ** 2 - variance).mean(axis=-1), weight * variance.mean(axis=-1)
-    half = half_tile(tile)
-    t = blend_weights(tile_sums(pixel_out, tile)[0], tile_sums(pixel_in, tile)[0])
-    noisy, pixels = tile_sums((variance > 0).any(axis=-1).astype(np.float64), half)
-    t_half = half_tile_weights(tile_sums(pixel_out, half)[0], tile_sums(pixel_in, half)[0], noisy, pixels)
-    own = np.repeat(np.repeat(t_half, half, axis=0), half, axis=1)[:height, :width, None].astype(np.float32)
-    t = np.minimum(interpolate_tiles(t, tile, height, width), box_mean(own, HALF_RAMP)[..., 0])[..., None]
-    t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
     planes = np.ascontiguousarray(c.astype(np.float32).transpose(2, 0, 1))
     clipped = clamp_fireflies_reference(planes, excluded=(e != 0).transpose(2, 0, 1)).transpose(1, 2, 0)
     moved = (color_a != color_b) & (clipped != c.astype(np.float32))
+    clipped = np.where(moved, clipped, c.astype(np.float32))
+    arrays = [np.asarray(x, np.float32) for x in (out, color, color_a, color_b)]
+    choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, True)
     taken = np.where(moved, e + clipped, color.astype(np.float64))
+    if choice is not None:
+        accumulated, input_error = choice
+        d = weight * input_error - pixel_in
+        stats = np.stack([tile_sums(d, tile)[0], tile_sums(d * d, tile)[0], tile_sums(np.ones_like(d), tile)[0]])
+        use = np.repeat(np.repeat(takes_accumulated(stats), tile, 0), tile, 1)[:height, :width]
+        pixel_in = np.where(use, weight * input_error, pixel_in)
+        taken = np.where(use[..., None], e + accumulated, taken)
+    half = half_tile(tile)
+    t = blend_weights(tile_sums(pixel_out, tile)[0], np.maximum(tile_sums(pixel_in, tile)[0], 0.0))
+    noisy, pixels = tile_sums((variance > 0).any(axis=-1).astype(np.float64), half)
+    t_half = half_tile_weights(tile_sums(pixel_out, half)[0], np.maximum(tile_sums(pixel_in, half)[0], 0.0),
+                               noisy, pixels)
+    own = np.repeat(np.repeat(t_half, half, axis=0), half, axis=1)[:height, :width, None].astype(np.float32)
+    t = np.minimum(interpolate_tiles(t, tile, height, width), box_mean(own, HALF_RAMP)[..., 0])[..., None]
+    t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
     blended = np.clip((1.0 - t) * taken + t * out.astype(np.float64), -FLOAT32_MAX, FLOAT32_MAX)
     return np.where(out == color, color, blended).astype(np.float32)
 
@@ -217,30 +277,69 @@ def _level_kernel(color, e, has_emission, radius, level):  # pragma: no cover - 
             level[y, x] = np.float32(min(total * scale / (x1 - x0), FLOAT32_MAX))
 
 
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _pixel_weight(out, e, has_emission, level, y, x, eps, floor):  # pragma: no cover - jitted
+    """The weight 1 / (proxy^2 + eps) of pixel (y, x) (module docstring): proxy the mean of out's channels less
+    e (with `has_emission`), at most `level[y, x]` and at least `floor` (PROXY_FLOOR) times it; float64."""
+    channels = out.shape[2]
+    mean_out = 0.0  # float64 throughout: radiance up to float32's largest squares
+    for c in range(channels):
+        mean_out += np.float64(out[y, x, c]) - e[y, x, c] if has_emission else np.float64(out[y, x, c])
+    proxy = max(min(mean_out / channels, np.float64(level[y, x])), floor * np.float64(level[y, x]), 0.0)
+    return 1.0 / (proxy * proxy + eps)
+
+
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _pixel_errors(out, color, a, b, y, x):  # pragma: no cover - jitted
+    """(e, v) of pixel (y, x), summed over its channels (module docstring), float64."""
+    err = 0.0
+    var = 0.0
+    for c in range(out.shape[2]):
+        o, col = np.float64(out[y, x, c]), np.float64(color[y, x, c])
+        h = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
+        err += (o - col) * (o - col) - h * h
+        var += h * h
+    return err, var
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _tile_kernel(out, color, a, b, e, has_emission, level, tile, eps, floor, sums):  # pragma: no cover - jitted
-    """sums (3, th, tw): per tile the weighted sums of e and v (module docstring) and the count of pixels whose
-    halves differ, in float64, the proxy from out less the emission e (with `has_emission`), at least `floor`
-    (PROXY_FLOOR) times `level` ((H, W) float32, the 3x3 box mean of the colour less e); weights 1 / (proxy^2
-    + eps), eps = REL_L2_EPS (radiance^2); tile: side in pixels. A task per row of tiles."""
+def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, use, use_tile, has_choice, tile, eps, floor,
+                 sums):  # pragma: no cover - jitted
+    """sums (3, th, tw): per tile the weighted sums of e and of the input's error, and the count of pixels whose
+    halves differ, in float64; weights `_pixel_weight` (eps = REL_L2_EPS, radiance^2; floor PROXY_FLOOR;
+    level (H, W) float32, the 3x3 box mean of the colour less e). The input's error is v, or, with `has_choice`,
+    input_error ((H, W) float64, the accumulated input's, the channels' mean) where `use` ((th', tw') bool, per
+    tile of side use_tile) takes the accumulated input. tile: side in pixels. A task per row of tiles."""
     height, width, channels = out.shape
     for ty in numba.prange(sums.shape[1]):
         for y in range(ty * tile, min((ty + 1) * tile, height)):
             for x in range(width):
-                mean_out = 0.0  # float64 throughout: radiance up to float32's largest squares
-                err = 0.0
-                var = 0.0
-                for c in range(channels):
-                    o, col = np.float64(out[y, x, c]), np.float64(color[y, x, c])
-                    h = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
-                    mean_out += o - e[y, x, c] if has_emission else o
-                    err += (o - col) * (o - col) - h * h
-                    var += h * h
-                proxy = max(min(mean_out / channels, np.float64(level[y, x])), floor * np.float64(level[y, x]), 0.0)
-                w = 1.0 / ((proxy * proxy + eps) * channels)
+                w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor) / channels
+                err, var = _pixel_errors(out, color, a, b, y, x)
+                taken = var
+                if has_choice and use[y // use_tile, x // use_tile]:
+                    taken = input_error[y, x] * channels
                 sums[0, ty, x // tile] += w * err
-                sums[1, ty, x // tile] += w * var
+                sums[1, ty, x // tile] += w * taken
                 sums[2, ty, x // tile] += 1.0 if var > 0 else 0.0
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _choice_kernel(out, color, a, b, e, has_emission, level, input_error, tile, eps, floor,
+                   stats):  # pragma: no cover - jitted
+    """stats (3, th, tw) float64: per tile the sum of d, of d^2 and the pixels, d the weight (`_pixel_weight`)
+    times input_error ((H, W) float64, the accumulated input's error, the channels' mean) less v's channel
+    mean (`takes_accumulated`). A task per row of tiles."""
+    height, width, channels = out.shape
+    for ty in numba.prange(stats.shape[1]):
+        for y in range(ty * tile, min((ty + 1) * tile, height)):
+            for x in range(width):
+                w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor)
+                var = _pixel_errors(out, color, a, b, y, x)[1]
+                d = w * (input_error[y, x] - var / channels)
+                stats[0, ty, x // tile] += d
+                stats[1, ty, x // tile] += d * d
+                stats[2, ty, x // tile] += 1.0
 
 
 @numba.njit(inline="always", cache=True, error_model="numpy")
@@ -266,19 +365,13 @@ def _widen(lo, hi, src, lit, has_emission):  # pragma: no cover - jitted
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, col0, col1, col_w,
-                  tf, half, ramp, result):  # pragma: no cover - jitted
-    """result = c' + w (out - c'), w the smaller of t, bilinear between its tiles' centres (the `_interpolation`
-    tables), and of tf's mean over the in-frame (2 ramp + 1)^2 box of pixels, each pixel taking its own half
-    tile's; c' the colour clipped like `outliers.clamp_fireflies` (k) where the halves differ, on the colour
-    less the emission e (with `has_emission`), which is added back, the lights (e nonzero) left out of the
-    ranges (`_widen`; a value with no neighbour left keeps itself). t: (th, tw) and tf: (th', tw') float32
-    weights of the tiles and of the half tiles (side `half` pixels); row0, row1, row_w (H,) and col0, col1,
-    col_w (W,): `_interpolation`'s tables for t. A task per row: the 3x3 neighbour
-    range of every value of the interleaved (W * C) row, then the blend (float64, within float32's range).
-    The range is `outliers.clamp_fireflies`' 3x3 range, taken here on the (H, W, C) rows: through its
-    (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
-    height, width, channels = out.shape
+def _clip_kernel(color, a, b, e, has_emission, k, clipped):  # pragma: no cover - jitted
+    """clipped (H, W, C) float32: the colour less the emission e (with `has_emission`), clipped like
+    `outliers.clamp_fireflies` (k) where the halves a, b differ, the lights (e nonzero) left out of the ranges
+    (`_widen`; a value with no neighbour left keeps itself). A task per row: the 3x3 neighbour range of every
+    value of the interleaved (W * C) row. The range is `outliers.clamp_fireflies`' 3x3 range, taken here on
+    the (H, W, C) rows: through its (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
+    height, width, channels = color.shape
     n = width * channels
     for y in numba.prange(height):
         own = _radiance_row(color, e, has_emission, y)
@@ -299,6 +392,27 @@ def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, co
             hi[i] = max(hi[i], all_hi[i + channels])
         if height * width == 1:  # no neighbour: nothing to clip against
             lo[:], hi[:] = own, own
+        ra, rb, rd = a[y].reshape(n), b[y].reshape(n), clipped[y].reshape(n)
+        for i in range(n):  # branch-free: vectorises
+            v = own[i]
+            spread = k * (hi[i] - lo[i])
+            clip = min(max(v, lo[i] - spread), hi[i] + spread) if lo[i] <= hi[i] else v  # no dark neighbour
+            rd[i] = clip if ra[i] != rb[i] else v
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _blend_kernel(out, color, a, b, e, has_emission, clipped, accumulated, use, use_tile, has_choice, t,
+                  row0, row1, row_w, col0, col1, col_w, tf, half, ramp, result):  # pragma: no cover - jitted
+    """result = c' + w (out - c'), w the smaller of t, bilinear between its tiles' centres (the `_interpolation`
+    tables), and of tf's mean over the in-frame (2 ramp + 1)^2 box of pixels, each pixel taking its own half
+    tile's; c' the emission e (with `has_emission`) plus `accumulated` ((H, W, C) float32) where `use` ((th',
+    tw') bool per tile of side use_tile, with `has_choice`) takes it, else plus `clipped` ((H, W, C) float32,
+    `_clip_kernel`'s) where the clip moved the value, else the colour. t: (th, tw) and tf: (th', tw') float32
+    weights of the tiles and of the half tiles (side `half` pixels); row0, row1, row_w (H,) and col0, col1,
+    col_w (W,): `_interpolation`'s tables for t. A task per row (float64, within float32's range)."""
+    height, width, channels = out.shape
+    n = width * channels
+    for y in numba.prange(height):
         fy = row_w[y]
         y0, y1 = max(y - ramp, 0), min(y + ramp + 1, height)
         band = np.zeros(tf.shape[1], np.float64)  # per half-tile column, the mean of tf over the rows y0..y1-1
@@ -311,6 +425,7 @@ def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, co
             for x in range(j * half, min((j + 1) * half, width)):
                 held[x] = band[j]
         weights = np.empty(n, np.float32)
+        source = np.empty(n, np.bool_)  # per value, whether c' is the accumulated input
         for x in range(width):
             fx = col_w[x]
             top = t[row0[y], col0[x]] + fx * (t[row0[y], col1[x]] - t[row0[y], col0[x]])
@@ -325,16 +440,18 @@ def _blend_kernel(out, color, a, b, e, has_emission, k, t, row0, row1, row_w, co
                 for c in range(channels):
                     if e[y, x, c] != 0:
                         w = np.float32(1)
+            history = has_choice and use[y // use_tile, x // use_tile]
             for c in range(channels):
                 weights[x * channels + c] = w
+                source[x * channels + c] = history
         ro, rc, rr = out[y].reshape(n), color[y].reshape(n), result[y].reshape(n)
-        ra, rb = a[y].reshape(n), b[y].reshape(n)
+        rd = clipped[y].reshape(n)
+        rh = accumulated[y].reshape(n) if has_choice else rd
         base = e[y].reshape(n) if has_emission else np.zeros(n, np.float32)
         for i in range(n):  # branch-free: vectorises
             v = rc[i] - base[i]
-            spread = k * (hi[i] - lo[i])
-            clipped = min(max(v, lo[i] - spread), hi[i] + spread) if lo[i] <= hi[i] else v  # no dark neighbour
-            taken = np.float64(base[i]) + clipped if (ra[i] != rb[i]) & (clipped != v) else np.float64(rc[i])
+            own = np.float64(base[i]) + rd[i] if rd[i] != v else np.float64(rc[i])
+            taken = np.float64(base[i]) + rh[i] if source[i] else own
             w = np.float64(weights[i])
             mixed = (1.0 - w) * taken + w * ro[i]  # float64, then within float32's range
             mixed = min(max(mixed, -FLOAT32_MAX), FLOAT32_MAX)

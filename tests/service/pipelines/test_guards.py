@@ -122,3 +122,25 @@ def test_a_non_finite_output_is_caught_before_the_clamp(tiny_layers):
     pipeline = Infinite()
     with pytest.raises(FloatingPointError, match="non-finite 'color'"):
         pipeline.step(_with_light(tiny_layers[0]), pipeline.start(24, 40))
+
+
+def test_a_temporal_pipeline_blends_with_the_accumulated_input(tiny_layers):
+    """A temporal pipeline's blend takes the input accumulated over the sequence (its state's `input_history`,
+    which reads `motion` and `depth`); a pipeline that is not temporal keeps none; a frame without halves or
+    motion forgets it."""
+    class Temporal(_Brighter):
+        temporal = True
+
+    states = {}
+    for pipeline, kept in ((Temporal(), True), (_Brighter(), False)):
+        assert ("motion" in pipeline.reads()) == kept
+        state = pipeline.start(24, 40)
+        for layers in tiny_layers:
+            _, state = pipeline.step(Frame.from_buffers(layers), state)
+        assert (state.input_history.buffer is not None) == kept
+        states[kept] = pipeline, state
+    pipeline, state = states[True]
+    assert state.input_history.buffer[..., 3].max() == 3.0  # frames in it: the static pixels have all three
+    no_motion = {k: v for k, v in tiny_layers[0].items() if k != "motion"}
+    pipeline.step(Frame.from_buffers(no_motion), state)
+    assert state.input_history.buffer is None

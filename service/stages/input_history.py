@@ -1,0 +1,148 @@
+"""The noisy input accumulated over a sequence, for the noise blend of temporal pipelines.
+
+`service.stages.noise_blend` takes part of the noisy input back where the halves say the denoiser's output is
+worse. That input has the full noise of one frame. A temporal pipeline can take back a better input: the
+frame's input (its fireflies clipped, less its emission) averaged with the same pixels of the frames before,
+reprojected by `motion` (bilinear, taps checked against depth and normal, `service.stages.reprojection`).
+The average is exponential, the newest frame weighing a = max(1 / n, ALPHA_MIN), n the frames in it so far
+(a plain mean for the first frames; Schied et al. 2017 sec. 4.1 average their colour history the same way),
+and the history h is clamped to the range of the frame's clipped input over the 3x3 pixels around before it
+is mixed in (a lighting change, a disocclusion the depth test missed: the history cannot bring back what
+the frame's samples say is gone). The accumulated input is y = (1 - a) clamp(h) + a c'.
+
+Its error needs no reference either. With c the frame's input (less emission, unclipped), v its variance
+from the halves (c's noise; ((A - B) / 2)^2 per pixel and channel) and h independent of this frame's samples,
+E[(h - c)^2] - v = E[(h - mu)^2], so per pixel and channel
+
+    (1 - a)^2 ((h - c)^2 - v) + a^2 v
+
+estimates E[(y - mu)^2] for the unclamped history. The blend compares it per tile with v, the plain input's,
+and takes the accumulated input only where it is better by CONFIDENCE standard errors of the per-pixel
+differences (noise_blend's module docstring): a tile of moving shadow, where the history lags, keeps the
+frame's own input.
+
+What it gains (`make bench`, 128x128, 8 frames, 4 spp; docs/benchmarks.md "Accumulated input"):
+measured there for every temporal pipeline, against the blend with the plain input.
+numba kernel; `accumulate_reference` is the numpy twin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from service.kernels.window import overlap, window_offsets
+from service.stages.reprojection import reproject, reproject_numpy
+
+ALPHA_MIN = 0.2  # the newest frame's least weight in the average (Schied et al. 2017, sec. 4.1: 0.2)
+CLAMP_RADIUS = 1  # the history is clamped to the clipped input's range over (2 r + 1)^2 pixels: 3x3
+CONFIDENCE = 2.0  # standard errors by which a tile's accumulated input must be estimated better (noise_blend)
+
+
+@dataclass
+class InputHistory:
+    """The accumulated input of a sequence's frames so far, owned by the pipeline's sequence state and
+    replaced by each `accumulate`. buffer: (H, W, C + 1) float32, the accumulated input less emission
+    (radiance) and, last, the frames in it; depth: (H, W, 1) float32 or None, normal: (H, W, 3) float32 or
+    None, the last frame's (the next reprojection checks its taps against them). Empty: no frame yet."""
+
+    buffer: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    normal: np.ndarray | None = None
+
+    def clear(self) -> None:
+        """Forget the frames so far (a frame without motion: its successor cannot be reprojected onto it)."""
+        self.buffer, self.depth, self.normal = None, None, None
+
+
+def accumulate(history: InputHistory, clipped: np.ndarray, color: np.ndarray, emission: np.ndarray | None,
+               color_a: np.ndarray, color_b: np.ndarray, motion: np.ndarray, depth: np.ndarray | None = None,
+               normal: np.ndarray | None = None, *, reference: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
+    """Add a frame to `history` and return its accumulated input and that input's error (module docstring).
+
+    clipped: (H, W, C) float32, the frame's input less emission, fireflies clipped (noise_blend); color,
+    color_a, color_b: (H, W, C) float32 linear radiance and its halves; emission: (H, W, C) float32 or None,
+    the emission in all three; motion: (H, W, 2) float32 backward motion, pixels; depth (H, W, 1), normal
+    (H, W, 3) float32 or None. All finite. `reference`: the numpy twin's arithmetic.
+    Returns None on the sequence's first frame (nothing accumulated yet), else (accumulated (H, W, C) float32
+    radiance less emission, error (H, W) float64 its estimated squared error, radiance^2, the channels' mean,
+    which can be negative: an unbiased estimate of a small error).
+    """
+    height, width, channels = clipped.shape
+    previous = history.buffer
+    if previous is not None and (previous.shape != (height, width, channels + 1) or
+                                 (history.depth is None) != (depth is None) or
+                                 (history.normal is None) != (normal is None)):
+        previous = None  # another size or other layers: a new start
+    if previous is None:
+        result = None
+        buffer = np.concatenate([clipped, np.ones((height, width, 1), np.float32)], axis=-1)
+    else:
+        warp = reproject_numpy if reference else reproject
+        warped, valid = warp(previous, motion, depth=depth, prev_depth=history.depth, normal=normal,
+                             prev_normal=history.normal)
+        buffer = np.empty((height, width, channels + 1), np.float32)
+        error = np.empty((height, width), np.float64)
+        e = clipped if emission is None else np.ascontiguousarray(emission, np.float32)  # not read without
+        step = _accumulate_reference if reference else _accumulate_kernel
+        step(np.ascontiguousarray(clipped, np.float32), np.ascontiguousarray(color, np.float32), e,
+             emission is not None, np.ascontiguousarray(color_a, np.float32), np.ascontiguousarray(color_b, np.float32),
+             warped, valid, np.float64(ALPHA_MIN), buffer, error)
+        result = np.ascontiguousarray(buffer[..., :channels]), error
+    history.buffer, history.depth, history.normal = buffer, depth, normal
+    return result
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _accumulate_kernel(clipped, color, e, has_emission, a, b, warped, valid, alpha_min,
+                       buffer, error):  # pragma: no cover - jitted
+    """Per pixel, a task per row: buffer (H, W, C + 1) float32 the accumulated input and its frame count,
+    error (H, W) float64 its estimate (module docstring), from warped (H, W, C + 1) float32 the reprojected
+    history, valid (H, W) bool, clipped, color, a, b (H, W, C) float32 and e (H, W, C) the emission (read with
+    `has_emission`); float64 arithmetic."""
+    height, width, channels = clipped.shape
+    for y in numba.prange(height):
+        y0, y1 = max(y - CLAMP_RADIUS, 0), min(y + CLAMP_RADIUS + 1, height)
+        for x in range(width):
+            x0, x1 = max(x - CLAMP_RADIUS, 0), min(x + CLAMP_RADIUS + 1, width)
+            n = np.float64(warped[y, x, channels]) + 1.0 if valid[y, x] else 1.0
+            alpha = max(1.0 / n, alpha_min) if valid[y, x] else 1.0
+            total = 0.0
+            for c in range(channels):
+                lo, hi = np.inf, -np.inf
+                for yy in range(y0, y1):
+                    for xx in range(x0, x1):
+                        lo = min(lo, np.float64(clipped[yy, xx, c]))
+                        hi = max(hi, np.float64(clipped[yy, xx, c]))
+                h = np.float64(warped[y, x, c])
+                own = np.float64(clipped[y, x, c])
+                half = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
+                variance = half * half
+                value = np.float64(color[y, x, c]) - e[y, x, c] if has_emission else np.float64(color[y, x, c])
+                buffer[y, x, c] = np.float32((1.0 - alpha) * min(max(h, lo), hi) + alpha * own)
+                total += (1.0 - alpha) ** 2 * ((h - value) ** 2 - variance) + alpha * alpha * variance
+            buffer[y, x, channels] = np.float32(n)
+            error[y, x] = total / channels
+
+
+def _accumulate_reference(clipped, color, e, has_emission, a, b, warped, valid, alpha_min, buffer, error) -> None:
+    """Plain-numpy twin of `_accumulate_kernel` (same arguments; writes buffer and error)."""
+    height, width, channels = clipped.shape
+    c64 = clipped.astype(np.float64)
+    lo, hi = c64.copy(), c64.copy()
+    for dy, dx in window_offsets(CLAMP_RADIUS):
+        pair = overlap(height, width, dy, dx)
+        if pair is not None:
+            (cy, cx), (ny, nx) = pair
+            lo[cy, cx] = np.minimum(lo[cy, cx], c64[ny, nx])
+            hi[cy, cx] = np.maximum(hi[cy, cx], c64[ny, nx])
+    n = np.where(valid, warped[..., channels].astype(np.float64) + 1.0, 1.0)
+    alpha = np.where(valid, np.maximum(1.0 / n, alpha_min), 1.0)[..., None]
+    h = warped[..., :channels].astype(np.float64)
+    variance = ((a.astype(np.float64) - b) * 0.5) ** 2
+    value = color.astype(np.float64) - (e if has_emission else 0.0)
+    buffer[..., :channels] = (1.0 - alpha) * np.clip(h, lo, hi) + alpha * c64
+    buffer[..., channels] = n
+    error[...] = ((1.0 - alpha) ** 2 * ((h - value) ** 2 - variance) + alpha * alpha * variance).mean(axis=-1)

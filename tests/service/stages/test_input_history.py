@@ -1,0 +1,168 @@
+"""The accumulated input (service/stages/input_history.py) and the noise blend that takes it back: parity with
+the numpy twins over sequences, the average and its error estimate (analytic and statistical cases), and that
+the blend takes it only where it is better."""
+
+import numpy as np
+import pytest
+
+from service.metrics import rel_l2_map
+from service.stages import input_history
+from service.stages.input_history import InputHistory, accumulate
+from service.stages.noise_blend import TILE, noise_blend, noise_blend_reference, takes_accumulated
+
+
+def _frame(rng, truth, sd):
+    a = (truth + rng.normal(0, sd, truth.shape)).astype(np.float32)
+    b = (truth + rng.normal(0, sd, truth.shape)).astype(np.float32)
+    return a, b, ((a + b) / 2).astype(np.float32)
+
+
+def _sequence(shape, frames, seed=0):
+    """A moving (fractional motion) noisy sequence with depth, normals, a disocclusion edge and some emission."""
+    rng = np.random.default_rng(seed)
+    height, width = shape
+    y, x = np.mgrid[:height, :width]
+    out = []
+    for k in range(frames):
+        truth = (1.0 + np.sin((x - 0.7 * k) / 3.0) * np.cos(y / 4.0))[..., None].repeat(3, -1).astype(np.float32)
+        a, b, color = _frame(rng, truth, 0.3)
+        a[k % height, (2 * k) % width] += 500.0  # a firefly
+        color = ((a + b) / 2).astype(np.float32)
+        motion = np.zeros((height, width, 2), np.float32)
+        motion[..., 0] = -0.7
+        depth = np.where(x < width // 3, 1.0, 2.0)[..., None].astype(np.float32)
+        depth[: height // 2, : width // 3] = 1.0 + (k % 2)  # depth that changes: a disocclusion
+        normal = np.zeros((height, width, 3), np.float32)
+        normal[..., 2] = 1.0
+        emission = np.zeros_like(truth)
+        emission[height // 2, width // 2] = 40.0
+        out.append(dict(truth=truth, a=a + emission, b=b + emission, color=color + emission, motion=motion,
+                        depth=depth, normal=normal, emission=emission))
+    return out
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (5, 1), (17, 33), (40, 29)])
+def test_accumulate_matches_the_numpy_twin(shape):
+    histories = InputHistory(), InputHistory()
+    for f in _sequence(shape, 4):
+        clipped = (f["color"] - f["emission"]).astype(np.float32)
+        got = [accumulate(h, clipped, f["color"], f["emission"], f["a"], f["b"], f["motion"], f["depth"], f["normal"],
+                          reference=ref) for h, ref in zip(histories, (False, True), strict=True)]
+        if got[0] is None:
+            assert got[1] is None
+            continue
+        np.testing.assert_allclose(got[0][0], got[1][0], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(got[0][1], got[1][1], rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(histories[0].buffer, histories[1].buffer, rtol=1e-5, atol=1e-5)
+
+
+def test_a_static_frame_is_averaged_and_the_history_is_clamped():
+    """Zero motion: the second frame's accumulated input is the mean of the two (n = 2, a = 1/2), the history
+    clamped to the frame's 3x3 range; the frame count goes 1, 2, ...; a pixel whose history is off screen or
+    fails the depth test starts again (a = 1, its error the frame's own variance)."""
+    shape = (6, 8, 3)
+    first = np.full(shape, 1.0, np.float32)
+    second = np.full(shape, 2.0, np.float32)
+    second[:, :3] = 0.5  # a step from 0.5 to 2 over a column of 0.9: the history (1) clamped to the 3x3 range
+    second[:, 3] = 0.9
+    motion = np.zeros(shape[:2] + (2,), np.float32)
+    depth = np.ones(shape[:2] + (1,), np.float32)
+    history = InputHistory()
+    assert accumulate(history, first, first, None, first, first, motion, depth) is None
+    later_depth = depth.copy()
+    later_depth[0, 0] = 5.0  # another surface: no consistent tap
+    halves = second - np.float32(0.2), second + np.float32(0.2)  # v = 0.04
+    accumulated, error = accumulate(history, second, second, None, *halves, motion, later_depth)
+    # per column: clamp(1, 3x3 range) and the frame, averaged
+    expected = np.array([0.5, 0.5, (0.9 + 0.5) / 2, (1 + 0.9) / 2, (1 + 2) / 2, 2, 2, 2])[None, :, None]
+    expected = np.broadcast_to(expected, shape).copy()
+    expected[0, 0] = second[0, 0]
+    np.testing.assert_allclose(accumulated, expected, rtol=1e-6)
+    np.testing.assert_allclose(history.buffer[..., 3], np.where(later_depth[..., 0] == 1.0, 2.0, 1.0))
+    # the error of the unclamped average: (1/2)^2 ((h - c)^2 - v) + (1/2)^2 v = (h - c)^2 / 4
+    unclamped = (1.0 - second) ** 2 / 4
+    unclamped[0, 0] = 0.04
+    np.testing.assert_allclose(error, unclamped.mean(axis=-1), rtol=1e-5, atol=1e-7)
+
+
+def test_the_error_estimate_is_unbiased(monkeypatch):
+    """A constant truth under noise, 12 static frames: the estimate's mean matches the accumulated input's true
+    squared error (the twin, with the clamp widened to the whole frame so that it does not act)."""
+    monkeypatch.setattr(input_history, "CLAMP_RADIUS", 200)
+    rng = np.random.default_rng(1)
+    truth = np.full((64, 64, 3), 2.0, np.float32)
+    motion = np.zeros((64, 64, 2), np.float32)
+    history = InputHistory()
+    for _ in range(12):
+        a, b, color = _frame(rng, truth, 0.5)
+        result = accumulate(history, color, color, None, a, b, motion, reference=True)
+    accumulated, error = result
+    true = ((accumulated.astype(np.float64) - truth) ** 2).mean()
+    assert true < 0.25 * (0.5**2 / 2)  # an average of ~9 frames' worth (a = 0.2) beats one frame's variance
+    assert abs(error.mean() - true) < 0.1 * true, (error.mean(), true)
+
+
+def test_takes_accumulated_needs_two_standard_errors():
+    count = 100.0
+    rows = []
+    for mean, sd in ((-1.0, 1.0), (-0.1, 1.0), (0.5, 0.1)):  # per-pixel d: mean and spread of a tile
+        rows.append((mean * count, (sd * sd + mean * mean) * count, count))
+    stats = np.array(rows, np.float64).T[:, None, :]
+    # standard error sd / 10: -1 + 0.2 < 0 takes it; -0.1 + 0.2 > 0 does not; a positive mean never
+    assert takes_accumulated(stats).tolist() == [[True, False, False]]
+
+
+@pytest.mark.parametrize("tile", [16, 7, 1])
+@pytest.mark.parametrize("shape", [(1, 1), (17, 33), (40, 29)])
+def test_blend_with_history_matches_the_numpy_twin(shape, tile):
+    histories = InputHistory(), InputHistory()
+    rng = np.random.default_rng(2)
+    for f in _sequence(shape, 5, seed=3):
+        out = (f["truth"] * 0.9 + rng.normal(0, 0.02, f["truth"].shape) + f["emission"]).astype(np.float32)
+        out[: shape[0] // 2] += 0.5  # a region the denoiser got wrong
+        args = out, f["color"], f["a"], f["b"], f["emission"], tile
+        layers = dict(motion=f["motion"], depth=f["depth"], normal=f["normal"])
+        got = noise_blend(*args, history=histories[0], **layers)
+        want = noise_blend_reference(*args, history=histories[1], **layers)
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+def _tiles(errors):
+    h, w = (s // TILE * TILE for s in errors.shape)
+    return errors[:h, :w].reshape(h // TILE, TILE, w // TILE, TILE).mean(axis=(1, 3))
+
+
+def test_a_biased_output_takes_the_accumulated_input_back():
+    """A static noisy scene and a denoiser 10% too dark: after 8 frames the blend with the history is better
+    than the blend with the frame alone in every tile, and far better overall."""
+    rng = np.random.default_rng(4)
+    y, x = np.mgrid[:64, :64]
+    truth = (0.3 + (np.sin(x / 5.0) * np.cos(y / 7.0)) ** 2)[..., None].repeat(3, -1).astype(np.float32)
+    motion = np.zeros((64, 64, 2), np.float32)
+    history = InputHistory()
+    for _ in range(8):
+        a, b, color = _frame(rng, truth, 0.15)
+        out = (truth * 0.9).astype(np.float32)
+        with_history = noise_blend(out, color, a, b, history=history, motion=motion)
+        plain = noise_blend(out, color, a, b)
+    better, alone = (rel_l2_map(v, truth) for v in (with_history, plain))
+    assert (_tiles(better) < _tiles(alone)).all()
+    assert better.mean() < 0.6 * alone.mean(), (better.mean(), alone.mean())
+
+
+def test_a_stale_history_is_not_taken_and_no_motion_forgets_it():
+    """Five frames of one level, then the light changes (every pixel x3): the history is worse than the frame, and
+    the blend is the plain one. A frame without motion forgets the history."""
+    rng = np.random.default_rng(5)
+    truth = np.full((32, 48, 3), 0.5, np.float32)
+    motion = np.zeros((32, 48, 2), np.float32)
+    history = InputHistory()
+    for k in range(6):
+        level = truth * (3.0 if k == 5 else 1.0)
+        a, b, color = _frame(rng, level, 0.1)
+        out = (level * 0.8).astype(np.float32)
+        blended = noise_blend(out, color, a, b, history=history, motion=motion)
+    np.testing.assert_array_equal(blended, noise_blend(out, color, a, b))
+    assert history.buffer is not None
+    noise_blend(out, color, a, b, history=history)
+    assert history.buffer is None
