@@ -113,6 +113,14 @@ class Pipeline(ABC):
         float32 linear radiance, finite, plus documented diagnostics; the updated state).
         The input's NaN/Inf repair counts are carried to the output frame's `nonfinite`.
         """
+        try:
+            return self._step(frame, state)
+        except Exception:  # a refused frame: the next frame's motion points to it, not to the accumulated input
+            state.input_history.clear()
+            raise
+
+    def _step(self, frame: Frame, state: SequenceState) -> tuple[Frame, SequenceState]:
+        """`step`'s work."""
         self.check(frame, state)
         given = frame
         if self.guards:

@@ -58,6 +58,7 @@ from service.stages.error_estimate import (
     tile_error,
     tile_means,
 )
+from service.stages.input_history import InputHistory
 
 # Candidates: the pipelines that run on one half alone (crossregression and crossreg need both), cheapest first,
 # with their cost: median ms a 1280x720 frame on 2 cores (`python -m bench.classical_speed`, 2026-11-27; runs
@@ -285,8 +286,13 @@ def tile_motion(motion: np.ndarray, tile: int) -> np.ndarray:
 def run_half(pipeline: Pipeline, frame: Frame, running: SequenceState | None) -> np.ndarray:
     """(H, W, 3) float32: `pipeline`'s output for `frame` (one half, `one_half`, or the whole) from a copy of its
     running state (its history is made of earlier frames' samples, independent of this frame's halves, so the
-    estimate stays unbiased), or from a fresh state when it has none."""
-    sub = copy.deepcopy(running) if running is not None else pipeline.start(frame.height, frame.width)
+    estimate stays unbiased), or from a fresh state when it has none. Without halves the blend is not run, so
+    the copy leaves the blend's accumulated input behind (~29 MB at 1280x720)."""
+    if running is None:
+        sub = pipeline.start(frame.height, frame.width)
+    else:
+        halves = all(name in frame for name in HALVES)
+        sub = copy.deepcopy(running, {} if halves else {id(running.input_history): InputHistory()})
     out, sub = pipeline.step(frame, sub)
     sub.close()
     return out["color"]

@@ -16,14 +16,19 @@ E[(h - c)^2] - v = E[(h - mu)^2], so per pixel and channel
 
     (1 - a)^2 ((h - c)^2 - v) + a^2 v
 
-estimates E[(y - mu)^2] for the unclamped history. The blend compares it per tile with v, the plain input's,
-and takes the accumulated input only where it is better by CONFIDENCE standard errors of the per-pixel
-differences (noise_blend's module docstring): a tile of moving shadow, where the history lags, keeps the
-frame's own input.
+estimates E[(y - mu)^2] for the unclamped history; the clamp depends on this frame's samples, and at low
+sample counts (a 3x3 range of zeros where the truth is not) the clamped average can be worse than it says.
+The estimate of one pixel is noisy and can be negative; the average's true error is at least a^2 v (its
+share of this frame's noise), and the blend's tile sums are held at least at that floor. The blend compares
+it per tile with v, the plain input's, and takes the accumulated input only where it is better by
+CONFIDENCE standard errors of the per-pixel differences (noise_blend's module docstring): a tile of moving
+shadow, where the history lags, keeps the frame's own input. Lights (pixels with emission) are left out of
+the clamp's range, as out of the firefly clip's (noise_blend): a light's colour less its emission can be
+far from its neighbours' radiance.
 
 What it gains (`make bench`, 128x128, 8 frames, 4 spp; docs/benchmarks.md "Accumulated input"):
 measured there for every temporal pipeline, against the blend with the plain input.
-numba kernel; `accumulate_reference` is the numpy twin.
+numba kernel; `accumulate(..., reference=True)` runs its numpy twin.
 """
 
 from __future__ import annotations
@@ -53,22 +58,27 @@ class InputHistory:
     normal: np.ndarray | None = None
 
     def clear(self) -> None:
-        """Forget the frames so far (a frame without motion: its successor cannot be reprojected onto it)."""
+        """Forget the frames so far (a frame without halves, or one the pipeline refused: the next frame's motion
+        points to a frame that is not in it)."""
         self.buffer, self.depth, self.normal = None, None, None
 
 
+Accumulated = tuple[np.ndarray, np.ndarray, np.ndarray]  # what `accumulate` returns: input, error, floor
+
+
 def accumulate(history: InputHistory, clipped: np.ndarray, color: np.ndarray, emission: np.ndarray | None,
-               color_a: np.ndarray, color_b: np.ndarray, motion: np.ndarray, depth: np.ndarray | None = None,
-               normal: np.ndarray | None = None, *, reference: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
+               color_a: np.ndarray, color_b: np.ndarray, motion: np.ndarray | None, depth: np.ndarray | None = None,
+               normal: np.ndarray | None = None, *, reference: bool = False) -> Accumulated | None:
     """Add a frame to `history` and return its accumulated input and that input's error (module docstring).
 
     clipped: (H, W, C) float32, the frame's input less emission, fireflies clipped (noise_blend); color,
     color_a, color_b: (H, W, C) float32 linear radiance and its halves; emission: (H, W, C) float32 or None,
-    the emission in all three; motion: (H, W, 2) float32 backward motion, pixels; depth (H, W, 1), normal
-    (H, W, 3) float32 or None. All finite. `reference`: the numpy twin's arithmetic.
-    Returns None on the sequence's first frame (nothing accumulated yet), else (accumulated (H, W, C) float32
-    radiance less emission, error (H, W) float64 its estimated squared error, radiance^2, the channels' mean,
-    which can be negative: an unbiased estimate of a small error).
+    the emission in all three; motion: (H, W, 2) float32 backward motion, pixels, or None (the history starts
+    again from this frame: nothing to reproject it by); depth (H, W, 1), normal (H, W, 3) float32 or None.
+    All finite. `reference`: the numpy twin's arithmetic.
+    Returns None on a (new) start, else (accumulated (H, W, C) float32 radiance less emission; error (H, W)
+    float64 its estimated squared error, radiance^2, the channels' mean, which can be negative: an unbiased
+    estimate of a small error; floor (H, W) float64, a^2 v's channel mean, a lower bound of its true error).
     """
     height, width, channels = clipped.shape
     previous = history.buffer
@@ -76,32 +86,32 @@ def accumulate(history: InputHistory, clipped: np.ndarray, color: np.ndarray, em
                                  (history.depth is None) != (depth is None) or
                                  (history.normal is None) != (normal is None)):
         previous = None  # another size or other layers: a new start
-    if previous is None:
+    if previous is None or motion is None:
         result = None
-        buffer = np.concatenate([clipped, np.ones((height, width, 1), np.float32)], axis=-1)
+        buffer = np.concatenate([clipped, np.ones((height, width, 1))], axis=-1).astype(np.float32)
     else:
         warp = reproject_numpy if reference else reproject
         warped, valid = warp(previous, motion, depth=depth, prev_depth=history.depth, normal=normal,
                              prev_normal=history.normal)
         buffer = np.empty((height, width, channels + 1), np.float32)
-        error = np.empty((height, width), np.float64)
+        error, floor = np.empty((height, width), np.float64), np.empty((height, width), np.float64)
         e = clipped if emission is None else np.ascontiguousarray(emission, np.float32)  # not read without
         step = _accumulate_reference if reference else _accumulate_kernel
         step(np.ascontiguousarray(clipped, np.float32), np.ascontiguousarray(color, np.float32), e,
              emission is not None, np.ascontiguousarray(color_a, np.float32), np.ascontiguousarray(color_b, np.float32),
-             warped, valid, np.float64(ALPHA_MIN), buffer, error)
-        result = np.ascontiguousarray(buffer[..., :channels]), error
+             warped, valid, np.float64(ALPHA_MIN), buffer, error, floor)
+        result = np.ascontiguousarray(buffer[..., :channels]), error, floor
     history.buffer, history.depth, history.normal = buffer, depth, normal
     return result
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _accumulate_kernel(clipped, color, e, has_emission, a, b, warped, valid, alpha_min,
-                       buffer, error):  # pragma: no cover - jitted
+                       buffer, error, floor):  # pragma: no cover - jitted
     """Per pixel, a task per row: buffer (H, W, C + 1) float32 the accumulated input and its frame count,
-    error (H, W) float64 its estimate (module docstring), from warped (H, W, C + 1) float32 the reprojected
-    history, valid (H, W) bool, clipped, color, a, b (H, W, C) float32 and e (H, W, C) the emission (read with
-    `has_emission`); float64 arithmetic."""
+    error and floor (H, W) float64 its estimate and a^2 v (module docstring), from warped (H, W, C + 1) float32
+    the reprojected history, valid (H, W) bool, clipped, color, a, b (H, W, C) float32 and e (H, W, C) the
+    emission (read with `has_emission`; lights left out of the clamp's range); float64 arithmetic."""
     height, width, channels = clipped.shape
     for y in numba.prange(height):
         y0, y1 = max(y - CLAMP_RADIUS, 0), min(y + CLAMP_RADIUS + 1, height)
@@ -110,34 +120,44 @@ def _accumulate_kernel(clipped, color, e, has_emission, a, b, warped, valid, alp
             n = np.float64(warped[y, x, channels]) + 1.0 if valid[y, x] else 1.0
             alpha = max(1.0 / n, alpha_min) if valid[y, x] else 1.0
             total = 0.0
+            least = 0.0
             for c in range(channels):
+                own = np.float64(clipped[y, x, c])
                 lo, hi = np.inf, -np.inf
                 for yy in range(y0, y1):
                     for xx in range(x0, x1):
-                        lo = min(lo, np.float64(clipped[yy, xx, c]))
-                        hi = max(hi, np.float64(clipped[yy, xx, c]))
+                        if not (has_emission and e[yy, xx, c] != 0):
+                            lo = min(lo, np.float64(clipped[yy, xx, c]))
+                            hi = max(hi, np.float64(clipped[yy, xx, c]))
+                if lo > hi:  # lights all around: the frame's own value
+                    lo, hi = own, own
                 h = np.float64(warped[y, x, c])
-                own = np.float64(clipped[y, x, c])
                 half = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
                 variance = half * half
                 value = np.float64(color[y, x, c]) - e[y, x, c] if has_emission else np.float64(color[y, x, c])
                 buffer[y, x, c] = np.float32((1.0 - alpha) * min(max(h, lo), hi) + alpha * own)
                 total += (1.0 - alpha) ** 2 * ((h - value) ** 2 - variance) + alpha * alpha * variance
+                least += alpha * alpha * variance
             buffer[y, x, channels] = np.float32(n)
             error[y, x] = total / channels
+            floor[y, x] = least / channels
 
 
-def _accumulate_reference(clipped, color, e, has_emission, a, b, warped, valid, alpha_min, buffer, error) -> None:
-    """Plain-numpy twin of `_accumulate_kernel` (same arguments; writes buffer and error)."""
+def _accumulate_reference(clipped, color, e, has_emission, a, b, warped, valid, alpha_min, buffer, error,
+                          floor) -> None:
+    """Plain-numpy twin of `_accumulate_kernel` (same arguments; writes buffer, error and floor)."""
     height, width, channels = clipped.shape
     c64 = clipped.astype(np.float64)
-    lo, hi = c64.copy(), c64.copy()
+    lit = (e != 0) if has_emission else np.zeros(c64.shape, bool)
+    lo, hi = np.full_like(c64, np.inf), np.full_like(c64, -np.inf)
     for dy, dx in window_offsets(CLAMP_RADIUS):
         pair = overlap(height, width, dy, dx)
         if pair is not None:
             (cy, cx), (ny, nx) = pair
-            lo[cy, cx] = np.minimum(lo[cy, cx], c64[ny, nx])
-            hi[cy, cx] = np.maximum(hi[cy, cx], c64[ny, nx])
+            lo[cy, cx] = np.minimum(lo[cy, cx], np.where(lit[ny, nx], np.inf, c64[ny, nx]))
+            hi[cy, cx] = np.maximum(hi[cy, cx], np.where(lit[ny, nx], -np.inf, c64[ny, nx]))
+    empty = lo > hi  # lights all around: the frame's own value
+    lo, hi = np.where(empty, c64, lo), np.where(empty, c64, hi)
     n = np.where(valid, warped[..., channels].astype(np.float64) + 1.0, 1.0)
     alpha = np.where(valid, np.maximum(1.0 / n, alpha_min), 1.0)[..., None]
     h = warped[..., :channels].astype(np.float64)
@@ -146,3 +166,4 @@ def _accumulate_reference(clipped, color, e, has_emission, a, b, warped, valid, 
     buffer[..., :channels] = (1.0 - alpha) * np.clip(h, lo, hi) + alpha * c64
     buffer[..., channels] = n
     error[...] = ((1.0 - alpha) ** 2 * ((h - value) ** 2 - variance) + alpha * alpha * variance).mean(axis=-1)
+    floor[...] = (alpha * alpha * variance).mean(axis=-1)

@@ -47,10 +47,11 @@ through where the truth was 25, in one pixel, which alone made up a quarter of t
 accumulated input (`service.stages.input_history`: c' averaged over the frames before, reprojected, with a
 per-pixel estimate of its error): per tile, where the weighted mean of the per-pixel differences d between
 that estimate and v, plus CONFIDENCE standard errors of it, is below 0, c' is the accumulated input and Ec
-the sum of its estimated error (at least 0) in that tile and its half tiles. A value the denoiser left as it
-came (an exact pixel, a background passed through) stays so; a frame whose halves agree everywhere comes
-back as its input. Interpolation lets a tile's neighbours lend it their t at its border, so a region the tiles reject
-keeps some of the output within ~half a tile of its edge.
+the sum of its estimated error in that tile and its half tiles, at least the sum of a^2 v (the share of
+this frame's noise in it; the estimate is of the unclamped average, see input_history's docstring). A value
+the denoiser left as it came (an exact pixel, a background passed through) stays so; a frame whose halves
+agree everywhere comes back as its input. Interpolation lets a tile's neighbours lend it their t at its
+border, so a region the tiles reject keeps some of the output within ~half a tile of its edge.
 
 What it costs and gains on ordinary frames (`make bench`, 128x128, 4 spp; docs/benchmarks.md, "Noise
 blend"): the blend itself lowered every pipeline's relL2 overall; the 3x3 level and the half tiles,
@@ -77,7 +78,7 @@ import numpy as np
 from service.kernels.fill import filled
 from service.metrics import REL_L2_EPS
 from service.stages.error_estimate import interpolate_tiles, interpolation_matrix, tile_counts, tile_sums
-from service.stages.input_history import CONFIDENCE, InputHistory, accumulate
+from service.stages.input_history import CONFIDENCE, Accumulated, InputHistory, accumulate
 from service.stages.outliers import FIREFLY_K, clamp_fireflies_reference
 from service.stages.svgf import box_mean
 
@@ -131,28 +132,28 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     _clip_kernel(arrays[1], arrays[2], arrays[3], e, has_emission, np.float32(FIREFLY_K), clipped)
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, False)
     if choice is None:
-        accumulated, input_error, use = clipped, np.zeros((1, 1)), np.zeros((1, 1), np.bool_)
+        accumulated, input_error, floor, use = clipped, np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1), np.bool_)
     else:
-        accumulated, input_error = choice
+        accumulated, input_error, floor = choice
         stats = np.zeros((3, -(-height // tile), -(-width // tile)), np.float64)
         _choice_kernel(*arrays[:4], e, has_emission, level, input_error, tile, REL_L2_EPS, PROXY_FLOOR, stats)
         use = takes_accumulated(stats)
     half = half_tile(tile)
 
-    def sums(side: int) -> np.ndarray:  # (3, th, tw): the weighted sums of e and v, the pixels whose halves differ
-        out = np.zeros((3, -(-height // side), -(-width // side)), np.float64)
-        _tile_kernel(*arrays[:4], e, has_emission, level, input_error, use, tile, choice is not None, side,
+    def sums(side: int) -> np.ndarray:  # (4, th, tw): `_tile_kernel`'s sums over tiles of this side
+        out = np.zeros((4, -(-height // side), -(-width // side)), np.float64)
+        _tile_kernel(*arrays[:4], e, has_emission, level, input_error, floor, use, tile, choice is not None, side,
                      REL_L2_EPS, PROXY_FLOOR, out)
         return out
 
     fine = sums(half)
     if tile == 2 * half:  # an even tile: its sums are those of its 2x2 half tiles
         padded = np.pad(fine, ((0, 0), (0, fine.shape[1] % 2), (0, fine.shape[2] % 2)))
-        coarse = padded.reshape(3, padded.shape[1] // 2, 2, padded.shape[2] // 2, 2).sum(axis=(2, 4))
+        coarse = padded.reshape(4, padded.shape[1] // 2, 2, padded.shape[2] // 2, 2).sum(axis=(2, 4))
     else:
         coarse = fine if tile == half else sums(tile)
-    t = blend_weights(coarse[0], np.maximum(coarse[1], 0.0)).astype(np.float32)
-    t_half = half_tile_weights(fine[0], np.maximum(fine[1], 0.0), fine[2],
+    t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3])).astype(np.float32)
+    t_half = half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2],
                                tile_counts(height, width, half)).astype(np.float32)
     result = np.empty_like(arrays[0])
     _blend_kernel(*arrays[:4], e, has_emission, clipped, accumulated, use, tile, choice is not None, t,
@@ -162,13 +163,10 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
 
 def _accumulated(history: InputHistory | None, clipped: np.ndarray, arrays: list[np.ndarray],
                  emission: np.ndarray | None, motion: np.ndarray | None, depth: np.ndarray | None,
-                 normal: np.ndarray | None, reference: bool) -> tuple[np.ndarray, np.ndarray] | None:
+                 normal: np.ndarray | None, reference: bool) -> Accumulated | None:
     """`input_history.accumulate` of the frame (arrays: out, color and its halves) into `history`, or None: no
-    history, its first frame, or a frame without motion (the history is forgotten)."""
+    history, or a (new) start of it (its first frame, or a frame without motion)."""
     if history is None:
-        return None
-    if motion is None:
-        history.clear()
         return None
     return accumulate(history, clipped, arrays[1], emission, arrays[2], arrays[3], motion, depth, normal,
                       reference=reference)
@@ -231,18 +229,22 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     arrays = [np.asarray(x, np.float32) for x in (out, color, color_a, color_b)]
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, True)
     taken = np.where(moved, e + clipped, color.astype(np.float64))
+    least = pixel_in  # per pixel, the floor of the input's error
     if choice is not None:
-        accumulated, input_error = choice
+        accumulated, input_error, floor = choice
         d = weight * input_error - pixel_in
         stats = np.stack([tile_sums(d, tile)[0], tile_sums(d * d, tile)[0], tile_sums(np.ones_like(d), tile)[0]])
         use = np.repeat(np.repeat(takes_accumulated(stats), tile, 0), tile, 1)[:height, :width]
-        pixel_in = np.where(use, weight * input_error, pixel_in)
+        pixel_in, least = (np.where(use, weight * x, pixel_in) for x in (input_error, floor))
         taken = np.where(use[..., None], e + accumulated, taken)
     half = half_tile(tile)
-    t = blend_weights(tile_sums(pixel_out, tile)[0], np.maximum(tile_sums(pixel_in, tile)[0], 0.0))
+
+    def input_sums(side: int) -> np.ndarray:
+        return np.maximum(tile_sums(pixel_in, side)[0], tile_sums(least, side)[0])
+
+    t = blend_weights(tile_sums(pixel_out, tile)[0], input_sums(tile))
     noisy, pixels = tile_sums((variance > 0).any(axis=-1).astype(np.float64), half)
-    t_half = half_tile_weights(tile_sums(pixel_out, half)[0], np.maximum(tile_sums(pixel_in, half)[0], 0.0),
-                               noisy, pixels)
+    t_half = half_tile_weights(tile_sums(pixel_out, half)[0], input_sums(half), noisy, pixels)
     own = np.repeat(np.repeat(t_half, half, axis=0), half, axis=1)[:height, :width, None].astype(np.float32)
     t = np.minimum(interpolate_tiles(t, tile, height, width), box_mean(own, HALF_RAMP)[..., 0])[..., None]
     t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
@@ -303,25 +305,27 @@ def _pixel_errors(out, color, a, b, y, x):  # pragma: no cover - jitted
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, use, use_tile, has_choice, tile, eps, floor,
-                 sums):  # pragma: no cover - jitted
-    """sums (3, th, tw): per tile the weighted sums of e and of the input's error, and the count of pixels whose
-    halves differ, in float64; weights `_pixel_weight` (eps = REL_L2_EPS, radiance^2; floor PROXY_FLOOR;
-    level (H, W) float32, the 3x3 box mean of the colour less e). The input's error is v, or, with `has_choice`,
-    input_error ((H, W) float64, the accumulated input's, the channels' mean) where `use` ((th', tw') bool, per
-    tile of side use_tile) takes the accumulated input. tile: side in pixels. A task per row of tiles."""
+def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_floor, use, use_tile, has_choice,
+                 tile, eps, floor, sums):  # pragma: no cover - jitted
+    """sums (4, th, tw): per tile the weighted sums of e and of the input's error, the count of pixels whose
+    halves differ, and the weighted sum of the input error's floor, in float64; weights `_pixel_weight` (eps =
+    REL_L2_EPS, radiance^2; floor PROXY_FLOOR; level (H, W) float32, the 3x3 box mean of the colour less e).
+    The input's error and its floor are v, or, with `has_choice`, input_error and input_floor ((H, W) float64,
+    the accumulated input's and a^2 v, the channels' means) where `use` ((th', tw') bool, per tile of side
+    use_tile) takes the accumulated input. tile: side in pixels. A task per row of tiles."""
     height, width, channels = out.shape
     for ty in numba.prange(sums.shape[1]):
         for y in range(ty * tile, min((ty + 1) * tile, height)):
             for x in range(width):
                 w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor) / channels
                 err, var = _pixel_errors(out, color, a, b, y, x)
-                taken = var
+                taken, least = var, var
                 if has_choice and use[y // use_tile, x // use_tile]:
-                    taken = input_error[y, x] * channels
+                    taken, least = input_error[y, x] * channels, input_floor[y, x] * channels
                 sums[0, ty, x // tile] += w * err
                 sums[1, ty, x // tile] += w * taken
                 sums[2, ty, x // tile] += 1.0 if var > 0 else 0.0
+                sums[3, ty, x // tile] += w * least
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")

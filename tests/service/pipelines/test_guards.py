@@ -7,7 +7,7 @@ import pytest
 
 from bench.methods import anchor_method
 from service import pipelines
-from service.frame import Frame
+from service.frame import Frame, FrameError
 from service.pipelines.base import Pipeline, with_exact_emission
 from service.stages.background import FILTER_REACH
 from service.stages.exact import exact_mask
@@ -126,8 +126,8 @@ def test_a_non_finite_output_is_caught_before_the_clamp(tiny_layers):
 
 def test_a_temporal_pipeline_blends_with_the_accumulated_input(tiny_layers):
     """A temporal pipeline's blend takes the input accumulated over the sequence (its state's `input_history`,
-    which reads `motion` and `depth`); a pipeline that is not temporal keeps none; a frame without halves or
-    motion forgets it."""
+    which reads `motion` and `depth`); a pipeline that is not temporal keeps none; a frame without motion starts
+    it again, one without halves or one refused forgets it."""
     class Temporal(_Brighter):
         temporal = True
 
@@ -143,4 +143,11 @@ def test_a_temporal_pipeline_blends_with_the_accumulated_input(tiny_layers):
     assert state.input_history.buffer[..., 3].max() == 3.0  # frames in it: the static pixels have all three
     no_motion = {k: v for k, v in tiny_layers[0].items() if k != "motion"}
     pipeline.step(Frame.from_buffers(no_motion), state)
+    assert state.input_history.buffer[..., 3].max() == 1.0  # a new start
+    no_halves = {k: v for k, v in tiny_layers[1].items() if k not in ("colorA", "colorB")}
+    pipeline.step(Frame.from_buffers(no_halves), state)
+    assert state.input_history.buffer is None
+    pipeline.step(Frame.from_buffers(tiny_layers[0]), state)
+    with pytest.raises(FrameError):  # a refused frame: the next one's motion points to it
+        pipeline.step(Frame.from_buffers({k: v[:12] for k, v in tiny_layers[1].items()}), state)
     assert state.input_history.buffer is None

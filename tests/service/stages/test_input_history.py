@@ -29,7 +29,7 @@ def _sequence(shape, frames, seed=0):
         a[k % height, (2 * k) % width] += 500.0  # a firefly
         color = ((a + b) / 2).astype(np.float32)
         motion = np.zeros((height, width, 2), np.float32)
-        motion[..., 0] = -0.7
+        motion[..., 0] = -0.7 if width > 2 else -0.3  # fractional; on screen for a column or a pixel too
         depth = np.where(x < width // 3, 1.0, 2.0)[..., None].astype(np.float32)
         depth[: height // 2, : width // 3] = 1.0 + (k % 2)  # depth that changes: a disocclusion
         normal = np.zeros((height, width, 3), np.float32)
@@ -41,19 +41,24 @@ def _sequence(shape, frames, seed=0):
     return out
 
 
-@pytest.mark.parametrize("shape", [(1, 1), (5, 1), (17, 33), (40, 29)])
-def test_accumulate_matches_the_numpy_twin(shape):
+@pytest.mark.parametrize("lit", [True, False])
+@pytest.mark.parametrize("shape", [(1, 1), (5, 2), (17, 33), (40, 29)])
+def test_accumulate_matches_the_numpy_twin(shape, lit):
     histories = InputHistory(), InputHistory()
+    valid = 0
     for f in _sequence(shape, 4):
+        emission = f["emission"] if lit else None
         clipped = (f["color"] - f["emission"]).astype(np.float32)
-        got = [accumulate(h, clipped, f["color"], f["emission"], f["a"], f["b"], f["motion"], f["depth"], f["normal"],
+        got = [accumulate(h, clipped, f["color"], emission, f["a"], f["b"], f["motion"], f["depth"], f["normal"],
                           reference=ref) for h, ref in zip(histories, (False, True), strict=True)]
         if got[0] is None:
             assert got[1] is None
             continue
-        np.testing.assert_allclose(got[0][0], got[1][0], rtol=1e-5, atol=1e-5)
-        np.testing.assert_allclose(got[0][1], got[1][1], rtol=1e-4, atol=1e-5)
+        for kernel, twin in zip(*got, strict=True):  # accumulated input, error, floor
+            np.testing.assert_allclose(kernel, twin, rtol=1e-4, atol=1e-5)
         np.testing.assert_allclose(histories[0].buffer, histories[1].buffer, rtol=1e-5, atol=1e-5)
+        valid += int((histories[0].buffer[..., -1] > 1).sum())
+    assert valid > 0  # the reprojection held somewhere: the history's path was compared
 
 
 def test_a_static_frame_is_averaged_and_the_history_is_clamped():
@@ -72,7 +77,7 @@ def test_a_static_frame_is_averaged_and_the_history_is_clamped():
     later_depth = depth.copy()
     later_depth[0, 0] = 5.0  # another surface: no consistent tap
     halves = second - np.float32(0.2), second + np.float32(0.2)  # v = 0.04
-    accumulated, error = accumulate(history, second, second, None, *halves, motion, later_depth)
+    accumulated, error, floor = accumulate(history, second, second, None, *halves, motion, later_depth)
     # per column: clamp(1, 3x3 range) and the frame, averaged
     expected = np.array([0.5, 0.5, (0.9 + 0.5) / 2, (1 + 0.9) / 2, (1 + 2) / 2, 2, 2, 2])[None, :, None]
     expected = np.broadcast_to(expected, shape).copy()
@@ -83,6 +88,29 @@ def test_a_static_frame_is_averaged_and_the_history_is_clamped():
     unclamped = (1.0 - second) ** 2 / 4
     unclamped[0, 0] = 0.04
     np.testing.assert_allclose(error, unclamped.mean(axis=-1), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(floor, np.where(later_depth[..., 0] == 1.0, 0.04 / 4, 0.04), rtol=1e-5)
+    # a frame without motion starts the history again from itself
+    assert accumulate(history, first, first, None, first, first, None, depth) is None
+    np.testing.assert_array_equal(history.buffer[..., 3], 1.0)
+
+
+def test_lights_are_left_out_of_the_clamp():
+    """Beside a light whose colour less emission is 100 (its emission pass took other samples), the history (1)
+    is clamped to the range of the frame's other pixels (0.5), not widened to the light's remainder."""
+    shape = (5, 5, 3)
+    first = np.ones(shape, np.float32)
+    second = np.full(shape, 0.5, np.float32)
+    emission = np.zeros(shape, np.float32)
+    emission[2, 2] = 50.0
+    color = second + emission
+    color[2, 2] += 100.0
+    clipped = color - emission
+    motion = np.zeros((5, 5, 2), np.float32)
+    for reference in (False, True):
+        history = InputHistory()
+        accumulate(history, first, first, None, first, first, motion, reference=reference)
+        accumulated, _, _ = accumulate(history, clipped, color, emission, color, color, motion, reference=reference)
+        np.testing.assert_allclose(accumulated[1, 1], 0.5)  # (clamp(1, [0.5, 0.5]) + 0.5) / 2
 
 
 def test_the_error_estimate_is_unbiased(monkeypatch):
@@ -96,10 +124,29 @@ def test_the_error_estimate_is_unbiased(monkeypatch):
     for _ in range(12):
         a, b, color = _frame(rng, truth, 0.5)
         result = accumulate(history, color, color, None, a, b, motion, reference=True)
-    accumulated, error = result
+    accumulated, error, floor = result
     true = ((accumulated.astype(np.float64) - truth) ** 2).mean()
     assert true < 0.25 * (0.5**2 / 2)  # an average of ~9 frames' worth (a = 0.2) beats one frame's variance
     assert abs(error.mean() - true) < 0.1 * true, (error.mean(), true)
+    assert floor.mean() < true  # a^2 v: a lower bound
+
+
+@pytest.mark.parametrize("chance", [0.05, 0.3])
+def test_the_estimate_holds_with_the_clamp_at_one_sample_per_half(chance):
+    """A 0/1 signal (one sample per half hits light with probability `chance`), 12 static frames, the 3x3 clamp
+    on: the estimate is within 25% of the accumulated input's true squared error (measured: 11% low at 0.05, 14%
+    high at 0.3), and both are far below the frame's own."""
+    rng = np.random.default_rng(0)
+    motion = np.zeros((64, 64, 2), np.float32)
+    history = InputHistory()
+    for _ in range(12):
+        a, b = ((rng.random((64, 64, 1)) < chance).astype(np.float32).repeat(3, -1) for _ in range(2))
+        color = ((a + b) / 2).astype(np.float32)
+        result = accumulate(history, color, color, None, a, b, motion)
+    accumulated, error, _ = result
+    true = float(((accumulated - chance) ** 2).mean())
+    assert abs(error.mean() - true) < 0.25 * true, (error.mean(), true)
+    assert true < 0.2 * float(((color - chance) ** 2).mean())
 
 
 def test_takes_accumulated_needs_two_standard_errors():
@@ -152,7 +199,7 @@ def test_a_biased_output_takes_the_accumulated_input_back():
 
 def test_a_stale_history_is_not_taken_and_no_motion_forgets_it():
     """Five frames of one level, then the light changes (every pixel x3): the history is worse than the frame, and
-    the blend is the plain one. A frame without motion forgets the history."""
+    the blend is the plain one. A frame without motion starts the history again."""
     rng = np.random.default_rng(5)
     truth = np.full((32, 48, 3), 0.5, np.float32)
     motion = np.zeros((32, 48, 2), np.float32)
@@ -163,6 +210,6 @@ def test_a_stale_history_is_not_taken_and_no_motion_forgets_it():
         out = (level * 0.8).astype(np.float32)
         blended = noise_blend(out, color, a, b, history=history, motion=motion)
     np.testing.assert_array_equal(blended, noise_blend(out, color, a, b))
-    assert history.buffer is not None
+    assert history.buffer[..., 3].max() == 6.0
     noise_blend(out, color, a, b, history=history)
-    assert history.buffer is None
+    assert history.buffer[..., 3].max() == 1.0
