@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
+import numpy as np
+
 Slice2 = tuple[slice, slice]
 
 
@@ -34,3 +36,22 @@ def overlap(height: int, width: int, dy: int, dx: int) -> tuple[Slice2, Slice2] 
     if y0 >= y1 or x0 >= x1:
         return None
     return (slice(y0, y1), slice(x0, x1)), (slice(y0 + dy, y1 + dy), slice(x0 + dx, x1 + dx))
+
+
+def window_range(values: np.ndarray, radius: int = 1, *, centre: bool = True,
+                 excluded: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi): per pixel the smallest and largest of `values` ((H, W, ...) any real dtype) over its in-frame
+    (2 radius + 1)^2 window, the pixel itself with `centre` only, leaving out the values `excluded` marks
+    ((H, W, ...) bool, or None); +inf and -inf where none is left. numpy, for the kernels' twins."""
+    height, width = values.shape[:2]
+    lo, hi = np.full_like(values, np.inf), np.full_like(values, -np.inf)
+    for dy, dx in window_offsets(radius):
+        pair = None if dy == dx == 0 and not centre else overlap(height, width, dy, dx)
+        if pair is None:
+            continue
+        (cy, cx), (ny, nx) = pair
+        src = values[ny, nx]
+        out = np.zeros(src.shape, bool) if excluded is None else excluded[ny, nx]
+        lo[cy, cx] = np.minimum(lo[cy, cx], np.where(out, np.inf, src))
+        hi[cy, cx] = np.maximum(hi[cy, cx], np.where(out, -np.inf, src))
+    return lo, hi

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from service.kernels.window import overlap, window_offsets
+from service.kernels.window import window_range
 from service.stages.reprojection import reproject, reproject_numpy
 
 ALPHA_MIN = 0.2  # the newest frame's least weight in the average (Schied et al. 2017, sec. 4.1: 0.2)
@@ -146,16 +146,9 @@ def _accumulate_kernel(clipped, color, e, has_emission, a, b, warped, valid, alp
 def _accumulate_reference(clipped, color, e, has_emission, a, b, warped, valid, alpha_min, buffer, error,
                           floor) -> None:
     """Plain-numpy twin of `_accumulate_kernel` (same arguments; writes buffer, error and floor)."""
-    height, width, channels = clipped.shape
+    channels = clipped.shape[2]
     c64 = clipped.astype(np.float64)
-    lit = (e != 0) if has_emission else np.zeros(c64.shape, bool)
-    lo, hi = np.full_like(c64, np.inf), np.full_like(c64, -np.inf)
-    for dy, dx in window_offsets(CLAMP_RADIUS):
-        pair = overlap(height, width, dy, dx)
-        if pair is not None:
-            (cy, cx), (ny, nx) = pair
-            lo[cy, cx] = np.minimum(lo[cy, cx], np.where(lit[ny, nx], np.inf, c64[ny, nx]))
-            hi[cy, cx] = np.maximum(hi[cy, cx], np.where(lit[ny, nx], -np.inf, c64[ny, nx]))
+    lo, hi = window_range(c64, CLAMP_RADIUS, excluded=(e != 0) if has_emission else None)
     empty = lo > hi  # lights all around: the frame's own value
     lo, hi = np.where(empty, c64, lo), np.where(empty, c64, hi)
     n = np.where(valid, warped[..., channels].astype(np.float64) + 1.0, 1.0)

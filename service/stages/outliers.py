@@ -31,7 +31,7 @@ from service.kernels.simd import (
     bits_to_float32,
     float32_to_bits,
 )
-from service.kernels.window import overlap, window_offsets
+from service.kernels.window import window_range
 from service.regression.planes import from_planes, to_planes
 from service.stages.albedo import ALBEDO_EPS, demodulate, remodulate
 from service.stages.svgf import box_mean
@@ -63,17 +63,8 @@ def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K,
                               excluded: np.ndarray | None = None) -> np.ndarray:
     """Plain-numpy twin of `clamp_fireflies`. excluded: (C, H, W) bool or None, values left out of their
     neighbours' ranges (the noise blend's lights); a value with no neighbour left keeps itself."""
-    _, height, width = planes.shape
-    lo, hi = np.full_like(planes, np.inf), np.full_like(planes, -np.inf)
-    for dy, dx in window_offsets(1):
-        pair = None if dy == dx == 0 else overlap(height, width, dy, dx)
-        if pair is None:
-            continue
-        (cy, cx), (ny, nx) = pair
-        src = planes[:, ny, nx]
-        out_of_range = np.zeros(src.shape, bool) if excluded is None else excluded[:, ny, nx]
-        lo[:, cy, cx] = np.minimum(lo[:, cy, cx], np.where(out_of_range, np.inf, src))
-        hi[:, cy, cx] = np.maximum(hi[:, cy, cx], np.where(out_of_range, -np.inf, src))
+    last = None if excluded is None else np.moveaxis(excluded, 0, -1)  # (H, W, C) views, as window_range takes them
+    lo, hi = (np.moveaxis(x, -1, 0) for x in window_range(np.moveaxis(planes, 0, -1), centre=False, excluded=last))
     ok = lo <= hi
     spread = np.float32(k) * np.where(ok, hi - lo, 0)
     out = np.clip(planes, np.where(ok, lo, planes) - spread, np.where(ok, hi, planes) + spread)
