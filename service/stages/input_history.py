@@ -51,16 +51,21 @@ class InputHistory:
     """The accumulated input of a sequence's frames so far, owned by the pipeline's sequence state and
     replaced by each `accumulate`. buffer: (H, W, C + 1) float32, the accumulated input less emission
     (radiance) and, last, the frames in it; depth: (H, W, 1) float32 or None, normal: (H, W, 3) float32 or
-    None, the last frame's (the next reprojection checks its taps against them). Empty: no frame yet."""
+    None, the last frame's (the next reprojection checks its taps against them). half_tile_sums, tile_sums: the
+    noise blend's sums averaged over the frames (`noise_blend.remembered_sums`), (4, th', tw') float64 over half
+    tiles and (4, th, tw) over tiles, or None. Empty: no frame yet."""
 
     buffer: np.ndarray | None = None
     depth: np.ndarray | None = None
     normal: np.ndarray | None = None
+    half_tile_sums: np.ndarray | None = None
+    tile_sums: np.ndarray | None = None
 
     def clear(self) -> None:
         """Forget the frames so far (a frame without halves, or one the pipeline refused: the next frame's motion
         points to a frame that is not in it)."""
         self.buffer, self.depth, self.normal = None, None, None
+        self.half_tile_sums, self.tile_sums = None, None
 
 
 Accumulated = tuple[np.ndarray, np.ndarray, np.ndarray]  # what `accumulate` returns: input, error, floor
