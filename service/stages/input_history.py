@@ -48,12 +48,12 @@ CONFIDENCE = 2.0  # standard errors by which a tile's accumulated input must be 
 
 @dataclass
 class InputHistory:
-    """The accumulated input of a sequence's frames so far, owned by the pipeline's sequence state and
-    replaced by each `accumulate`. buffer: (H, W, C + 1) float32, the accumulated input less emission
-    (radiance) and, last, the frames in it; depth: (H, W, 1) float32 or None, normal: (H, W, 3) float32 or
-    None, the last frame's (the next reprojection checks its taps against them). half_tile_sums, tile_sums: the
-    noise blend's sums averaged over the frames (`noise_blend.remembered_sums`), (4, th', tw') float64 over half
-    tiles and (4, th, tw) over tiles, or None. Empty: no frame yet."""
+    """The accumulated input of a sequence's frames so far, owned by the pipeline's sequence state; buffer, depth
+    and normal are replaced by each `accumulate`, the tile sums by each blend. buffer: (H, W, C + 1) float32, the
+    accumulated input less emission (radiance) and, last, the frames in it; depth: (H, W, 1) float32 or None,
+    normal: (H, W, 3) float32 or None, the last frame's (the next reprojection checks its taps against them).
+    half_tile_sums, tile_sums: the noise blend's sums averaged over the frames (`noise_blend.remembered_sums`),
+    (4, th', tw') float64 over half tiles and (4, th, tw) over tiles, or None. Empty: no frame yet."""
 
     buffer: np.ndarray | None = None
     depth: np.ndarray | None = None

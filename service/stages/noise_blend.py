@@ -48,17 +48,18 @@ accumulated input (`service.stages.input_history`: c' averaged over the frames b
 per-pixel estimate of its error): per tile, where the weighted mean of the per-pixel differences d between
 that estimate and v, plus CONFIDENCE standard errors of it, is below 0, c' is the accumulated input and Ec
 the sum of its estimated error in that tile and its half tiles, at least the sum of a^2 v (the share of
-this frame's noise in it; the estimate is of the unclamped average, see input_history's docstring). A
-temporal pipeline's tile sums (of e, of the input's error and its floor, and the count of pixels whose
-halves differ, over tiles and half tiles) are also averaged over its frames, TILE_MEMORY of the previous
-average and the rest this frame's, at the same tile positions (not reprojected), from the last frame the
-accumulated input started at: a tile's weight then moves less with this frame's noise, and the output
-flickers less (`make bench`: temporal error lower for all five temporal pipelines on all four sequences,
-by up to 6%; relL2 lower on 18 of 20 pairs, at most 1.6% higher on the other two; docs/benchmarks.md). A pipeline that is not temporal keeps
-its frame's sums alone, so that its output depends on its frame only. A value
-the denoiser left as it came (an exact pixel, a background passed through) stays so; a frame whose halves
-agree everywhere comes back as its input. Interpolation lets a tile's neighbours lend it their t at its
-border, so a region the tiles reject keeps some of the output within ~half a tile of its edge.
+this frame's noise in it; the estimate is of the unclamped average, see input_history's docstring). A temporal
+pipeline's tile sums (of e, of the input's error and its floor, and the count of pixels whose halves differ,
+over tiles and half tiles) are also averaged over its frames, TILE_MEMORY of the previous average and the rest
+this frame's, at the same tile positions (not reprojected), from the last frame the accumulated input started
+at, but where none of a tile's pixels has halves that differ in this frame (its input is exact and comes back
+as given): a tile's weight then moves less with this frame's noise, and the output flickers less (`make
+bench`: temporal error lower for all five temporal pipelines on all four sequences, by up to 6%; relL2 lower
+on 19 of 20 pairs, 0.5% higher on svgf's fireflies; docs/benchmarks.md). A pipeline that is not temporal keeps
+its frame's sums alone, so that its output depends on its frame only. A value the denoiser left as it came (an
+exact pixel, a background passed through) stays so; a frame whose halves agree everywhere comes back as its
+input. Interpolation lets a tile's neighbours lend it their t at its border, so a region the tiles reject
+keeps some of the output within ~half a tile of its edge.
 
 What it costs and gains on ordinary frames (`make bench`, 128x128, 4 spp; docs/benchmarks.md, "Noise
 blend"): the blend itself lowered every pipeline's relL2 overall; the 3x3 level and the half tiles,
@@ -187,13 +188,14 @@ def remembered_sums(history: InputHistory | None, fine: np.ndarray, coarse: np.n
     with the previous frame's as kept in `history` (TILE_MEMORY of the previous average; module docstring), and
     kept there for the next frame. `continued`: the frame joined the accumulated input (it has motion and follows
     the frame before); otherwise the average starts again from this frame. Without a history (a pipeline that is
-    not temporal) returns the sums as given."""
+    not temporal) returns the sums as given. A (half) tile none of whose pixels has halves that differ in this frame
+    (row 2 of the sums is 0) takes this frame's sums alone: its input is exact, and it comes back as given."""
     if history is None:
         return fine, coarse
     before_fine, before = history.half_tile_sums, history.tile_sums
     if continued and before is not None and before_fine.shape == fine.shape and before.shape == coarse.shape:
-        fine = TILE_MEMORY * before_fine + (1.0 - TILE_MEMORY) * fine
-        coarse = TILE_MEMORY * before + (1.0 - TILE_MEMORY) * coarse
+        fine = np.where(fine[2] > 0, TILE_MEMORY * before_fine + (1.0 - TILE_MEMORY) * fine, fine)
+        coarse = np.where(coarse[2] > 0, TILE_MEMORY * before + (1.0 - TILE_MEMORY) * coarse, coarse)
     history.half_tile_sums, history.tile_sums = fine, coarse
     return fine, coarse
 

@@ -227,21 +227,32 @@ def test_a_stale_history_is_not_taken_and_no_motion_forgets_it():
 
 
 def test_remembered_sums_average_while_the_history_continues():
-    """TILE_MEMORY of the previous frames' sums, the rest this frame's; a restart (or another size) takes this
-    frame's alone; without a history the sums are returned as given; `clear` forgets them."""
+    """TILE_MEMORY of the previous frames' sums, the rest this frame's; a (half) tile whose halves all agree in this
+    frame (row 2, its noisy pixels, 0), a restart or another size takes this frame's alone; without a history the
+    sums are returned as given; `clear` forgets them."""
     history = InputHistory()
     ones_fine, ones = np.ones((4, 4, 6)), np.ones((4, 2, 3))
+
+    def quiet(x):  # sums of 0 but for the noisy pixels' count
+        z = np.zeros_like(x)
+        z[2] = 1.0
+        return z
+
     fine, coarse = remembered_sums(history, ones_fine, ones, continued=True)  # nothing before: this frame's
     assert fine is ones_fine and coarse is ones
-    fine, coarse = remembered_sums(history, 0 * ones_fine, 0 * ones, continued=True)
-    np.testing.assert_allclose(fine, TILE_MEMORY)
-    np.testing.assert_allclose(coarse, TILE_MEMORY)
-    fine, coarse = remembered_sums(history, 0 * ones_fine, 0 * ones, continued=True)
-    np.testing.assert_allclose(coarse, TILE_MEMORY**2)
+    fine, coarse = remembered_sums(history, quiet(ones_fine), quiet(ones), continued=True)
+    np.testing.assert_allclose(fine[[0, 1, 3]], TILE_MEMORY)
+    np.testing.assert_allclose(coarse[[0, 1, 3]], TILE_MEMORY)
+    fine, coarse = remembered_sums(history, quiet(ones_fine), quiet(ones), continued=True)
+    np.testing.assert_allclose(coarse[0], TILE_MEMORY**2)
+    exact = np.ones_like(ones_fine)
+    exact[2, 0, 0] = 0.0  # a half tile none of whose pixels has halves that differ: this frame's sums alone
+    fine, _ = remembered_sums(history, exact, ones, continued=True)
+    assert fine[0, 0, 0] == 1.0 and fine[0, 0, 1] == pytest.approx(TILE_MEMORY**3 + 1 - TILE_MEMORY)
     fine, _ = remembered_sums(history, ones_fine, ones, continued=False)
     np.testing.assert_array_equal(fine, ones_fine)
-    fine, _ = remembered_sums(history, np.zeros((4, 5, 6)), np.zeros((4, 3, 3)), continued=True)  # another size
-    np.testing.assert_array_equal(fine, 0.0)
+    fine, _ = remembered_sums(history, quiet(np.ones((4, 5, 6))), quiet(np.ones((4, 3, 3))), continued=True)
+    np.testing.assert_array_equal(fine[0], 0.0)  # another size
     assert remembered_sums(None, ones_fine, ones, continued=True)[0] is ones_fine
     history.clear()
     assert history.half_tile_sums is None and history.tile_sums is None
@@ -270,3 +281,18 @@ def test_the_tile_memory_steadies_a_temporal_blend(monkeypatch):
     (flicker, error), (flicker_alone, error_alone) = run(TILE_MEMORY), run(0.0)
     assert flicker < 0.9 * flicker_alone, (flicker, flicker_alone)
     assert error <= 1.02 * error_alone, (error, error_alone)
+
+
+def test_a_frame_whose_halves_agree_comes_back_as_it_came_after_a_history():
+    """Noisy frames, then one whose halves agree everywhere (its input is exact): the blend returns its input, the
+    tile sums of the frames before notwithstanding."""
+    rng = np.random.default_rng(9)
+    truth = np.full((32, 32, 3), 0.5, np.float32)
+    motion = np.zeros((32, 32, 2), np.float32)
+    history = InputHistory()
+    out = (truth * 0.8).astype(np.float32)
+    for _ in range(3):
+        a, b, color = _frame(rng, truth, 0.1)
+        noise_blend(out, color, a, b, history=history, motion=motion)
+    assert history.tile_sums is not None
+    np.testing.assert_array_equal(noise_blend(out, truth, truth, truth, history=history, motion=motion), truth)
