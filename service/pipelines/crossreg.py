@@ -1,7 +1,9 @@
 """`crossreg`: online neural denoising with cross-regression (Choi et al. 2024).
 
 Stages, per frame (emission already split off by Pipeline.step, added back after):
-  1. cross-regression of the two half buffers -> pilots A, B in log1p space (sec. 4.1)
+  1. cross-regression of the two half buffers -> pilots A, B in log1p space (sec. 4.1); with `average_halves`
+     (the default, ours) each pilot's features and weights from its half averaged over the frames
+     (service.stages.averaged_halves), fitted to this frame's other half
   2. reprojection of the previous output and pilots with depth/normal checks, mask eroded 3x3, then
      history screening against the current pilots' 7x7 range (authors' code)
   3. U-Net in ONNX Runtime on [pilots, previous output, albedo, normal] -> theta per pixel (sec. 4.2, 4.4)
@@ -34,6 +36,7 @@ from service.pipelines.base import Pipeline, SequenceState
 from service.pipelines.networks import registered_model
 from service.pipelines.options import MAX_THREADS, OptionError, option
 from service.runtime import OnnxModel, WeightError, default_init, weight_names
+from service.stages.averaged_halves import average_halves, averaged_pilots
 from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
 from service.stages.reprojection import ReprojectionParams, reproject
 from service.stages.spatiotemporal_filter import FilterOutput, screen_history, spatiotemporal_filter
@@ -72,6 +75,9 @@ class CrossregOptions:
     # filter, 1: no history (a spatial filter of the pilots). `make bench-long` (docs/benchmarks.md): 0.8 gave
     # lower relL2 and temporal error than 0 on 3 of its 4 sequences each
     min_alpha: float = option(0.8, low=0.0, high=1.0)
+    # the pilots' features and weights from each half averaged over the frames (service.stages.averaged_halves,
+    # ours); false: this frame's halves, the paper's
+    average_halves: bool = option(True)
     seed: int = option(0, low=0, high=2**32 - 1)  # random initialisation and crop positions
 
 
@@ -82,6 +88,7 @@ class History:
     colors: np.ndarray  # (9, H, W) float32 planes: pilot A, pilot B, filter output f(x), log1p; reprojected in one pass
     normal: np.ndarray  # (H, W, 3) float32, for the reprojection's normal test
     depth: np.ndarray | None  # (H, W, 1) float32, for the depth test, when the frames carry depth
+    halves: np.ndarray | None = None  # (7, H, W) float32: the halves averaged so far (`average_halves`), or None
 
 
 _INPUT = channel_slices(CROSSREG_INPUTS)
@@ -101,6 +108,7 @@ class Prepared:
     valid: np.ndarray  # (H, W) bool: history usable (reprojected, consistent, screened)
     previous_pilots: np.ndarray  # (6, H, W) float32: the previous pilots A, B reprojected where each passed
     # its screening, the current ones elsewhere: temporal labels of outputs B and A (eq. 13)
+    halves: np.ndarray | None = None  # (7, H, W) float32: the halves averaged with this frame, with `average`
 
     def plane_group(self, name: str) -> np.ndarray:
         """(c, H, W) float32 view of the input group `name` (layout.CROSSREG_INPUTS)."""
@@ -122,20 +130,31 @@ def prepare_frame(
     screen: bool = True,
     params: CrossRegressionParams | None = None,
     pilots: tuple[np.ndarray, np.ndarray] | None = None,
+    average: bool = False,
 ) -> Prepared:
     """Stages 1-2 and the network input. frame: emission-free Frame with colorA, colorB, albedo, normal,
     motion (depth optional). history: the previous frame's, or None at the start of a sequence.
     pilots: the frame's `cross_regression` (pilot_a, pilot_b), (3, H, W) float32 log1p planes, when already
-    computed (offline training caches them)."""
+    computed (offline training caches them). average (with pilots None): the pilots' features from the halves
+    averaged over the frames (`averaged_halves`), kept in the result's `halves` for the next frame."""
     albedo, normal = frame["albedo"], frame["normal"]
-    if pilots is None:
+    halves = None
+    if pilots is None and average:
+        previous = None if history is None else history.halves
+        halves = average_halves(
+            frame["colorA"], frame["colorB"], previous, frame["motion"], depth=frame.get("depth"),
+            prev_depth=None if history is None else history.depth, normal=normal,
+            prev_normal=None if history is None else history.normal, params=REPROJECTION,
+        )  # fmt: skip
+        pilots = averaged_pilots(frame["colorA"], frame["colorB"], halves, albedo, normal, params)
+    elif pilots is None:
         pilots = cross_regression(frame["colorA"], frame["colorB"], albedo, normal, params)
     pilot_a, pilot_b = (p.transpose(1, 2, 0) for p in pilots)  # (H, W, 3) views; stack_planes copies planes
     mean = 0.5 * (pilot_a + pilot_b)
     groups = {"pilotA": pilot_a, "pilotB": pilot_b, "previous": mean, "albedo": albedo, "normal": normal}
     planes = stack_planes(CROSSREG_INPUTS, groups)
     if history is None:
-        return Prepared(planes, np.zeros(mean.shape[:2], bool), planes[_PILOTS])
+        return Prepared(planes, np.zeros(mean.shape[:2], bool), planes[_PILOTS], halves)
     warped, valid = reproject(
         history.colors.transpose(1, 2, 0), frame["motion"], depth=frame.get("depth"), prev_depth=history.depth,
         normal=normal, prev_normal=history.normal, params=REPROJECTION,
@@ -148,7 +167,7 @@ def prepare_frame(
         masks = np.broadcast_to(valid, (3, *valid.shape))
         screened = np.where(valid, warped, current)
     planes[_INPUT["previous"]] = screened[_INPUT["previous"]]
-    return Prepared(planes, masks[_SCREENED.index("previous")], screened[_PILOTS])
+    return Prepared(planes, masks[_SCREENED.index("previous")], screened[_PILOTS], halves)
 
 
 def filter_frame(prepared: Prepared, params: np.ndarray, min_alpha: float = 0.0) -> FilterOutput:
@@ -164,7 +183,7 @@ def filter_frame(prepared: Prepared, params: np.ndarray, min_alpha: float = 0.0)
 def next_history(frame: Frame, prepared: Prepared, color: np.ndarray) -> History:
     """What frame t + 1 needs from frame t; color: (3, H, W) float32 filter output f(x), log1p radiance."""
     colors = np.concatenate([prepared.planes[_PILOTS], color], axis=0, dtype=np.float32)
-    return History(colors, frame["normal"], frame.get("depth"))
+    return History(colors, frame["normal"], frame.get("depth"), prepared.halves)
 
 
 @dataclass
@@ -257,7 +276,7 @@ class CrossregPipeline(Pipeline):
         assert isinstance(state, CrossregState) and state.model is not None
         if state.trainer is not None:
             self._take_published_weights(state)
-        prepared = prepare_frame(frame, state.history, screen=self.options.screen)
+        prepared = prepare_frame(frame, state.history, screen=self.options.screen, average=self.options.average_halves)
         params = state.model.run_planes(prepared.planes)
         output = filter_frame(prepared, params, self.options.min_alpha)
         if state.trainer is not None:
