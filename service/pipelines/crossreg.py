@@ -13,7 +13,9 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
 Between the stages arrays are channel planes (C, H, W), the network's layout: the U-Net's input planes are
 stacked once, and the filter reads them and the network's output as they are.
 State kept explicitly in CrossregState: previous output and pilots (log1p), previous depth and normal, the
-ONNX model of the sequence, the online trainer. Without `online` the shipped warm-start weights
+halves averaged so far (`average_halves`), the ONNX model of the sequence, the online trainer. The shipped warm
+start was trained on the paper's pilots (models/train/warm_start.py caches them) and serves the averaged ones
+as it is. Without `online` the shipped warm-start weights
 (models/weights/crossreg_unet.onnx) serve; with it they are the starting point, or random weights with
 `random_init` (the paper's setting).
 """

@@ -5,9 +5,11 @@ G-buffers do not show kept sharper, and crossreg's use of it."""
 import numpy as np
 import pytest
 
+from bench.synthetic import synthetic_sequence
 from service import pipelines
 from service.frame import Frame
-from service.pipelines.crossreg import prepare_frame
+from service.layout import CROSSREG_INPUTS, channel_slices
+from service.pipelines.crossreg import REPROJECTION, prepare_frame
 from service.stages.averaged_halves import PLANES, average_halves, averaged_pilots
 from service.stages.cross_regression import cross_regression, pilots_to_radiance
 from service.stages.input_history import ALPHA_MIN
@@ -48,9 +50,9 @@ def test_the_average_by_hand_and_a_restart_where_the_surface_changes():
     assert (start[6] == 1.0).all()
 
 
-def test_each_pilot_is_independent_of_the_half_it_is_fitted_to():
+def test_each_pilot_reads_its_own_half_only_through_the_average():
     """Pilot A's features and weights come from averaged A, its targets from this frame's B: with the average
-    given, a change of this frame's A moves pilot B only, a change of B pilot A only."""
+    held fixed, a change of this frame's A moves pilot B only (A is its target), a change of B pilot A only."""
     rng = np.random.default_rng(1)
     motion, depth, normal, albedo = _static()
     a, b = (rng.random((24, 32, 3), dtype=np.float32) for _ in range(2))
@@ -112,3 +114,30 @@ def test_crossreg_keeps_the_average_in_its_history_only_with_the_option(average)
         np.testing.assert_array_equal(prepared.planes[:3], cross_regression(a, b, albedo, normal)[0])
     with pytest.raises(ValueError, match="average_halves"):
         pipelines.get("crossreg", average_halves="often")
+
+
+def test_prepare_frame_averages_with_the_previous_frame_reprojected():
+    """On a moving synthetic sequence, `prepare_frame(average=True)`'s pilots are `averaged_pilots` of the halves
+    averaged with the previous frame's, reprojected by this frame's motion against the previous frame's depth and
+    normal; the pipeline's state carries them, and with the option off the pilots are the paper's."""
+    frames = [Frame.from_buffers(x) for x in synthetic_sequence(20, 28, 3, spp=4, seed=7)]
+    assert np.abs(frames[1]["motion"]).max() > 0.5
+    pipeline = pipelines.get("crossreg")
+    state = pipeline.start(20, 28)
+    _, state = pipeline.step(frames[0], state)
+    history, frame = state.history, frames[1]
+    assert history.halves is not None
+    prepared = prepare_frame(frame, history, average=True)
+    want_halves = average_halves(frame["colorA"], frame["colorB"], history.halves, frame["motion"],
+                                 depth=frame["depth"], prev_depth=history.depth, normal=frame["normal"],
+                                 prev_normal=history.normal, params=REPROJECTION)
+    np.testing.assert_array_equal(prepared.halves, want_halves)
+    assert (want_halves[6] == 2.0).any() and (want_halves[6] == 1.0).any()  # reprojected, and restarted
+    s = channel_slices(CROSSREG_INPUTS)
+    pilot_a, pilot_b = averaged_pilots(frame["colorA"], frame["colorB"], want_halves, frame["albedo"], frame["normal"])
+    np.testing.assert_array_equal(prepared.planes[s["pilotA"]], pilot_a)
+    np.testing.assert_array_equal(prepared.planes[s["pilotB"]], pilot_b)
+    paper = prepare_frame(frame, history)
+    plain = cross_regression(frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"])
+    np.testing.assert_array_equal(paper.planes[s["pilotA"]], plain[0])
+    assert not np.array_equal(paper.planes[s["pilotA"]], pilot_a)
