@@ -32,8 +32,9 @@ from models.nets.crossreg_unet import make_unet, save_checkpoint
 from models.train.step import LEARNING_RATE, forward, make_optimizer, samples_to_tensor
 from service.exr import list_sequence, read_frame
 from service.frame import RADIANCE_LAYERS, Frame
-from service.pipelines.crossreg import History, Prepared, next_history, prepare_frame
+from service.pipelines.crossreg import REPROJECTION, History, Prepared, next_history, prepare_frame
 from service.process import configure
+from service.stages.averaged_halves import average_halves, averaged_pilots
 from service.stages.cross_regression import cross_regression
 
 log = logging.getLogger("models.train.warm_start")
@@ -58,13 +59,26 @@ def _without_emission(frame: Frame) -> Frame:
     return frame.replace(**{k: frame[k] - emission for k in RADIANCE_LAYERS if k in frame})
 
 
-def _with_pilots(name: str, frames: list[Frame], source: dict[str, Any]) -> Sequence:
+def _with_pilots(name: str, frames: list[Frame], source: dict[str, Any], averaged: bool = False) -> Sequence:
+    """The sequence with its pilots: the paper's (`cross_regression` of each frame's halves) or, `averaged`, those
+    crossreg serves by default (its `average_halves` option: service.stages.averaged_halves, in frame order)."""
     frames = [_without_emission(f) for f in frames]
-    pilots = [cross_regression(f["colorA"], f["colorB"], f["albedo"], f["normal"]) for f in frames]
+    if not averaged:
+        pilots = [cross_regression(f["colorA"], f["colorB"], f["albedo"], f["normal"]) for f in frames]
+        return Sequence(name, frames, pilots, source)
+    pilots, halves, before = [], None, None
+    for f in frames:
+        halves = average_halves(
+            f["colorA"], f["colorB"], halves, f["motion"], depth=f.get("depth"),
+            prev_depth=None if before is None else before.get("depth"), normal=f["normal"],
+            prev_normal=None if before is None else before["normal"], params=REPROJECTION,
+        )  # fmt: skip
+        pilots.append(averaged_pilots(f["colorA"], f["colorB"], halves, f["albedo"], f["normal"]))
+        before = f
     return Sequence(name, frames, pilots, source)
 
 
-def load_folders(root: Path) -> list[Sequence]:
+def load_folders(root: Path, averaged: bool = False) -> list[Sequence]:
     """Every sequence folder under `root` (folders holding EXR frames), sorted by name."""
     out = []
     for folder in sorted({p.parent for p in root.rglob("*.exr")}):
@@ -72,11 +86,11 @@ def load_folders(root: Path) -> list[Sequence]:
         meta_path = folder / "sequence.json"
         meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
         keep = {k: meta[k] for k in ("source", "scene", "seed", "spp", "size") if k in meta}
-        out.append(_with_pilots(folder.name, frames, {"folder": str(folder), **keep}))
+        out.append(_with_pilots(folder.name, frames, {"folder": str(folder), **keep}, averaged))
     return out
 
 
-def synthetic(count: int, seed: int) -> list[Sequence]:
+def synthetic(count: int, seed: int, averaged: bool = False) -> list[Sequence]:
     """`count` bench.synthetic sequences of assorted sizes (24x40 to 128x96: the network must not over-smooth
     small frames, where its 11x11 window spans whole objects) and seeds 100 + seed + i (8 frames, 8 spp)."""
     from bench.synthetic import synthetic_sequence
@@ -88,7 +102,7 @@ def synthetic(count: int, seed: int) -> list[Sequence]:
         layers = synthetic_sequence(height, width, 8, spp=8, seed=seed + 100 + i)
         frames = [Frame.from_buffers(x) for x in layers]
         source = {"bench.synthetic": {"height": height, "width": width, "frames": 8, "spp": 8, "seed": seed + 100 + i}}
-        out.append(_with_pilots(f"synthetic_{i}", frames, source))
+        out.append(_with_pilots(f"synthetic_{i}", frames, source, averaged))
     return out
 
 
@@ -148,10 +162,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a shared CPU)")
     parser.add_argument("--out", type=Path, default=Path("models/weights"))
+    parser.add_argument("--pilots", choices=("paper", "averaged"), default="paper",
+                        help="the paper's pilots, or those of crossreg's average_halves (its default)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     torch.set_num_threads(args.threads)
-    sequences = [s for root in args.data for s in load_folders(root)] + synthetic(args.synthetic, args.seed)
+    averaged = args.pilots == "averaged"
+    sequences = [s for root in args.data for s in load_folders(root, averaged)] + synthetic(args.synthetic, args.seed,
+                                                                                             averaged)
     if not sequences:
         parser.error("no training data: give --data folders and/or --synthetic N")
     log.info("%d sequences, %d frames", len(sequences), sum(len(s.frames) for s in sequences))
@@ -162,6 +180,7 @@ def main(argv: list[str] | None = None) -> int:
         "method": "self-supervised loss of Choi 2024 eqs. 11-13 (no references), one Adam step per frame "
         f"(lr {LEARNING_RATE}) on whole frames, sequences replayed in frame order as the pipeline runs them",
         "seed": args.seed,
+        "pilots": args.pilots,
         "data": [
             {"name": s.name, "frames": len(s.frames), "height_width": list(s.frames[0]["colorA"].shape[:2]), **s.source}
             for s in sequences
