@@ -32,9 +32,8 @@ from models.nets.crossreg_unet import make_unet, save_checkpoint
 from models.train.step import LEARNING_RATE, forward, make_optimizer, samples_to_tensor
 from service.exr import list_sequence, read_frame
 from service.frame import RADIANCE_LAYERS, Frame
-from service.pipelines.crossreg import REPROJECTION, History, Prepared, next_history, prepare_frame
+from service.pipelines.crossreg import History, Prepared, averaged_frame_pilots, next_history, prepare_frame
 from service.process import configure
-from service.stages.averaged_halves import average_halves, averaged_pilots
 from service.stages.cross_regression import cross_regression
 
 log = logging.getLogger("models.train.warm_start")
@@ -66,15 +65,11 @@ def _with_pilots(name: str, frames: list[Frame], source: dict[str, Any], average
     if not averaged:
         pilots = [cross_regression(f["colorA"], f["colorB"], f["albedo"], f["normal"]) for f in frames]
         return Sequence(name, frames, pilots, source)
-    pilots, halves, before = [], None, None
-    for f in frames:
-        halves = average_halves(
-            f["colorA"], f["colorB"], halves, f["motion"], depth=f.get("depth"),
-            prev_depth=None if before is None else before.get("depth"), normal=f["normal"],
-            prev_normal=None if before is None else before["normal"], params=REPROJECTION,
-        )  # fmt: skip
-        pilots.append(averaged_pilots(f["colorA"], f["colorB"], halves, f["albedo"], f["normal"]))
-        before = f
+    pilots, history = [], None
+    for f in frames:  # the pilots do not depend on the network: a history of the halves alone
+        halves, frame_pilots = averaged_frame_pilots(f, history)
+        pilots.append(frame_pilots)
+        history = History(np.empty((0, *halves.shape[1:]), np.float32), f["normal"], f.get("depth"), halves)
     return Sequence(name, frames, pilots, source)
 
 

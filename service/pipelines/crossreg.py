@@ -142,13 +142,7 @@ def prepare_frame(
     albedo, normal = frame["albedo"], frame["normal"]
     halves = None
     if pilots is None and average:
-        previous = None if history is None else history.halves
-        halves = average_halves(
-            frame["colorA"], frame["colorB"], previous, frame["motion"], depth=frame.get("depth"),
-            prev_depth=None if history is None else history.depth, normal=normal,
-            prev_normal=None if history is None else history.normal, params=REPROJECTION,
-        )  # fmt: skip
-        pilots = averaged_pilots(frame["colorA"], frame["colorB"], halves, albedo, normal, params)
+        halves, pilots = averaged_frame_pilots(frame, history, params)
     elif pilots is None:
         pilots = cross_regression(frame["colorA"], frame["colorB"], albedo, normal, params)
     pilot_a, pilot_b = (p.transpose(1, 2, 0) for p in pilots)  # (H, W, 3) views; stack_planes copies planes
@@ -170,6 +164,21 @@ def prepare_frame(
         screened = np.where(valid, warped, current)
     planes[_INPUT["previous"]] = screened[_INPUT["previous"]]
     return Prepared(planes, masks[_SCREENED.index("previous")], screened[_PILOTS], halves)
+
+
+def averaged_frame_pilots(frame: Frame, history: History | None, params: CrossRegressionParams | None = None
+                          ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """(halves, (pilot_a, pilot_b)): the frame's halves averaged with those `history` keeps
+    (`averaged_halves.average_halves`, reprojected as crossreg's history is) and the pilots of those averages
+    (`averaged_pilots`). frame: emission-free Frame with colorA, colorB, albedo, normal, motion (depth optional);
+    history: the previous frame's, or None at a start (only its halves, depth and normal are read)."""
+    previous = None if history is None else history.halves
+    halves = average_halves(
+        frame["colorA"], frame["colorB"], previous, frame["motion"], depth=frame.get("depth"),
+        prev_depth=None if history is None else history.depth, normal=frame["normal"],
+        prev_normal=None if history is None else history.normal, params=REPROJECTION,
+    )  # fmt: skip
+    return halves, averaged_pilots(frame["colorA"], frame["colorB"], halves, frame["albedo"], frame["normal"], params)
 
 
 def filter_frame(prepared: Prepared, params: np.ndarray, min_alpha: float = 0.0) -> FilterOutput:

@@ -17,12 +17,7 @@ from service.stages.noise_blend import (
     remembered_sums,
     takes_accumulated,
 )
-
-
-def _frame(rng, truth, sd):
-    a = (truth + rng.normal(0, sd, truth.shape)).astype(np.float32)
-    b = (truth + rng.normal(0, sd, truth.shape)).astype(np.float32)
-    return a, b, ((a + b) / 2).astype(np.float32)
+from tests.service.stages.test_noise_blend import _halves
 
 
 def _sequence(shape, frames, seed=0):
@@ -33,7 +28,7 @@ def _sequence(shape, frames, seed=0):
     out = []
     for k in range(frames):
         truth = (1.0 + np.sin((x - 0.7 * k) / 3.0) * np.cos(y / 4.0))[..., None].repeat(3, -1).astype(np.float32)
-        a, b, color = _frame(rng, truth, 0.3)
+        a, b, color = _halves(rng, truth, 0.3)
         a[k % height, (2 * k) % width] += 500.0  # a firefly
         color = ((a + b) / 2).astype(np.float32)
         motion = np.zeros((height, width, 2), np.float32)
@@ -130,7 +125,7 @@ def test_the_error_estimate_is_unbiased(monkeypatch):
     motion = np.zeros((64, 64, 2), np.float32)
     history = InputHistory()
     for _ in range(12):
-        a, b, color = _frame(rng, truth, 0.5)
+        a, b, color = _halves(rng, truth, 0.5)
         result = accumulate(history, color, color, None, a, b, motion, reference=True)
     accumulated, error, floor = result
     true = ((accumulated.astype(np.float64) - truth) ** 2).mean()
@@ -196,7 +191,7 @@ def test_a_biased_output_takes_the_accumulated_input_back():
     motion = np.zeros((64, 64, 2), np.float32)
     history = InputHistory()
     for _ in range(8):
-        a, b, color = _frame(rng, truth, 0.15)
+        a, b, color = _halves(rng, truth, 0.15)
         out = (truth * 0.9).astype(np.float32)
         with_history = noise_blend(out, color, a, b, history=history, motion=motion)
         plain = noise_blend(out, color, a, b)
@@ -215,7 +210,7 @@ def test_a_stale_history_is_not_taken_and_no_motion_forgets_it():
     history = InputHistory()
     for k in range(6):
         level = truth * (3.0 if k == 5 else 1.0)
-        a, b, color = _frame(rng, level, 0.1)
+        a, b, color = _halves(rng, level, 0.1)
         out = (level * 0.8).astype(np.float32)
         if k == 5:
             history.tile_sums = None
@@ -272,7 +267,7 @@ def test_the_tile_memory_steadies_a_temporal_blend(monkeypatch):
         monkeypatch.setattr(noise_blend_module, "TILE_MEMORY", memory)
         rng, history, outputs = np.random.default_rng(8), InputHistory(), []
         for _ in range(12):
-            a, b, color = _frame(rng, truth, 0.25)
+            a, b, color = _halves(rng, truth, 0.25)
             outputs.append(noise_blend(out, color, a, b, history=history, motion=motion).astype(np.float64))
         flicker = np.mean([((u - v) ** 2).mean() for u, v in zip(outputs[4:], outputs[5:], strict=False)])
         error = np.mean([rel_l2_map(o.astype(np.float32), truth).mean() for o in outputs[4:]])
@@ -292,7 +287,7 @@ def test_a_frame_whose_halves_agree_comes_back_as_it_came_after_a_history():
     history = InputHistory()
     out = (truth * 0.8).astype(np.float32)
     for _ in range(3):
-        a, b, color = _frame(rng, truth, 0.1)
+        a, b, color = _halves(rng, truth, 0.1)
         noise_blend(out, color, a, b, history=history, motion=motion)
     assert history.tile_sums is not None
     np.testing.assert_array_equal(noise_blend(out, truth, truth, truth, history=history, motion=motion), truth)
