@@ -9,8 +9,17 @@ depth/normal pairs are given, with matching depth and normal); the taps' weights
 over the consistent ones, as the SVGF reference implementation does (Schied et al. 2017, Falcor
 `SVGFReproject`). A pixel is valid when its sample point is on screen and the consistent taps carry
 at least `min_weight` of the bilinear weight. An integer motion therefore reproduces the previous
-pixel exactly. The same function serves every temporal pipeline. `reproject` is compiled (numba, rows in
-parallel); `reproject_numpy` is its reference, and a parity test holds the two together.
+pixel exactly.
+
+With `catmull_rom`, a valid pixel whose 4x4 taps around the sample point are all inside the frame and
+consistent takes the Catmull-Rom spline through them instead (separable, weights in float64), clamped per
+channel to the range of its 2x2 bilinear taps, as temporal anti-aliasing samples its history: a history
+warped frame after frame by sub-pixel motion is blurred by every bilinear sample (half a pixel there and
+back is a [1/4, 1/2, 1/4] kernel) and much less by the spline, which reproduces quadratics; the clamp keeps
+its overshoot at an edge out. Other pixels keep the bilinear sample.
+
+The same function serves every temporal pipeline. `reproject` is compiled (numba, rows in parallel);
+`reproject_numpy` is its reference, and a parity test holds the two together.
 """
 
 from __future__ import annotations
@@ -55,6 +64,7 @@ class ReprojectionParams:
     normal_cos_min: float = 0.9  # min dot(n, n_prev) of a consistent tap (about 25 degrees)
     min_weight: float = 0.01  # min summed bilinear weight of consistent taps (Falcor SVGF uses 0.01)
     erode: bool = False  # also invalidate pixels with an invalid 3x3 neighbour (as the Choi et al. 2024 code)
+    catmull_rom: bool = False  # the clamped Catmull-Rom sample where its 4x4 taps are consistent (module docstring)
 
     def __post_init__(self) -> None:
         if not self.depth_tolerance > 0:
@@ -148,10 +158,11 @@ def _reproject_kernel(
     tolerance,
     cos_min,
     min_weight,
+    catmull_rom,
     warped,
 ):
     """`reproject_numpy` pixel by pixel, rows in parallel: the same float64 sample positions and float32 weights.
-    Writes warped (H, W, C) float32 (any strides); returns valid (H, W) bool."""
+    Writes warped (H, W, C) float32 (any strides); returns valid (H, W) bool (before any erosion)."""
     height, width, channels = buffer.shape
     valid = np.empty((height, width), np.bool_)
     one = np.float32(1.0)
@@ -187,7 +198,41 @@ def _reproject_kernel(
             valid[y, x] = ok
             for c in range(channels):
                 warped[y, x, c] = acc[c] / total if ok else np.float32(0.0)
+            if ok and catmull_rom and iy >= 1 and iy + 2 < height and ix >= 1 and ix + 2 < width:
+                consistent = True
+                for tap in range(16):
+                    if not _tap_consistent(iy - 1 + tap // 4, ix - 1 + tap % 4, z, n0, n1, n2, hit, prev_depth,
+                                           prev_normal, use_depth, use_normal, tolerance, cos_min):
+                        consistent = False
+                        break
+                if consistent:
+                    wy, wx = _spline_weights(ys - y0), _spline_weights(xs - x0)
+                    for c in range(channels):
+                        warped[y, x, c] = _spline_sample(buffer, iy, ix, c, wy, wx)
     return valid
+
+
+@njit(cache=True, inline="always")
+def _spline_weights(t):
+    """Catmull-Rom weights (float64) of the taps at -1, 0, 1, 2 for a sample at t in [0, 1) past tap 0."""
+    t2 = t * t
+    t3 = t2 * t
+    return (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * t3 - 0.5 * t2)
+
+
+@njit(cache=True, inline="always")
+def _spline_sample(buffer, iy, ix, c, wy, wx):
+    """The Catmull-Rom sample of channel c over the 4x4 taps from (iy - 1, ix - 1), in float64, clamped to the
+    range of the 2x2 taps from (iy, ix); returned as float32."""
+    total = 0.0
+    for i in range(4):
+        row = 0.0
+        for j in range(4):
+            row += wx[j] * np.float64(buffer[iy - 1 + i, ix - 1 + j, c])
+        total += wy[i] * row
+    lo = min(buffer[iy, ix, c], buffer[iy, ix + 1, c], buffer[iy + 1, ix, c], buffer[iy + 1, ix + 1, c])
+    hi = max(buffer[iy, ix, c], buffer[iy, ix + 1, c], buffer[iy + 1, ix, c], buffer[iy + 1, ix + 1, c])
+    return np.float32(min(max(total, np.float64(lo)), np.float64(hi)))
 
 
 def reproject(
@@ -211,9 +256,9 @@ def reproject(
         and previous frame; both or neither. A tap is inconsistent when dot(n, n_prev) < normal_cos_min
         or exactly one of the two is a hit.
     Returns (warped, valid): warped (H, W, C) float32, the bilinear sample renormalised over consistent
-    taps, zero where invalid, laid out in memory as `buffer` is (a channel-planar buffer, an (H, W, C) view
-    of (C, H, W) planes, gives a channel-planar result); valid (H, W) bool, see the module docstring
-    (eroded if `params.erode`).
+    taps (or with `params.catmull_rom` the clamped spline, module docstring), zero where invalid, laid out in
+    memory as `buffer` is (a channel-planar buffer, an (H, W, C) view of (C, H, W) planes, gives a
+    channel-planar result); valid (H, W) bool, see the module docstring (eroded if `params.erode`).
     """
     params = _checked(depth, prev_depth, normal, prev_normal, params)
     height, width = buffer.shape[:2]
@@ -232,6 +277,7 @@ def reproject(
         np.float32(params.depth_tolerance),
         np.float32(params.normal_cos_min),
         np.float32(params.min_weight),
+        params.catmull_rom,
         warped,
     )
     if params.erode:
@@ -275,7 +321,35 @@ def reproject_numpy(
         total += weight
     valid = on_screen & (total >= np.float32(params.min_weight))
     warped = np.where(valid[..., None], warped / np.where(valid, total, one)[..., None], np.float32(0.0))
+    if params.catmull_rom:
+        warped = _spline_numpy(buffer, warped, valid, ys - y0, xs - x0, y0, x0,
+                               lambda index: _consistent(index, depth, prev_depth, normal, prev_normal, params))
     if params.erode:
         valid = erode(valid)
         warped[~valid] = 0.0
     return warped.astype(np.float32, copy=False), valid
+
+
+def _spline_numpy(buffer: np.ndarray, warped: np.ndarray, valid: np.ndarray, fy: np.ndarray, fx: np.ndarray,
+                  y0: np.ndarray, x0: np.ndarray, consistent) -> np.ndarray:
+    """`reproject_numpy`'s clamped Catmull-Rom samples (module docstring) over the bilinear `warped` (H, W, C)
+    float32. fy, fx: (H, W) float64 fractional sample positions past the taps (y0, x0), (H, W) int64;
+    consistent(index) -> (H, W) bool for flat previous-frame indices. Returns (H, W, C) float32."""
+    height, width, channels = buffer.shape
+    flat = buffer.reshape(-1, channels).astype(np.float64)
+    use = valid & (y0 >= 1) & (y0 + 2 < height) & (x0 >= 1) & (x0 + 2 < width)
+    weights_y, weights_x = (np.stack([-0.5 * t**3 + t**2 - 0.5 * t, 1.5 * t**3 - 2.5 * t**2 + 1.0,
+                                      -1.5 * t**3 + 2.0 * t**2 + 0.5 * t, 0.5 * t**3 - 0.5 * t**2]) for t in (fy, fx))
+    total = np.zeros((height, width, channels), np.float64)
+    lo = np.full((height, width, channels), np.inf)
+    hi = np.full((height, width, channels), -np.inf)
+    for i in range(4):
+        for j in range(4):
+            index = np.clip(y0 - 1 + i, 0, height - 1) * width + np.clip(x0 - 1 + j, 0, width - 1)
+            use &= consistent(index)
+            tap = flat[index]
+            total += (weights_y[i] * weights_x[j])[..., None] * tap
+            if i in (1, 2) and j in (1, 2):
+                lo, hi = np.minimum(lo, tap), np.maximum(hi, tap)
+    spline = np.clip(total, lo, hi).astype(np.float32)
+    return np.where(use[..., None], spline, warped)

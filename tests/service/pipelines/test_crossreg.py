@@ -16,7 +16,7 @@ from service.frame import Frame
 from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, channel_slices, total_channels
 from service.metrics import rel_l2
 from service.online import trainer as trainer_module
-from service.pipelines.crossreg import REPROJECTION, CrossregState, prepare_frame
+from service.pipelines.crossreg import HISTORY_REPROJECTION, CrossregState, prepare_frame
 from service.stages.cross_regression import cross_regression, pilots_to_radiance
 from service.stages.reprojection import reproject
 
@@ -107,7 +107,7 @@ def test_previous_is_the_screened_history_or_the_pilots_mean(odd_frames, screen)
     frame, history = odd_frames[1], state.history
     warped, reprojected = reproject(
         history.colors.transpose(1, 2, 0), frame["motion"], depth=frame["depth"], prev_depth=history.depth,
-        normal=frame["normal"], prev_normal=history.normal, params=REPROJECTION,
+        normal=frame["normal"], prev_normal=history.normal, params=HISTORY_REPROJECTION,
     )  # fmt: skip
     valid = prepared.valid
     assert valid.any() and not valid.all() and not (valid & ~reprojected).any()
