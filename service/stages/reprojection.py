@@ -158,7 +158,6 @@ def _reproject_kernel(
     tolerance,
     cos_min,
     min_weight,
-    catmull_rom,
     warped,
 ):
     """`reproject_numpy` pixel by pixel, rows in parallel: the same float64 sample positions and float32 weights.
@@ -198,41 +197,59 @@ def _reproject_kernel(
             valid[y, x] = ok
             for c in range(channels):
                 warped[y, x, c] = acc[c] / total if ok else np.float32(0.0)
-            if ok and catmull_rom and iy >= 1 and iy + 2 < height and ix >= 1 and ix + 2 < width:
-                consistent = True
-                for tap in range(16):
-                    if not _tap_consistent(iy - 1 + tap // 4, ix - 1 + tap % 4, z, n0, n1, n2, hit, prev_depth,
-                                           prev_normal, use_depth, use_normal, tolerance, cos_min):
-                        consistent = False
-                        break
-                if consistent:
-                    wy, wx = _spline_weights(ys - y0), _spline_weights(xs - x0)
-                    for c in range(channels):
-                        warped[y, x, c] = _spline_sample(buffer, iy, ix, c, wy, wx)
     return valid
 
 
-@njit(cache=True, inline="always")
-def _spline_weights(t):
-    """Catmull-Rom weights (float64) of the taps at -1, 0, 1, 2 for a sample at t in [0, 1) past tap 0."""
-    t2 = t * t
-    t3 = t2 * t
-    return (-0.5 * t3 + t2 - 0.5 * t, 1.5 * t3 - 2.5 * t2 + 1.0, -1.5 * t3 + 2.0 * t2 + 0.5 * t, 0.5 * t3 - 0.5 * t2)
-
-
-@njit(cache=True, inline="always")
-def _spline_sample(buffer, iy, ix, c, wy, wx):
-    """The Catmull-Rom sample of channel c over the 4x4 taps from (iy - 1, ix - 1), in float64, clamped to the
-    range of the 2x2 taps from (iy, ix); returned as float32."""
-    total = 0.0
-    for i in range(4):
-        row = 0.0
-        for j in range(4):
-            row += wx[j] * np.float64(buffer[iy - 1 + i, ix - 1 + j, c])
-        total += wy[i] * row
-    lo = min(buffer[iy, ix, c], buffer[iy, ix + 1, c], buffer[iy + 1, ix, c], buffer[iy + 1, ix + 1, c])
-    hi = max(buffer[iy, ix, c], buffer[iy, ix + 1, c], buffer[iy + 1, ix, c], buffer[iy + 1, ix + 1, c])
-    return np.float32(min(max(total, np.float64(lo)), np.float64(hi)))
+@njit(parallel=True, cache=True, error_model="numpy")
+def _spline_kernel(
+    buffer, motion, depth, prev_depth, normal, prev_normal, use_depth, use_normal, tolerance, cos_min, valid, warped
+):
+    """Where `valid` and the 4x4 taps around the sample point are inside the frame and consistent, warped (H, W, C)
+    float32 <- the Catmull-Rom sample of buffer over them (float64), clamped per channel to the 2x2 bilinear
+    taps' range (module docstring); rows in parallel. A kernel of its own: inside `_reproject_kernel` (as inlined
+    helpers, or written out) numba 0.68.1 miscompiled it, for planar views (tests: `..._in_a_fresh_cache`)."""
+    height, width, channels = buffer.shape
+    one = np.float32(1.0)
+    for yy in prange(height):
+        y = np.int64(yy)
+        weights_y = np.empty(4, np.float64)
+        for x in range(width):
+            if not valid[y, x]:
+                continue
+            ys = y + np.float64(motion[y, x, 1])
+            xs = x + np.float64(motion[y, x, 0])
+            y0, x0 = np.floor(ys), np.floor(xs)
+            iy, ix = np.int64(y0), np.int64(x0)
+            if iy < 1 or iy + 2 >= height or ix < 1 or ix + 2 >= width:
+                continue
+            z = depth[y, x] if use_depth else np.float32(0.0)
+            n0, n1, n2 = (normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]) if use_normal else (one, one, one)
+            hit = n0 * n0 + n1 * n1 + n2 * n2 > np.float32(NORMAL_HIT)
+            consistent = True
+            for tap in range(16):
+                if not _tap_consistent(iy - 1 + tap // 4, ix - 1 + tap % 4, z, n0, n1, n2, hit, prev_depth,
+                                       prev_normal, use_depth, use_normal, tolerance, cos_min):
+                    consistent = False
+                    break
+            if not consistent:
+                continue
+            t = ys - y0  # Catmull-Rom weights of the rows iy - 1 .. iy + 2, then of the columns
+            weights_y[0], weights_y[1] = (-0.5 * t + 1.0) * t * t - 0.5 * t, (1.5 * t - 2.5) * t * t + 1.0
+            weights_y[2], weights_y[3] = (-1.5 * t + 2.0) * t * t + 0.5 * t, (0.5 * t - 0.5) * t * t
+            t = xs - x0
+            wx0, wx1 = (-0.5 * t + 1.0) * t * t - 0.5 * t, (1.5 * t - 2.5) * t * t + 1.0
+            wx2, wx3 = (-1.5 * t + 2.0) * t * t + 0.5 * t, (0.5 * t - 0.5) * t * t
+            for c in range(channels):
+                rows = np.float64(0.0)
+                for r in range(4):
+                    ty = iy - 1 + r
+                    line = (wx0 * np.float64(buffer[ty, ix - 1, c]) + wx1 * np.float64(buffer[ty, ix, c])
+                            + wx2 * np.float64(buffer[ty, ix + 1, c]) + wx3 * np.float64(buffer[ty, ix + 2, c]))
+                    rows += weights_y[r] * line
+                b00, b01 = buffer[iy, ix, c], buffer[iy, ix + 1, c]
+                b10, b11 = buffer[iy + 1, ix, c], buffer[iy + 1, ix + 1, c]
+                lo, hi = min(b00, b01, b10, b11), max(b00, b01, b10, b11)  # the bilinear taps' range
+                warped[y, x, c] = np.float32(min(max(rows, np.float64(lo)), np.float64(hi)))
 
 
 def reproject(
@@ -265,8 +282,7 @@ def reproject(
     no_depth, no_normal = np.zeros((1, 1), np.float32), np.zeros((1, 1, 3), np.float32)
     buffer = np.asarray(buffer, np.float32)
     warped = np.empty_like(buffer)  # same memory order as the buffer
-    valid = _reproject_kernel(
-        buffer,
+    guides = (
         np.ascontiguousarray(motion, np.float32),
         no_depth if depth is None else np.ascontiguousarray(depth.reshape(height, width), np.float32),
         no_depth if prev_depth is None else np.ascontiguousarray(prev_depth.reshape(height, width), np.float32),
@@ -276,10 +292,10 @@ def reproject(
         normal is not None,
         np.float32(params.depth_tolerance),
         np.float32(params.normal_cos_min),
-        np.float32(params.min_weight),
-        params.catmull_rom,
-        warped,
     )
+    valid = _reproject_kernel(buffer, *guides, np.float32(params.min_weight), warped)
+    if params.catmull_rom:
+        _spline_kernel(buffer, *guides, valid, warped)
     if params.erode:
         valid = erode(valid)
         warped[~valid] = 0.0
