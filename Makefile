@@ -76,7 +76,7 @@ BENCH_LONG_DATA ?= out/bench-long-data
 BENCH_LONG_OUT ?= out/bench-long/report
 BENCH_LONG_SCENES ?= shadows disocclusion fireflies textures
 BENCH_LONG_RENDER ?= --frames 64 --size 128x128 --spp 4 --ref-spp 256 --seed 0
-BENCH_LONG_METHODS ?= crossreg crossreg:online=true,lockstep=true crossreg:min_alpha=0 crossregression svgf
+BENCH_LONG_METHODS ?= crossreg crossreg:online=true,lockstep=true crossreg:min_alpha=0,pilot_bandwidth=0 crossregression svgf
 
 bench-long-data: $(STAMP)
 	$(call render-sequences,$(BENCH_LONG_DATA),$(BENCH_LONG_SCENES),$(BENCH_LONG_RENDER))

@@ -168,8 +168,10 @@ def _time_size(width: int, height: int, repeats: int) -> dict[str, float]:
         state.history = history
         pipeline.step(frames[1], state)
 
-    prepared = prepare_frame(frames[1], history)
+    options = pipeline.options  # the served settings: the averaged pilots, the filter's floors
+    prepared = prepare_frame(frames[1], history, average=options.average_halves)
     params = state.model.run_planes(prepared.planes)
+    floors = (options.min_alpha, options.pilot_bandwidth)  # the served filter's; training takes min_alpha alone
     sample = prepared.sample()
     net = make_unet(seed=0)
     opt = make_optimizer(net)
@@ -179,14 +181,17 @@ def _time_size(width: int, height: int, repeats: int) -> dict[str, float]:
     row = {
         "crossreg inference (whole step)": crossreg_ms,
         "OIDN high (pyoidn, albedo + normal)": oidn_ms,
-        "  cross-regression + reprojection + screening": _median_ms(lambda: prepare_frame(frames[1], history), repeats),
+        "  cross-regression + reprojection + screening": _median_ms(
+            lambda: prepare_frame(frames[1], history, average=options.average_halves), repeats),
         "  U-Net (ONNX Runtime)": _median_ms(lambda: state.model.run_planes(prepared.planes), repeats),
-        "  spatiotemporal filter (numba)": _median_ms(lambda: filter_frame(prepared, params), repeats),
-        "training step, 128x128 crop (torch, 1 thread)": _median_ms(lambda: train_step(net, opt, crop128), repeats),
+        "  spatiotemporal filter (numba)": _median_ms(lambda: filter_frame(prepared, params, *floors), repeats),
+        "training step, 128x128 crop (torch, 1 thread)": _median_ms(lambda: train_step(net, opt, crop128, floors[0]),
+                                                                    repeats),
     }
     if width * height <= 256 * 256:
         whole = samples_to_tensor(random_crop(sample, 0, 4, rng))
-        row["training step, whole frame (torch, 1 thread)"] = _median_ms(lambda: train_step(net, opt, whole), repeats)
+        row["training step, whole frame (torch, 1 thread)"] = _median_ms(lambda: train_step(net, opt, whole, floors[0]),
+                                                                         repeats)
     return {k: round(v, 1) for k, v in row.items()}
 
 

@@ -12,7 +12,13 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from service.stages.spatiotemporal_filter import FILTER_RADIUS, N_PRECISIONS
+from service.stages.spatiotemporal_filter import (
+    FILTER_RADIUS,
+    MAX_PILOT_BANDWIDTH,
+    N_PRECISIONS,
+    PRECISION_EPS,
+    SPREAD_RADIUS,
+)
 
 
 @dataclass
@@ -78,6 +84,16 @@ def cross_bilateral_sums(
     return sum_a, w_a, sum_b, w_b
 
 
+def pilot_precision_floor(pilot_a: torch.Tensor, pilot_b: torch.Tensor, bandwidth: float) -> torch.Tensor:
+    """`service.stages.spatiotemporal_filter.pilot_precision_floor` in torch, without gradient: (N, 1, H, W)
+    from (N, 3, H, W) pilots; the 5x5 mean over the in-frame pixels, as `box_mean`."""
+    with torch.no_grad():
+        disagreement = ((pilot_a - pilot_b) ** 2).mean(dim=1, keepdim=True)
+        size = 2 * SPREAD_RADIUS + 1
+        spread = 0.5 * F.avg_pool2d(disagreement, size, stride=1, padding=SPREAD_RADIUS, count_include_pad=False)
+        return 1.0 / (bandwidth * spread + PRECISION_EPS)
+
+
 def spatiotemporal_filter(
     pilot_a: torch.Tensor,
     pilot_b: torch.Tensor,
@@ -88,14 +104,22 @@ def spatiotemporal_filter(
     valid: torch.Tensor | None = None,
     radius: int = FILTER_RADIUS,
     min_alpha: float = 0.0,
+    pilot_bandwidth: float = 0.0,
 ) -> FilterResult:
     """Eqs. 8-10 in torch; see service.stages.spatiotemporal_filter.spatiotemporal_filter.
 
     params: (N, 6, H, W), network output (5 precisions, alpha). previous: (N, 3, H, W) log1p or None;
     valid: (N, 1, H, W) bool/float, 1 where `previous` is usable, or None (nowhere). min_alpha: the floor
-    of alpha (no gradient below it), as the numpy filter applies it.
+    of alpha (no gradient below it), as the numpy filter applies it; pilot_bandwidth: the floor of the
+    pilot-colour precisions (`pilot_precision_floor`; no gradient where it holds), 0 for none.
     """
-    sum_a, w_a, sum_b, w_b = cross_bilateral_sums(pilot_a, pilot_b, albedo, normal, params[:, :N_PRECISIONS], radius)
+    if not 0 <= pilot_bandwidth <= MAX_PILOT_BANDWIDTH:
+        raise ValueError(f"pilot_bandwidth must be in [0, {MAX_PILOT_BANDWIDTH:g}], got {pilot_bandwidth}")
+    precisions = params[:, :N_PRECISIONS]
+    if pilot_bandwidth > 0:
+        floor = pilot_precision_floor(pilot_a, pilot_b, pilot_bandwidth)
+        precisions = torch.cat([torch.maximum(precisions[:, :2], floor), precisions[:, 2:]], dim=1)
+    sum_a, w_a, sum_b, w_b = cross_bilateral_sums(pilot_a, pilot_b, albedo, normal, precisions, radius)
     spatial_a = sum_a / w_a
     spatial_b = sum_b / w_b
     if previous is None or valid is None:

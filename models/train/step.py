@@ -33,7 +33,9 @@ def samples_to_tensor(samples: list[np.ndarray] | np.ndarray) -> torch.Tensor:
 
 def forward(net: CrossRegUNet, batch: torch.Tensor, min_alpha: float = 0.0) -> tuple[torch.Tensor, FilterResult]:
     """(loss, filter result) for batch (N, 22, H, W) in CROSSREG_SAMPLE order; min_alpha: the served
-    filter's floor of alpha (crossreg's option)."""
+    filter's floor of alpha (crossreg's option). The pilot-colour precisions are the network's, unfloored
+    (crossreg's `pilot_bandwidth` applies when serving only: trained through it, online training did worse,
+    docs/benchmarks.md)."""
     s = SLICES
     params = net(batch[:, :N_INPUTS])
     result = spatiotemporal_filter(

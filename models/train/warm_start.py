@@ -4,7 +4,9 @@ sequences, so a serving session starts from useful weights instead of random one
 
 Each epoch walks every sequence in frame order exactly as the serving pipeline does (the same
 `prepare_frame` from service/pipelines/crossreg.py: cross-regression, reprojection, screening), with the
-network being trained producing the history of the next frame. Pilots do not depend on the network and
+network being trained producing the history of the next frame. It trains through the paper's filter: neither
+crossreg's `min_alpha` nor its `pilot_bandwidth` floor applies here (the shipped weights were trained so, and
+serve with both). Pilots do not depend on the network and
 are computed once per frame. Writes CHECKPOINT.pt (constructor args + weights + manifest), the .onnx
 export and a JSON manifest (data, steps, seed, loss curve) to --out.
 

@@ -8,7 +8,8 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
      a clamped Catmull-Rom sample where its taps are consistent, ours), then history screening against the
      current pilots' 7x7 range (authors' code)
   3. U-Net in ONNX Runtime on [pilots, previous output, albedo, normal] -> theta per pixel (sec. 4.2, 4.4)
-  4. spatiotemporal filter: 11x11 cross-bilateral means, temporal blend, A/B combination (eqs. 8-10)
+  4. spatiotemporal filter: 11x11 cross-bilateral means, temporal blend, A/B combination (eqs. 8-10); the
+     pilot-colour bandwidths at most sqrt(pilot_bandwidth) times the pilots' local disagreement (ours)
   5. optional: the frame's training sample goes to the online worker (sec. 4.3); weights it publishes are
      swapped into ONNX Runtime at the start of a later frame
 Between the stages arrays are channel planes (C, H, W), the network's layout: the U-Net's input planes are
@@ -42,7 +43,12 @@ from service.runtime import OnnxModel, WeightError, default_init, weight_names
 from service.stages.averaged_halves import average_halves, averaged_pilots
 from service.stages.cross_regression import CrossRegressionParams, cross_regression, log_to_linear
 from service.stages.reprojection import ReprojectionParams, reproject
-from service.stages.spatiotemporal_filter import FilterOutput, screen_history, spatiotemporal_filter
+from service.stages.spatiotemporal_filter import (
+    MAX_PILOT_BANDWIDTH,
+    FilterOutput,
+    screen_history,
+    spatiotemporal_filter,
+)
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +88,10 @@ class CrossregOptions:
     # filter, 1: no history (a spatial filter of the pilots). `make bench-long` (docs/benchmarks.md): 0.8 gave
     # lower relL2 and temporal error than 0 on 3 of its 4 sequences each
     min_alpha: float = option(0.8, low=0.0, high=1.0)
+    # floor of the pilot-colour precisions kA, kB (eq. 9): 1 / (b s^2), s^2 the pilots' local disagreement
+    # (service.stages.spatiotemporal_filter, ours); 0: the network's bandwidths as they are (the paper's).
+    # Served only: online training goes through the network's own (docs/benchmarks.md, "Long sequences")
+    pilot_bandwidth: float = option(32.0, low=0.0, high=MAX_PILOT_BANDWIDTH)
     # the pilots' features and weights from each half averaged over the frames (service.stages.averaged_halves,
     # ours); false: this frame's halves, the paper's
     average_halves: bool = option(True)
@@ -186,13 +196,14 @@ def averaged_frame_pilots(frame: Frame, history: History | None, params: CrossRe
     return halves, averaged_pilots(frame["colorA"], frame["colorB"], halves, frame["albedo"], frame["normal"], params)
 
 
-def filter_frame(prepared: Prepared, params: np.ndarray, min_alpha: float = 0.0) -> FilterOutput:
+def filter_frame(prepared: Prepared, params: np.ndarray, min_alpha: float = 0.0,
+                 pilot_bandwidth: float = 0.0) -> FilterOutput:
     """Stage 4: eqs. 8-10 with the network's output params (6, H, W), in log1p space, on the input planes,
-    alpha floored at min_alpha."""
+    alpha floored at min_alpha, the pilot-colour precisions by pilot_bandwidth (`spatiotemporal_filter`)."""
     p = prepared.plane_group
     return spatiotemporal_filter(
         p("pilotA"), p("pilotB"), p("albedo"), p("normal"), params, p("previous"), prepared.valid,
-        min_alpha=min_alpha,
+        min_alpha=min_alpha, pilot_bandwidth=pilot_bandwidth,
     )
 
 
@@ -294,7 +305,7 @@ class CrossregPipeline(Pipeline):
             self._take_published_weights(state)
         prepared = prepare_frame(frame, state.history, screen=self.options.screen, average=self.options.average_halves)
         params = state.model.run_planes(prepared.planes)
-        output = filter_frame(prepared, params, self.options.min_alpha)
+        output = filter_frame(prepared, params, self.options.min_alpha, self.options.pilot_bandwidth)
         if state.trainer is not None:
             state.trainer.submit(prepared.sample(), state.frame_index,
                                  wait=LOCKSTEP_TIMEOUT_S if self.options.lockstep else 0.0)

@@ -11,6 +11,17 @@ and r = 5 the window half-size (positions normalised by it, as in the authors' c
 blended with the reprojected previous output by theta_alpha (eq. 8); where reprojection failed the
 weight of the current frame is 1. The A and B results are combined by their weight sums (eq. 10).
 
+With `pilot_bandwidth` b > 0 (ours; crossreg's option of that name) the pilot-colour precisions kA and kB are
+at least 1 / (b s^2 + PRECISION_EPS), s^2 the pilots' local disagreement: half the mean, over the channels and
+the 5x5 pixels around, of (fA - fB)^2. A neighbour whose pilot differs by more than sqrt(b) s then weighs at
+most 1/e, however wide the network made the bandwidth: where the pilots agree that a shadow's edge is there (an
+edge no G-buffer shows), the filter stops at it; where they are noisy (s large), the floor is low and the
+network's bandwidth stands. The pilots' errors correlate (docs/crossreg_authors.md), so s^2 is smaller than
+either pilot's variance; b = 32 was chosen from 16, 32 and 64 on the 64-frame sequences (docs/benchmarks.md,
+"Long sequences": crossreg's temporal error on `shadows` -7%, relL2 on `textures` -4%, no sequence worse by
+more than 0.3%). The torch twin (models/train/filter.py) has the floor too, held to this one by a parity test;
+online training goes through the network's own precisions (trained through the floor it did worse).
+
 Layout: channel planes (C, H, W), the layout of the network's input and output tensors (service.layout),
 so the filter reads the U-Net's input planes and its output as they are. Neighbours outside the frame are
 left out (no padding), as in service.kernels.window; the centre always has weight 1, so every
@@ -36,10 +47,14 @@ import numpy as np
 
 from service.kernels.window import overlap, window_offsets
 from service.stages.range_clamp import check_radius, local_range_reference, row_range
+from service.stages.svgf import box_mean
 
 FILTER_RADIUS = 5  # Choi 2024 eq. 8: 11x11 denoising window; authors' code FILTER_WIDTH = 11
 N_PRECISIONS = 5  # colour A, colour B, albedo, normal, position (layout.CROSSREG_OUTPUTS[:5])
 SCREEN_RADIUS = 3  # 7x7 window of the history screening (authors' code: temporal_screening win_curr = 7)
+SPREAD_RADIUS = 2  # the pilots' local disagreement s^2: mean over 5x5 pixels (module docstring)
+PRECISION_EPS = 1e-4  # ... the floor 1 / (b s^2 + eps) is at most 1e4 where the pilots agree exactly
+MAX_PILOT_BANDWIDTH = 1e4  # largest `pilot_bandwidth`
 
 
 @dataclass(frozen=True)
@@ -265,6 +280,14 @@ def _filter_reference(
     color[:] = (color_a * weight_a + color_b * weight_b) / (weight_a + weight_b)
 
 
+def pilot_precision_floor(pilot_a: np.ndarray, pilot_b: np.ndarray, bandwidth: float) -> np.ndarray:
+    """The floor of the pilot-colour precisions (module docstring): 1 / (bandwidth s^2 + PRECISION_EPS).
+    pilot_a, pilot_b: (3, H, W) float32 log1p radiance; bandwidth > 0. Returns (H, W) float32."""
+    disagreement = ((pilot_a - pilot_b) ** 2).mean(axis=0)[..., None]
+    spread = 0.5 * box_mean(disagreement, SPREAD_RADIUS)[..., 0]
+    return (1.0 / (np.float32(bandwidth) * spread + np.float32(PRECISION_EPS))).astype(np.float32)
+
+
 def spatiotemporal_filter(
     pilot_a: np.ndarray,
     pilot_b: np.ndarray,
@@ -276,6 +299,7 @@ def spatiotemporal_filter(
     radius: int = FILTER_RADIUS,
     *,
     min_alpha: float = 0.0,
+    pilot_bandwidth: float = 0.0,
     reference: bool = False,
 ) -> FilterOutput:
     """Eqs. 8-10: cross-bilateral spatial means of both pilots, temporal blend, A/B combination.
@@ -289,6 +313,8 @@ def spatiotemporal_filter(
     radius: window half-size in pixels, 0 to MAX_RADIUS.
     min_alpha: floor of alpha in [0, 1] (crossreg's option of that name; the torch twin takes it too, so
         that online training learns the filter that is served); 0 leaves alpha as the network gave it.
+    pilot_bandwidth: b in [0, MAX_PILOT_BANDWIDTH], the floor of the pilot-colour precisions (module
+        docstring); 0 leaves them as the network gave them (the paper's filter).
     reference: run the plain-numpy twin instead of numba (slow; for tests).
     Returns FilterOutput (log1p space, planes). Contiguous float32 inputs (views into the network's input
     planes, say) are used without a copy.
@@ -297,6 +323,8 @@ def spatiotemporal_filter(
         raise ValueError(f"filter radius must be in [0, {MAX_RADIUS}], got {radius}")
     if not 0 <= min_alpha <= 1:
         raise ValueError(f"min_alpha must be in [0, 1], got {min_alpha}")
+    if not 0 <= pilot_bandwidth <= MAX_PILOT_BANDWIDTH:
+        raise ValueError(f"pilot_bandwidth must be in [0, {MAX_PILOT_BANDWIDTH:g}], got {pilot_bandwidth}")
     _, height, width = pilot_a.shape
     if previous is None or valid is None:
         previous, valid = np.zeros((3, height, width), np.float32), np.zeros((height, width), bool)
@@ -304,6 +332,9 @@ def spatiotemporal_filter(
     if shapes != [(3, height, width)] * 5 + [(N_PRECISIONS + 1, height, width), (height, width)]:
         raise ValueError(f"spatiotemporal_filter: inconsistent input shapes {shapes}")  # the kernel does not check
     inputs = [np.ascontiguousarray(a, np.float32) for a in (pilot_a, pilot_b, albedo, normal, params, previous)]
+    if pilot_bandwidth > 0:  # on a copy: the network's output stays as it came
+        inputs[4] = inputs[4].copy()
+        np.maximum(inputs[4][:2], pilot_precision_floor(inputs[0], inputs[1], pilot_bandwidth), out=inputs[4][:2])
     out = FilterOutput(
         *(np.empty((3, height, width), np.float32) for _ in range(3)),
         *(np.empty((height, width), np.float32) for _ in range(2)),

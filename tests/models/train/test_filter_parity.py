@@ -59,6 +59,28 @@ def test_both_filters_floor_alpha_alike(min_alpha):
     np.testing.assert_allclose(out.color[0].numpy(), ref.color, atol=PARITY_ATOL)
 
 
+@pytest.mark.parametrize("size", [(11, 9), (3, 2)])
+def test_both_filters_floor_the_pilot_precisions_alike(size):
+    """crossreg's pilot_bandwidth: numpy with it = numpy on params floored by `pilot_precision_floor` = torch
+    with it; the floor raised some precisions and left the others."""
+    from models.train.filter import pilot_precision_floor as floor_torch
+    from service.stages.spatiotemporal_filter import pilot_precision_floor as floor_numpy
+
+    pa, pb, albedo, normal, params, previous, valid = _case(*size, seed=4)
+    bandwidth = 32.0
+    floor = floor_numpy(pa, pb, bandwidth)
+    np.testing.assert_allclose(floor_torch(_t(pa), _t(pb), bandwidth)[0, 0].numpy(), floor, rtol=1e-5)
+    floored = params.copy()
+    floored[:2] = np.maximum(floored[:2], floor)
+    assert (floored[:2] > params[:2]).any() and (floored[:2] == params[:2]).any()
+    ref = filter_numpy(pa, pb, albedo, normal, floored, previous, valid)
+    got = filter_numpy(pa, pb, albedo, normal, params, previous, valid, pilot_bandwidth=bandwidth)
+    np.testing.assert_array_equal(got.color, ref.color)
+    out = filter_torch(_t(pa), _t(pb), _t(albedo), _t(normal), _t(params), _t(previous), _t(valid),
+                       pilot_bandwidth=bandwidth)
+    np.testing.assert_allclose(out.color[0].numpy(), ref.color, atol=PARITY_ATOL)
+
+
 def test_without_history_torch_matches_numpy():
     pa, pb, albedo, normal, params, _, _ = _case(7, 9, seed=5)
     ref = filter_numpy(pa, pb, albedo, normal, params)
@@ -74,6 +96,20 @@ def test_gradient_reaches_every_parameter_channel():
     out.color.sum().backward()
     per_channel = p.grad.abs().sum(dim=(0, 2, 3))
     assert (per_channel > 0).all()
+
+
+def test_the_pilot_precision_floor_passes_gradient_only_above_it():
+    """With pilot_bandwidth, kA and kB get no gradient where the floor holds and keep theirs above it."""
+    from models.train.filter import pilot_precision_floor
+
+    pa, pb, albedo, normal, params, previous, valid = _case(9, 8, seed=6)
+    args = [_t(a).double() for a in (pa, pb, albedo, normal)]
+    p = _t(params).double().requires_grad_(True)
+    filter_torch(*args, p, _t(previous).double(), _t(valid).double(), pilot_bandwidth=32.0).color.sum().backward()
+    floored = (p[:, :2] < pilot_precision_floor(args[0], args[1], 32.0)).detach()
+    grad = p.grad[:, :2]
+    assert floored.any() and (~floored).any()
+    assert (grad[floored] == 0).all() and (grad[~floored] != 0).float().mean() > 0.9
 
 
 def test_gradient_matches_finite_differences():

@@ -123,5 +123,6 @@ def test_bad_online_options_are_refused():
 
 
 def test_the_pipeline_hands_its_floor_to_the_worker():
-    pipeline = pipelines.get("crossreg", min_alpha=0.6)
+    pipeline = pipelines.get("crossreg", min_alpha=0.6, pilot_bandwidth=8.0)
     assert pipeline._online_config.min_alpha == 0.6  # the worker trains through the filter that is served
+    assert not hasattr(pipeline._online_config, "pilot_bandwidth")  # served only (models/train/step.py)

@@ -17,6 +17,7 @@ from service.layout import CROSSREG_INPUTS, CROSSREG_SAMPLE, channel_slices, tot
 from service.metrics import rel_l2
 from service.online import trainer as trainer_module
 from service.pipelines.crossreg import HISTORY_REPROJECTION, CrossregState, prepare_frame
+from service.pipelines.options import OptionError
 from service.stages.cross_regression import cross_regression, pilots_to_radiance
 from service.stages.reprojection import reproject
 
@@ -45,21 +46,28 @@ def test_contract_and_options():
     assert info["options"]["online"] is False
 
 
-@pytest.mark.parametrize("min_alpha", [0.0, 0.3, 1.0])
-def test_min_alpha_reaches_the_filter_with_the_network_output_untouched(odd_frames, monkeypatch, min_alpha):
+@pytest.mark.parametrize("min_alpha, bandwidth", [(0.0, 0.0), (0.3, 32.0), (1.0, 1e4)])
+def test_the_floors_reach_the_filter_with_the_network_output_untouched(odd_frames, monkeypatch, min_alpha, bandwidth):
     from service.pipelines import crossreg
 
     seen, filter_frame = [], crossreg.filter_frame
 
-    def spy(prepared, params, floor):
+    def spy(prepared, params, floor, pilot_bandwidth):
         before = params.copy()
-        out = filter_frame(prepared, params, floor)
-        seen.append((floor, np.array_equal(params, before)))
+        out = filter_frame(prepared, params, floor, pilot_bandwidth)
+        seen.append((floor, pilot_bandwidth, np.array_equal(params, before)))
         return out
 
     monkeypatch.setattr(crossreg, "filter_frame", spy)
-    _run(pipelines.get("crossreg", min_alpha=min_alpha), odd_frames)
-    assert seen and all(floor == min_alpha and untouched for floor, untouched in seen)
+    _run(pipelines.get("crossreg", min_alpha=min_alpha, pilot_bandwidth=bandwidth), odd_frames)
+    assert seen and all(x == (min_alpha, bandwidth, True) for x in seen)
+
+
+def test_pilot_bandwidth_defaults_to_32_and_is_range_checked():
+    assert pipelines.get("crossreg").options.pilot_bandwidth == 32.0
+    for bad in (-1.0, 2e4):
+        with pytest.raises(OptionError, match="pilot_bandwidth"):
+            pipelines.get("crossreg", pilot_bandwidth=bad)
 
 
 def test_odd_size_sequence_keeps_explicit_history(odd_frames):
