@@ -14,10 +14,10 @@ import torch.nn.functional as F
 
 from service.stages.spatiotemporal_filter import (
     FILTER_RADIUS,
-    MAX_PILOT_BANDWIDTH,
     N_PRECISIONS,
     PRECISION_EPS,
     SPREAD_RADIUS,
+    check_pilot_bandwidth,
 )
 
 
@@ -113,8 +113,7 @@ def spatiotemporal_filter(
     of alpha (no gradient below it), as the numpy filter applies it; pilot_bandwidth: the floor of the
     pilot-colour precisions (`pilot_precision_floor`; no gradient where it holds), 0 for none.
     """
-    if not 0 <= pilot_bandwidth <= MAX_PILOT_BANDWIDTH:
-        raise ValueError(f"pilot_bandwidth must be in [0, {MAX_PILOT_BANDWIDTH:g}], got {pilot_bandwidth}")
+    check_pilot_bandwidth(pilot_bandwidth)
     precisions = params[:, :N_PRECISIONS]
     if pilot_bandwidth > 0:
         floor = pilot_precision_floor(pilot_a, pilot_b, pilot_bandwidth)

@@ -200,6 +200,14 @@ def _reproject_kernel(
     return valid
 
 
+@njit(cache=True)
+def spline_weights(t):
+    """Catmull-Rom weights of the taps at -1, 0, 1, 2 for a sample t in [0, 1) past tap 0: a tuple of four float64
+    values, or of four arrays for an array t (the numpy twin's)."""
+    return ((-0.5 * t + 1.0) * t * t - 0.5 * t, (1.5 * t - 2.5) * t * t + 1.0,
+            (-1.5 * t + 2.0) * t * t + 0.5 * t, (0.5 * t - 0.5) * t * t)
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def _spline_kernel(
     buffer, motion, depth, prev_depth, normal, prev_normal, use_depth, use_normal, tolerance, cos_min, valid, warped
@@ -233,12 +241,8 @@ def _spline_kernel(
                     break
             if not consistent:
                 continue
-            t = ys - y0  # Catmull-Rom weights of the rows iy - 1 .. iy + 2, then of the columns
-            weights_y[0], weights_y[1] = (-0.5 * t + 1.0) * t * t - 0.5 * t, (1.5 * t - 2.5) * t * t + 1.0
-            weights_y[2], weights_y[3] = (-1.5 * t + 2.0) * t * t + 0.5 * t, (0.5 * t - 0.5) * t * t
-            t = xs - x0
-            wx0, wx1 = (-0.5 * t + 1.0) * t * t - 0.5 * t, (1.5 * t - 2.5) * t * t + 1.0
-            wx2, wx3 = (-1.5 * t + 2.0) * t * t + 0.5 * t, (0.5 * t - 0.5) * t * t
+            weights_y[0], weights_y[1], weights_y[2], weights_y[3] = spline_weights(ys - y0)  # rows iy - 1 .. iy + 2
+            wx0, wx1, wx2, wx3 = spline_weights(xs - x0)  # columns ix - 1 .. ix + 2
             for c in range(channels):
                 rows = np.float64(0.0)
                 for r in range(4):
@@ -354,8 +358,7 @@ def _spline_numpy(buffer: np.ndarray, warped: np.ndarray, valid: np.ndarray, fy:
     height, width, channels = buffer.shape
     flat = buffer.reshape(-1, channels).astype(np.float64)
     use = valid & (y0 >= 1) & (y0 + 2 < height) & (x0 >= 1) & (x0 + 2 < width)
-    weights_y, weights_x = (np.stack([-0.5 * t**3 + t**2 - 0.5 * t, 1.5 * t**3 - 2.5 * t**2 + 1.0,
-                                      -1.5 * t**3 + 2.0 * t**2 + 0.5 * t, 0.5 * t**3 - 0.5 * t**2]) for t in (fy, fx))
+    weights_y, weights_x = spline_weights(fy), spline_weights(fx)
     total = np.zeros((height, width, channels), np.float64)
     lo = np.full((height, width, channels), np.inf)
     hi = np.full((height, width, channels), -np.inf)

@@ -280,6 +280,12 @@ def _filter_reference(
     color[:] = (color_a * weight_a + color_b * weight_b) / (weight_a + weight_b)
 
 
+def check_pilot_bandwidth(bandwidth: float) -> None:
+    """Raise ValueError unless 0 <= bandwidth <= MAX_PILOT_BANDWIDTH (this filter's and its torch twin's check)."""
+    if not 0 <= bandwidth <= MAX_PILOT_BANDWIDTH:
+        raise ValueError(f"pilot_bandwidth must be in [0, {MAX_PILOT_BANDWIDTH:g}], got {bandwidth}")
+
+
 def pilot_precision_floor(pilot_a: np.ndarray, pilot_b: np.ndarray, bandwidth: float) -> np.ndarray:
     """The floor of the pilot-colour precisions (module docstring): 1 / (bandwidth s^2 + PRECISION_EPS).
     pilot_a, pilot_b: (3, H, W) float32 log1p radiance; bandwidth > 0. Returns (H, W) float32."""
@@ -323,8 +329,7 @@ def spatiotemporal_filter(
         raise ValueError(f"filter radius must be in [0, {MAX_RADIUS}], got {radius}")
     if not 0 <= min_alpha <= 1:
         raise ValueError(f"min_alpha must be in [0, 1], got {min_alpha}")
-    if not 0 <= pilot_bandwidth <= MAX_PILOT_BANDWIDTH:
-        raise ValueError(f"pilot_bandwidth must be in [0, {MAX_PILOT_BANDWIDTH:g}], got {pilot_bandwidth}")
+    check_pilot_bandwidth(pilot_bandwidth)
     _, height, width = pilot_a.shape
     if previous is None or valid is None:
         previous, valid = np.zeros((3, height, width), np.float32), np.zeros((height, width), bool)
