@@ -200,7 +200,7 @@ def _reproject_kernel(
     return valid
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def spline_weights(t):
     """Catmull-Rom weights of the taps at -1, 0, 1, 2 for a sample t in [0, 1) past tap 0: a tuple of four float64
     values, or of four arrays for an array t (the numpy twin's)."""
