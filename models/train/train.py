@@ -16,6 +16,7 @@ rate ramps up tenfold geometrically over the first `warmup` steps (from 1e-4 to 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import csv
 import json
@@ -23,10 +24,12 @@ import math
 import os
 import platform
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 import torch
 
@@ -68,7 +71,7 @@ class TrainOptions:
     lr: float = 1e-3  # peak learning rate (Chaitanya 2017: 0.001)
     warmup: int = 200  # steps of the tenfold geometric ramp-up
     seed: int = 0  # network initialisation and window sampling
-    threads: int = 0  # torch threads (0: torch's default)
+    threads: int = 0  # torch's threads and, at most as many, numba's (0: each library's default)
     val_every: int = 250  # steps between validations
     log_every: int = 25  # steps per log.csv row
     checkpoint_every: int = 250  # steps between checkpoints
@@ -292,12 +295,33 @@ def _start(opts: TrainOptions, recipe: Recipe, ckpt_path: Path, resume: bool):
     return net, copy.deepcopy(net), optimizer, 0, math.inf, np.random.default_rng(opts.seed), 0.0
 
 
+@contextlib.contextmanager
+def held_threads(threads: int) -> Iterator[None]:
+    """Within the block, torch and numba (the served stages a recipe calls: flnr's firefly clamp) use `threads`
+    threads (0: as they were), restored after. Runs side by side (models/train/accelerator.sh) share the cores;
+    numba's default, a thread per core in every process, makes their parallel kernels spin against each other
+    (docs/training.md, "On a GPU")."""
+    before = torch.get_num_threads(), numba.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])
+
+
 def train(opts: TrainOptions, *, resume: bool = False, progress: bool = True) -> dict[str, Any]:
-    """Run (or resume) training; returns the final checkpoint dict."""
+    """Run (or resume) training with `opts.threads` threads; returns the final checkpoint dict."""
+    with held_threads(opts.threads):
+        return _train(opts, resume, progress)
+
+
+def _train(opts: TrainOptions, resume: bool, progress: bool) -> dict[str, Any]:
+    """`train`'s work."""
     from tqdm import tqdm
 
-    if opts.threads:
-        torch.set_num_threads(opts.threads)
     if opts.device == "cuda":
         if not torch.cuda.is_available():
             raise ValueError("device cuda: torch sees no CUDA GPU here")

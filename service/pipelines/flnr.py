@@ -9,6 +9,11 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
   2. FLR (service/stages/flr.py) of the radiance (below 0 read as 0) demodulated by the albedo on those
      guides, with the regression options the network was trained through (its metadata);
   3. clamp to the local range of the noisy input, as `flr` does.
+It is temporal through the shared step alone (`Pipeline.step`): the noise blend may take back the input
+accumulated over the sequence (reprojected by `motion`; service.stages.input_history) where the halves say it
+beats this frame's, as Salmi et al. extend FLNR to sequences by accumulating reprojected samples. The
+regression itself stays on this frame's input, as it was trained: on the accumulated input it did worse on
+the benchmark's disocclusion and fireflies sequences (docs/training.md, `flnr`).
 The network was trained end to end through FLR's torch twin (models/train/flnr.py);
 tests/service/pipelines/test_flnr.py holds the served pipeline to it.
 """
@@ -56,6 +61,7 @@ class FlnrPipeline(NetworkPipeline):
     optional = ("roughness", "emission")
     Options = FlnrOptions
     network = NETWORK
+    temporal = True  # the noise blend's accumulated input (module docstring)
 
     def guides(self, frame: Frame) -> np.ndarray:
         """(G, H, W) float32: the network's FLR guides for `frame`."""

@@ -334,6 +334,26 @@ def test_a_resumed_run_keeps_options_its_checkpoint_predates(tmp_path):
     assert train(_opts(tmp_path, 3), resume=True, progress=False)["step"] == 3
 
 
+def test_a_run_holds_torch_and_numba_to_its_threads_and_gives_them_back(tmp_path, monkeypatch):
+    """Side-by-side runs share the cores: each step's torch and numba (flnr's firefly clamp is a numba
+    kernel) use the run's --threads, and the process has its own counts back after."""
+    numba = pytest.importorskip("numba")
+    seen = []
+    adam_step = torch.optim.Adam.step
+
+    def spy(self, *args, **kwargs):
+        seen.append((torch.get_num_threads(), numba.get_num_threads()))
+        return adam_step(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", spy)
+    torch.set_num_threads(2)
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    before = torch.get_num_threads(), numba.get_num_threads()
+    train(_opts(tmp_path, 2), progress=False)  # threads=1
+    assert seen == [(1, 1), (1, 1)]
+    assert (torch.get_num_threads(), numba.get_num_threads()) == before
+
+
 def test_clip_grad_bounds_the_gradient_norm_each_step_applies(tmp_path, monkeypatch):
     """The optimiser sees gradients of global norm at most --clip-grad; without it, larger ones (so the bound
     is not met by chance)."""

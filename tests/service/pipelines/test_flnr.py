@@ -26,9 +26,20 @@ def _inputs(frame: Frame) -> Frame:
     return Frame({k: v for k, v in frame.buffers.items() if k != "reference"}, {})
 
 
+def _run(pipeline, frames, *, fresh_each_frame=False) -> list[np.ndarray]:
+    """The output colour of each frame, the frames one sequence (or each its own with `fresh_each_frame`)."""
+    state, outs = None, []
+    for frame in frames:
+        if state is None or fresh_each_frame:
+            state = pipeline.start(frame.height, frame.width)
+        out, state = pipeline.step(_inputs(frame), state)
+        outs.append(out["color"])
+    return outs
+
+
 def test_contract():
     info = pipelines.get("flnr").describe()
-    assert not info["temporal"] and set(info["requires"]) == {"color", "albedo", "normal", "depth"}
+    assert info["temporal"] and set(info["requires"]) == {"color", "albedo", "normal", "depth"}
     assert info["option_specs"]["weights"]["enum"] == ["flnr"]
 
 
@@ -79,15 +90,29 @@ def test_shipped_weights_denoise_and_beat_flr_on_shadows(frames):
     refs = [f["reference"] for f in frames]
 
     def error(name: str) -> float:
-        pipeline = pipelines.get(name)
-        state = pipeline.start(frames[0].height, frames[0].width)
-        outs = []
-        for frame in frames:
-            out, state = pipeline.step(_inputs(frame), state)
-            outs.append(out["color"])
+        outs = _run(pipelines.get(name), frames)
         return float(np.mean([rel_l2(o, r, trim=TRIM_FRACTION) for o, r in zip(outs, refs, strict=True)]))
 
     noisy = float(np.mean([rel_l2(f["color"], r, trim=TRIM_FRACTION) for f, r in zip(frames, refs, strict=True)]))
     flnr, flr = error("flnr"), error("flr")
     assert flnr < 0.5 * noisy
     assert flnr < flr
+
+
+def test_the_accumulated_input_lowers_the_error_and_a_new_sequence_forgets_it(frames):
+    """Temporal through the noise blend's accumulated input: over the sample's frames as one sequence both the
+    error and the temporal error are lower than with each frame alone; a sequence's first frame is the same."""
+    from service.metrics import temporal_rel_l2
+
+    pipeline = pipelines.get("flnr")
+    refs = [f["reference"] for f in frames]
+    together, alone = _run(pipeline, frames), _run(pipeline, frames, fresh_each_frame=True)
+    np.testing.assert_array_equal(together[0], alone[0])
+
+    def errors(outs: list[np.ndarray]) -> tuple[float, float]:
+        error = np.mean([rel_l2(o, r, trim=TRIM_FRACTION) for o, r in zip(outs[1:], refs[1:], strict=True)])
+        temporal = np.mean([temporal_rel_l2(outs[i - 1], outs[i], refs[i - 1], refs[i]) for i in range(1, len(outs))])
+        return float(error), float(temporal)
+
+    (error, temporal), (alone_error, alone_temporal) = errors(together), errors(alone)
+    assert error < 0.97 * alone_error and temporal < 0.95 * alone_temporal
