@@ -102,6 +102,8 @@ class TrainOptions:
         for name in ("steps", "batch", "warmup", "val_every", "log_every", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.threads < 0:
+            raise ValueError(f"threads must be >= 0 (0: each library's default), got {self.threads}")
         if not 0 < self.lr <= 1:
             raise ValueError(f"lr must be in (0, 1], got {self.lr}")
         if not 0 <= self.ema < 1:
@@ -176,7 +178,8 @@ def machine(device: str = "cpu") -> dict[str, Any]:
         cpu = names[0] if names else cpu
     where = torch.cuda.get_device_name() if device == "cuda" else "cpu"
     return {"device": where, "cpu": cpu, "cores": os.cpu_count(), "threads": torch.get_num_threads(),
-            "torch": torch.__version__, "python": platform.python_version()}
+            "numba_threads": numba.get_num_threads(), "torch": torch.__version__,
+            "python": platform.python_version()}
 
 
 def _state(net, ema, optimizer, step, rng, opts, best, seconds, extra) -> dict[str, Any]:
@@ -298,14 +301,16 @@ def _start(opts: TrainOptions, recipe: Recipe, ckpt_path: Path, resume: bool):
 @contextlib.contextmanager
 def held_threads(threads: int) -> Iterator[None]:
     """Within the block, torch and numba (the served stages a recipe calls: flnr's firefly clamp) use `threads`
-    threads (0: as they were), restored after. Runs side by side (models/train/accelerator.sh) share the cores;
-    numba's default, a thread per core in every process, makes their parallel kernels spin against each other
-    (docs/training.md, "On a GPU")."""
+    threads, restored after; 0 leaves both as they are. Runs side by side (models/train/accelerator.sh) share
+    the cores, and numba would otherwise start a thread per core in each. numba's count holds for the calling
+    thread, the one that trains."""
+    if not threads:
+        yield
+        return
     before = torch.get_num_threads(), numba.get_num_threads()
-    if threads:
+    try:
         torch.set_num_threads(threads)
         numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-    try:
         yield
     finally:
         torch.set_num_threads(before[0])

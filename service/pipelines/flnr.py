@@ -58,7 +58,7 @@ class FlnrPipeline(NetworkPipeline):
     name = "flnr"
     summary = "fast local regression on guides a small network learns (Salmi et al.); ONNX Runtime + FLR"
     requires = ("color", "albedo", "normal", "depth")
-    optional = ("roughness", "emission")
+    optional = ("roughness", "motion", "emission")  # motion: the accumulated input's (module docstring)
     Options = FlnrOptions
     network = NETWORK
     temporal = True  # the noise blend's accumulated input (module docstring)

@@ -27,7 +27,7 @@ the clamp's range, as out of the firefly clip's (noise_blend): a light's colour 
 far from its neighbours' radiance.
 
 What it gains (`make bench`, 128x128, 8 frames, 4 spp; docs/benchmarks.md "Accumulated input"):
-measured there for every temporal pipeline, against the blend with the plain input.
+measured there for each temporal pipeline, against the blend with the plain input.
 numba kernel; `accumulate(..., reference=True)` runs its numpy twin.
 """
 

@@ -54,12 +54,12 @@ over tiles and half tiles) are also averaged over its frames, TILE_MEMORY of the
 this frame's, at the same tile positions (not reprojected), from the last frame the accumulated input started
 at, but where none of a tile's pixels has halves that differ in this frame (its input is exact and comes back
 as given): a tile's weight then moves less with this frame's noise, and the output flickers less (`make
-bench`: temporal error lower for all five temporal pipelines on all four sequences, by up to 6%; relL2 lower
-on 19 of 20 pairs, 0.5% higher on svgf's fireflies; docs/benchmarks.md). A pipeline that is not temporal keeps
-its frame's sums alone, so that its output depends on its frame only. A value the denoiser left as it came (an
-exact pixel, a background passed through) stays so; a frame whose halves agree everywhere comes back as its
-input. Interpolation lets a tile's neighbours lend it their t at its border, so a region the tiles reject
-keeps some of the output within ~half a tile of its edge.
+bench`, the five temporal pipelines of the day: temporal error lower for each on all four sequences, by up to
+6%; relL2 lower on 19 of 20 pairs, 0.5% higher on svgf's fireflies; docs/benchmarks.md). A pipeline that is
+not temporal keeps its frame's sums alone, so that its output depends on its frame only. A value the
+denoiser left as it came (an exact pixel, a background passed through) stays so; a frame whose halves agree
+everywhere comes back as its input. Interpolation lets a tile's neighbours lend it their t at its border,
+so a region the tiles reject keeps some of the output within ~half a tile of its edge.
 
 What it costs and gains on ordinary frames (`make bench`, 128x128, 4 spp; docs/benchmarks.md, "Noise
 blend"): the blend itself lowered every pipeline's relL2 overall; the 3x3 level and the half tiles,

@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-import torch
-
 from models.train.dataset import SequenceBank
 from models.train.grad_norms import __doc__ as DOC
 from models.train.grad_norms import options_for, report, window_norms
-from models.train.train import RECIPES
+from models.train.train import RECIPES, held_threads
 from service.process import configure
 
 
@@ -23,17 +21,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--tone-eps", type=float, default=None, help="the loss's (default: --init's run's)")
     parser.add_argument("--top", type=int, default=8)
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--threads", type=int, default=0, help="torch's and numba's threads (0: their defaults)")
     args = parser.parse_args(argv)
-    if args.windows < 1 or args.top < 0:
-        raise SystemExit("python -m models.train.grad_norms: --windows must be >= 1 and --top >= 0")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    if args.windows < 1 or args.top < 0 or args.threads < 0:
+        raise SystemExit("python -m models.train.grad_norms: --windows must be >= 1, --top and --threads >= 0")
     try:
         opts = options_for(args.net, args.data, args.init, args.tone_eps)
     except ValueError as exc:
         raise SystemExit(f"python -m models.train.grad_norms: {exc}") from None
-    print(report(window_norms(opts, SequenceBank.from_root(args.data), args.windows, args.seed), args.top))
+    with held_threads(args.threads):
+        print(report(window_norms(opts, SequenceBank.from_root(args.data), args.windows, args.seed), args.top))
     return 0
 
 

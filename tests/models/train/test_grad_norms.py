@@ -39,8 +39,9 @@ def test_each_norm_is_the_gradient_of_that_window_alone():
 def test_the_command_line_refuses_bad_options(capsys):
     with pytest.raises(SystemExit, match="tone_eps must be in"):
         main(["rae", "--data", str(SAMPLE), "--tone-eps", "0"])
-    with pytest.raises(SystemExit, match="--windows must be >= 1 and --top >= 0"):
-        main(["rae", "--data", str(SAMPLE), "--windows", "0"])
+    for option, value in (("--windows", "0"), ("--top", "-1"), ("--threads", "-1")):
+        with pytest.raises(SystemExit, match="--windows must be >= 1, --top and --threads >= 0"):
+            main(["rae", "--data", str(SAMPLE), option, value])
 
 
 def test_windows_are_measured_as_the_checkpoints_run_trained(tmp_path):

@@ -13,6 +13,7 @@ from service.metrics import TRIM_FRACTION, rel_l2
 from service.stages.albedo import remodulate
 from service.stages.emission import subtract_emission
 from service.stages.rae_inputs import demodulated
+from tests.service.pipelines.sequence_errors import run_sequence, sequence_errors
 
 SAMPLE = SAMPLE_DIRS[0]  # `shadows`: cast shadows that no G-buffer shows
 
@@ -26,20 +27,10 @@ def _inputs(frame: Frame) -> Frame:
     return Frame({k: v for k, v in frame.buffers.items() if k != "reference"}, {})
 
 
-def _run(pipeline, frames, *, fresh_each_frame=False) -> list[np.ndarray]:
-    """The output colour of each frame, the frames one sequence (or each its own with `fresh_each_frame`)."""
-    state, outs = None, []
-    for frame in frames:
-        if state is None or fresh_each_frame:
-            state = pipeline.start(frame.height, frame.width)
-        out, state = pipeline.step(_inputs(frame), state)
-        outs.append(out["color"])
-    return outs
-
-
 def test_contract():
     info = pipelines.get("flnr").describe()
     assert info["temporal"] and set(info["requires"]) == {"color", "albedo", "normal", "depth"}
+    assert "motion" in info["optional"]  # the accumulated input's reprojection (module docstring)
     assert info["option_specs"]["weights"]["enum"] == ["flnr"]
 
 
@@ -89,8 +80,8 @@ def test_shipped_weights_denoise_and_beat_flr_on_shadows(frames):
     FLR on them blurs; the learned guides should show them (Salmi et al., "Enhancing Local Regression")."""
     refs = [f["reference"] for f in frames]
 
-    def error(name: str) -> float:
-        outs = _run(pipelines.get(name), frames)
+    def error(name: str) -> float:  # each frame alone: the guides, not flnr's accumulated input, against flr
+        outs, _ = run_sequence(pipelines.get(name), frames, fresh_each_frame=True)
         return float(np.mean([rel_l2(o, r, trim=TRIM_FRACTION) for o, r in zip(outs, refs, strict=True)]))
 
     noisy = float(np.mean([rel_l2(f["color"], r, trim=TRIM_FRACTION) for f, r in zip(frames, refs, strict=True)]))
@@ -102,17 +93,10 @@ def test_shipped_weights_denoise_and_beat_flr_on_shadows(frames):
 def test_the_accumulated_input_lowers_the_error_and_a_new_sequence_forgets_it(frames):
     """Temporal through the noise blend's accumulated input: over the sample's frames as one sequence both the
     error and the temporal error are lower than with each frame alone; a sequence's first frame is the same."""
-    from service.metrics import temporal_rel_l2
-
     pipeline = pipelines.get("flnr")
-    refs = [f["reference"] for f in frames]
-    together, alone = _run(pipeline, frames), _run(pipeline, frames, fresh_each_frame=True)
+    (together, _), (alone, _) = run_sequence(pipeline, frames), run_sequence(pipeline, frames, fresh_each_frame=True)
     np.testing.assert_array_equal(together[0], alone[0])
-
-    def errors(outs: list[np.ndarray]) -> tuple[float, float]:
-        error = np.mean([rel_l2(o, r, trim=TRIM_FRACTION) for o, r in zip(outs[1:], refs[1:], strict=True)])
-        temporal = np.mean([temporal_rel_l2(outs[i - 1], outs[i], refs[i - 1], refs[i]) for i in range(1, len(outs))])
-        return float(error), float(temporal)
-
-    (error, temporal), (alone_error, alone_temporal) = errors(together), errors(alone)
+    refs = [f["reference"] for f in frames]
+    error, temporal = sequence_errors(together, refs, trim=TRIM_FRACTION)
+    alone_error, alone_temporal = sequence_errors(alone, refs, trim=TRIM_FRACTION)
     assert error < 0.97 * alone_error and temporal < 0.95 * alone_temporal

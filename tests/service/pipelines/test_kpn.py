@@ -15,7 +15,7 @@ from service.metrics import TRIM_FRACTION, rel_l2
 from service.pipelines.options import OptionError
 from service.stages.background import FILTER_REACH
 from service.stages.emission import subtract_emission
-from tests.service.pipelines.sequence_errors import sequence_errors
+from tests.service.pipelines.sequence_errors import run_sequence, sequence_errors
 
 SAMPLE = SAMPLE_DIRS[0]  # `shadows`, 120x120: not a multiple of the alignment (16), so the pipeline pads
 
@@ -29,14 +29,6 @@ def _inputs(frame: Frame, **replace: np.ndarray) -> Frame:
     return Frame({**{k: v for k, v in frame.buffers.items() if k != "reference"}, **replace}, {})
 
 
-def _run(pipeline, frames, *, fresh_each_frame=False):
-    state, outs = None, []
-    for frame in frames:
-        if state is None or fresh_each_frame:
-            state = pipeline.start(frame.height, frame.width)
-        out, state = pipeline.step(_inputs(frame), state)
-        outs.append(out["color"])
-    return outs, state
 
 
 def test_contract():
@@ -111,8 +103,8 @@ def test_the_input_clamp_gets_the_halves_less_the_emission(frames, monkeypatch):
 def test_denoises_the_sample_and_history_lowers_the_temporal_error(frames):
     """The warped previous output the network reads (no output history)."""
     pipeline = pipelines.get("kpn", history=0)
-    with_history, state = _run(pipeline, frames)
-    without, _ = _run(pipeline, frames, fresh_each_frame=True)
+    with_history, state = run_sequence(pipeline, frames)
+    without, _ = run_sequence(pipeline, frames, fresh_each_frame=True)
     refs = [f["reference"] for f in frames]
     noisy = np.mean([rel_l2(f["color"], r, trim=TRIM_FRACTION) for f, r in zip(frames, refs, strict=True)])
     error = np.mean([rel_l2(o, r, trim=TRIM_FRACTION) for o, r in zip(with_history, refs, strict=True)])
@@ -125,8 +117,8 @@ def test_output_history_lowers_the_error_and_the_temporal_error(frames):
     """The clipped output history (step 6) on the sample: both errors fall; the network's own history, what
     step 2 warps, is its unblended output either way."""
     refs = [f["reference"] for f in frames]
-    (plain, plain_state), (steadied, state) = _run(pipelines.get("kpn", history=0), frames), \
-        _run(pipelines.get("kpn", history=0.2), frames)
+    (plain, plain_state), (steadied, state) = run_sequence(pipelines.get("kpn", history=0), frames), \
+        run_sequence(pipelines.get("kpn", history=0.2), frames)
     (error, temporal), (plain_error, plain_temporal) = (sequence_errors(outs, refs) for outs in (steadied, plain))
     assert temporal < 0.97 * plain_temporal and error < plain_error
     np.testing.assert_array_equal(steadied[0], plain[0])
@@ -136,12 +128,12 @@ def test_output_history_lowers_the_error_and_the_temporal_error(frames):
 
 def test_frame_two_depends_on_frame_one_and_a_new_sequence_forgets_it(frames):
     pipeline = pipelines.get("kpn")
-    (_, second), _ = _run(pipeline, frames[:2])
+    (_, second), _ = run_sequence(pipeline, frames[:2])
     brighter = Frame({**frames[0].buffers, "color": frames[0]["color"] * 2}, {})
-    (_, second_after_brighter), _ = _run(pipeline, [brighter, frames[1]])
+    (_, second_after_brighter), _ = run_sequence(pipeline, [brighter, frames[1]])
     assert np.abs(second_after_brighter - second).max() > 1e-2 * np.abs(second).max()
-    (first,), _ = _run(pipeline, frames[1:2])
-    (_, again), _ = _run(pipeline, [brighter, frames[1]], fresh_each_frame=True)
+    (first,), _ = run_sequence(pipeline, frames[1:2])
+    (_, again), _ = run_sequence(pipeline, [brighter, frames[1]], fresh_each_frame=True)
     np.testing.assert_array_equal(first, again)  # a sequence's first frame uses no history
 
 
@@ -157,7 +149,7 @@ def test_a_constant_image_stays_constant_and_the_background_passes_through(frame
     flat = Frame({**base, "color": color, "albedo": np.full((h, w, 3), 0.5, np.float32)}, {})
     hit = np.einsum("hwc,hwc->hw", base["normal"], base["normal"]) > 0.25
     assert hit[:, 6:].all() and not hit[:, :6].any()
-    outs, _ = _run(pipelines.get("kpn"), [flat, flat, flat])
+    outs, _ = run_sequence(pipelines.get("kpn"), [flat, flat, flat])
     for out in outs:
         np.testing.assert_array_equal(out[:, : 6 - FILTER_REACH], color[:, : 6 - FILTER_REACH])
         np.testing.assert_allclose(out[:, 30:], 0.3, rtol=1e-4)  # away from the sky, whose radiance the network
@@ -167,13 +159,13 @@ def test_a_constant_image_stays_constant_and_the_background_passes_through(frame
 def test_motion_option(frames):
     """auto = dual where the frame has motionDual, plain otherwise; dual without motionDual is refused."""
     def third(**options):
-        return _run(pipelines.get("kpn", **options), frames[:3])[0][2]
+        return run_sequence(pipelines.get("kpn", **options), frames[:3])[0][2]
 
     auto, dual, plain = third(), third(motion="dual"), third(motion="plain")
     np.testing.assert_array_equal(auto, dual)
     assert not np.array_equal(dual, plain)
     no_dual = [Frame({k: v for k, v in f.buffers.items() if k != "motionDual"}, {}) for f in frames[:3]]
-    np.testing.assert_array_equal(_run(pipelines.get("kpn"), no_dual)[0][2], plain)
+    np.testing.assert_array_equal(run_sequence(pipelines.get("kpn"), no_dual)[0][2], plain)
     pipeline = pipelines.get("kpn", motion="dual")
     with pytest.raises(FrameError, match="missing layer 'motionDual' required by pipeline 'kpn' with motion 'dual'"):
         pipeline.step(no_dual[0], pipeline.start(120, 120))
@@ -208,7 +200,7 @@ def test_auto_motion_follows_what_the_weights_were_trained_with(frames, tmp_path
     monkeypatch.setenv(WEIGHTS_DIR_ENV, str(tmp_path))
 
     def third(**options):
-        return _run(pipelines.get("kpn", **options), frames[:3])[0][2]
+        return run_sequence(pipelines.get("kpn", **options), frames[:3])[0][2]
 
     np.testing.assert_array_equal(third(weights="plain"), third(weights="plain", motion="plain"))
     np.testing.assert_array_equal(third(weights="dual"), third(weights="dual", motion="dual"))

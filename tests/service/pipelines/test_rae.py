@@ -11,7 +11,7 @@ from service.exr import read_sequence
 from service.frame import Frame, FrameError
 from service.metrics import rel_l2
 from service.pipelines.rae import RaePipeline
-from tests.service.pipelines.sequence_errors import sequence_errors
+from tests.service.pipelines.sequence_errors import run_sequence, sequence_errors
 
 SAMPLE = SAMPLE_DIRS[0]
 
@@ -21,14 +21,6 @@ def frames() -> list[Frame]:
     return [frame for _path, frame in read_sequence(SAMPLE)]
 
 
-def _run(pipeline, frames, *, fresh_each_frame=False):
-    state, outs = None, []
-    for frame in frames:
-        if state is None or fresh_each_frame:
-            state = pipeline.start(frame.height, frame.width)
-        out, state = pipeline.step(Frame({k: v for k, v in frame.buffers.items() if k != "reference"}, {}), state)
-        outs.append(out["color"])
-    return outs, state
 
 
 def test_contract():
@@ -41,8 +33,8 @@ def test_contract():
 def test_denoises_the_sample_and_history_lowers_the_temporal_error(frames):
     """The network's recurrent state alone (no output history)."""
     pipeline = pipelines.get("rae", history=0)
-    with_history, state = _run(pipeline, frames)
-    without, _ = _run(pipeline, frames, fresh_each_frame=True)
+    with_history, state = run_sequence(pipeline, frames)
+    without, _ = run_sequence(pipeline, frames, fresh_each_frame=True)
     refs = [f["reference"] for f in frames]
     noisy = np.mean([rel_l2(f["color"], r) for f, r in zip(frames, refs, strict=True)])
     (error, temporal), (_, temporal_without) = (sequence_errors(outs, refs) for outs in (with_history, without))
@@ -54,8 +46,8 @@ def test_denoises_the_sample_and_history_lowers_the_temporal_error(frames):
 
 def test_each_sequence_starts_from_a_zero_state(frames):
     pipeline = pipelines.get("rae")
-    first, _ = _run(pipeline, frames[:1])
-    again, _ = _run(pipeline, frames[3:4] + frames[:1], fresh_each_frame=True)
+    first, _ = run_sequence(pipeline, frames[:1])
+    again, _ = run_sequence(pipeline, frames[3:4] + frames[:1], fresh_each_frame=True)
     np.testing.assert_array_equal(first[0], again[1])
 
 
@@ -69,12 +61,12 @@ def test_a_frame_of_another_size_is_refused_mid_sequence(frames):
 
 def test_warp_option_moves_the_state_and_zero_motion_changes_nothing(frames):
     still = [Frame({**f.buffers, "motion": np.zeros_like(f["motion"])}, {}) for f in frames[:3]]
-    plain, _ = _run(pipelines.get("rae", warp=False), still)
-    warped, _ = _run(pipelines.get("rae", warp=True), still)
+    plain, _ = run_sequence(pipelines.get("rae", warp=False), still)
+    warped, _ = run_sequence(pipelines.get("rae", warp=True), still)
     for a, b in zip(plain, warped, strict=True):
         np.testing.assert_array_equal(a, b)  # a zero shift samples every state exactly where it was
-    moving, _ = _run(pipelines.get("rae", warp=True), frames[:3])
-    plain_moving, _ = _run(pipelines.get("rae", warp=False), frames[:3])
+    moving, _ = run_sequence(pipelines.get("rae", warp=True), frames[:3])
+    plain_moving, _ = run_sequence(pipelines.get("rae", warp=False), frames[:3])
     np.testing.assert_array_equal(moving[0], plain_moving[0])  # the first frame has no state to move
     assert not np.allclose(moving[2], plain_moving[2])
 
@@ -98,7 +90,7 @@ def test_warp_defaults_to_how_the_weights_were_trained(frames, tmp_path, monkeyp
     monkeypatch.setenv(WEIGHTS_DIR_ENV, str(tmp_path))
 
     def third_output(**options):
-        return _run(RaePipeline(**options), frames[:3])[0][2]
+        return run_sequence(RaePipeline(**options), frames[:3])[0][2]
 
     shipped, plain = third_output(), third_output(warp=False)
     np.testing.assert_array_equal(shipped, third_output(warp=True))
@@ -111,8 +103,8 @@ def test_output_history_lowers_the_temporal_error_for_little_error(frames):
     """The default history on `shadows`: temporal error 3% lower, relL2 at most 1.5% higher (0.9% measured: the
     noise blend's accumulated input already steadies much of what the history did; module docstring)."""
     refs = [f["reference"] for f in frames]
-    plain, _ = _run(pipelines.get("rae", history=0), frames)
-    steadied, _ = _run(pipelines.get("rae"), frames)  # the default history
+    plain, _ = run_sequence(pipelines.get("rae", history=0), frames)
+    steadied, _ = run_sequence(pipelines.get("rae"), frames)  # the default history
     (error, temporal), (plain_error, plain_temporal) = (sequence_errors(outs, refs) for outs in (steadied, plain))
     assert temporal < 0.98 * plain_temporal and error < 1.015 * plain_error
     np.testing.assert_array_equal(steadied[0], plain[0])  # nothing to blend at the first frame
@@ -120,8 +112,8 @@ def test_output_history_lowers_the_temporal_error_for_little_error(frames):
 
 def test_a_frame_without_motion_is_not_blended_and_restarts_the_output_history(frames):
     gap = [frames[0], Frame({k: v for k, v in frames[1].buffers.items() if k != "motion"}, {}), frames[2]]
-    plain, _ = _run(pipelines.get("rae", history=0, warp=False), gap)
-    steadied, _ = _run(pipelines.get("rae", history=0.5, warp=False), gap)
+    plain, _ = run_sequence(pipelines.get("rae", history=0, warp=False), gap)
+    steadied, _ = run_sequence(pipelines.get("rae", history=0.5, warp=False), gap)
     for a, b in zip(plain, steadied, strict=True):
         np.testing.assert_array_equal(a, b)
 
