@@ -15,7 +15,7 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
-from service.pipelines.options import MAX_SIGMA2, option
+from service.pipelines.options import MAX_SIGMA2, MIN_SIGMA2, option
 from service.stages.albedo import demodulate, remodulate
 from service.stages.bilateral import BilateralParams, guide_features, joint_bilateral
 from service.stages.outliers import clamp_outliers
@@ -25,10 +25,11 @@ from service.stages.outliers import clamp_outliers
 class BilateralOptions:
     # window half-size, pixels; cap: the numpy filter costs (2r+1)^2 passes, 1280x720 on 2 cores r=6 2.8 s, r=16 ~18 s
     radius: int = option(6, low=0, high=16)
-    sigma2_position: float = option(10.0, above=0, high=MAX_SIGMA2)  # pixels^2 (Sakai eq. 16)
-    sigma2_albedo: float = option(0.02, above=0, high=MAX_SIGMA2)  # Sakai eq. 16
-    sigma2_normal: float = option(0.1, above=0, high=MAX_SIGMA2)  # Sakai eq. 16
-    sigma2_log_depth: float = option(0.01, above=0, high=MAX_SIGMA2)  # relative depth difference^2; our extension
+    sigma2_position: float = option(10.0, low=MIN_SIGMA2, high=MAX_SIGMA2)  # pixels^2 (Sakai eq. 16)
+    sigma2_albedo: float = option(0.02, low=MIN_SIGMA2, high=MAX_SIGMA2)  # Sakai eq. 16
+    sigma2_normal: float = option(0.1, low=MIN_SIGMA2, high=MAX_SIGMA2)  # Sakai eq. 16
+    # relative depth difference^2; our extension
+    sigma2_log_depth: float = option(0.01, low=MIN_SIGMA2, high=MAX_SIGMA2)
     demodulate: bool = option(True)  # filter radiance / albedo so textures are not blurred
 
 

@@ -28,6 +28,7 @@ MAX_RADIUS = 32  # statistical filter window half-size, pixels: 65 x 65 taps (Sa
 MAX_WINDOW = 31  # regression window side, pixels, odd (Choi 2024 uses 17)
 MAX_SPARSITY = 16  # regression centres on every n-th row and column; at most window // 2 + 1 (every pixel covered)
 MAX_SIGMA2 = 1e6  # variance of a Gaussian range weight; far beyond it the weight is 1 everywhere
+MIN_SIGMA2 = 1e-12  # and its least: its float32 square root, 1e-6, stays a normal number to divide by
 MAX_THREADS = 32  # threads one option may ask for (ONNX Runtime, the online worker's torch)
 _KINDS = {bool: "boolean", int: "integer", float: "number", str: "string"}
 
@@ -107,7 +108,7 @@ class _Field:
         elif self.kind is int:
             ok = isinstance(value, int) and not isinstance(value, bool)
         elif self.kind is float:
-            ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+            ok = isinstance(value, int | float) and not isinstance(value, bool) and _finite(value)
             value = float(value) if ok else value
         else:
             ok = isinstance(value, str)
@@ -177,6 +178,14 @@ def build(options_cls: type, values: Mapping[str, Any], who: str) -> Any:
         return options_cls(**checked)
     except OptionError as err:  # a relation between options (__post_init__)
         raise OptionError(f"{who}: {err}", err.option) from None
+
+
+def _finite(value: int | float) -> bool:
+    """Whether `value` is a finite float or an int that a float holds (JSON's integers have no bound)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def check_sparsity(window: int, sparsity: int) -> None:

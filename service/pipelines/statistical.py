@@ -18,7 +18,7 @@ import numpy as np
 from service.frame import Frame
 from service.pipelines import register
 from service.pipelines.base import Pipeline, SequenceState
-from service.pipelines.options import MAX_RADIUS, MAX_SIGMA2, option
+from service.pipelines.options import MAX_RADIUS, MAX_SIGMA2, MIN_SIGMA2, option
 from service.stages.bilateral import BilateralParams, guide_features
 from service.stages.outliers import clamp_outliers
 from service.stages.statistical import ALPHA, PAPER_BASE, StatisticalParams, pixel_estimates, statistical_filter
@@ -28,12 +28,15 @@ from service.stages.statistical import ALPHA, PAPER_BASE, StatisticalParams, pix
 class StatisticalOptions:
     # window half-size, pixels: 20 as in Sakai sec. 6; 6 is the fast setting
     radius: int = option(PAPER_BASE.radius, low=0, high=MAX_RADIUS)
-    sigma2_position: float = option(PAPER_BASE.sigma2_position, above=0, high=MAX_SIGMA2)  # pixels^2 (Sakai eq. 16)
-    sigma2_albedo: float = option(PAPER_BASE.sigma2_albedo, above=0, high=MAX_SIGMA2)  # albedo^2 (Sakai eq. 16)
-    sigma2_normal: float = option(PAPER_BASE.sigma2_normal, above=0, high=MAX_SIGMA2)  # normal components^2 (eq. 16)
+    # pixels^2 (Sakai eq. 16)
+    sigma2_position: float = option(PAPER_BASE.sigma2_position, low=MIN_SIGMA2, high=MAX_SIGMA2)
+    sigma2_albedo: float = option(PAPER_BASE.sigma2_albedo, low=MIN_SIGMA2, high=MAX_SIGMA2)  # albedo^2 (Sakai eq. 16)
+    # normal components^2 (eq. 16)
+    sigma2_normal: float = option(PAPER_BASE.sigma2_normal, low=MIN_SIGMA2, high=MAX_SIGMA2)
     # (log depth)^2; None: depth unused, as in the paper
-    sigma2_log_depth: float | None = option(None, above=0, high=MAX_SIGMA2)
-    alpha: float = option(ALPHA, above=0, below=1)  # significance level of the Welch test (Sakai sec. 4.2)
+    sigma2_log_depth: float | None = option(None, low=MIN_SIGMA2, high=MAX_SIGMA2)
+    # significance level of the Welch test (Sakai sec. 4.2); below 1e-12 its quantile's 1 - alpha / 2 rounds to 1
+    alpha: float = option(ALPHA, low=1e-12, below=1)
     symmetric: bool = option(True)  # eq. 12 weights (energy preserving); False: eq. 14 (asymmetric)
     skew_correction: bool = option(True)  # Curto 2023 correction of the means by the third moment
 

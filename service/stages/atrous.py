@@ -122,8 +122,9 @@ def prefilter_variance(variance: np.ndarray) -> np.ndarray:
 
 
 def _normal_power(cos: np.ndarray | float, sigma_normal: float):
-    """max(0, cos)^sigma_n; by repeated squaring when sigma_n is a power of two (the default 128)."""
-    cos = np.maximum(cos, np.float32(0.0))
+    """min(max(0, cos), 1)^sigma_n (normals longer than 1, which the frame contract lets in, would raise cos
+    above 1 and the power to inf); by repeated squaring when sigma_n is a power of two (the default 128)."""
+    cos = np.clip(cos, np.float32(0.0), np.float32(1.0))
     exponent = int(sigma_normal)
     if exponent == sigma_normal and exponent > 0 and exponent & (exponent - 1) == 0:
         while exponent > 1:
@@ -189,14 +190,14 @@ def _tap_weights(row_p, row_q, h, inv_distance, sigma_normal, squarings, cos_min
     """Weights h * w_z * w_n * w_l (eqs. 1-5) of pixel pairs p, q along a row segment, into weight (n,) float32.
 
     row_*: (depth, lum, hit, n0, n1, n2) (n,) float32 rows of p and of q; row_p also ends with inv_phi_z and
-    inv_phi_l. w_n = max(0, n_p . n_q)^sigma_n where both are hits (0 below cos_min, where it is under
+    inv_phi_l. w_n = min(n_p . n_q, 1)^sigma_n where both are hits (0 below cos_min, where it is under
     WEIGHT_FLOOR), 1 where neither is, 0 where one is; squarings >= 0: sigma_n = 2^squarings. Branch-free (SIMD)."""
     z_p, l_p, hit_p, p0, p1, p2, iz_p, il_p = row_p
     z_q, l_q, hit_q, q0, q1, q2 = row_q
     max_exponent = np.float32(MAX_EXPONENT)
     one = np.float32(1.0)
     for t in range(weight.size):
-        cos = p0[t] * q0[t] + p1[t] * q1[t] + p2[t] * q2[t]
+        cos = min(p0[t] * q0[t] + p1[t] * q1[t] + p2[t] * q2[t], one)  # normals longer than 1: no inf power
         weight[t] = cos if cos >= cos_min else np.float32(0.0)
     if squarings >= 0:
         for t in range(weight.size):

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from bench.synthetic import synthetic_sequence
 from service import pipelines
 from service.cli import main
 from service.frame import Frame
@@ -61,6 +62,19 @@ def test_svgf_history_survives_radiance_scale_jumps(tiny_layers):
         assert np.isfinite(out["color"]).all()
         assert np.isfinite(state.history).all()  # the output clamp would hide an overflowed history
         assert out["color"].max() <= scaled["color"].max() * 1.01  # the 1e20 history does not leak back
+
+
+@pytest.mark.parametrize("value", [2.0, 1000.0])
+def test_svgf_takes_normals_longer_than_one(value):
+    """The frame contract lets normals of any length up to 1e6 in; the edge-stopping weight's cosine is held at
+    1, so a frame of long normals denoises (finite, its history too) and the frames after it as well (a NaN
+    history had refused every later frame of the session, found by a fuzz of the HTTP API)."""
+    pipeline = pipelines.get("svgf")
+    state = pipeline.start(32, 48)
+    for i, layers in enumerate(synthetic_sequence(32, 48, frames=6, spp=4, seed=11)):
+        longer = {**layers, "normal": np.full_like(layers["normal"], value)} if i == 3 else layers
+        out, state = pipeline.step(Frame.from_buffers(longer), state)
+        assert np.isfinite(out["color"]).all() and np.isfinite(state.history).all()
 
 
 @pytest.mark.parametrize("gain", [1.0, 1e20])
