@@ -153,8 +153,11 @@ def prepare_frame(
     motion (depth optional). history: the previous frame's, or None at the start of a sequence.
     pilots: the frame's `cross_regression` (pilot_a, pilot_b), (3, H, W) float32 log1p planes, when already
     computed (offline training caches them). average (with pilots None): the pilots' features from the halves
-    averaged over the frames (`averaged_halves`), kept in the result's `halves` for the next frame."""
+    averaged over the frames (`averaged_halves`), kept in the result's `halves` for the next frame.
+    A history whose frame had `depth` where this one has none, or the reverse, is not used (a new start)."""
     albedo, normal = frame["albedo"], frame["normal"]
+    if history is not None and (history.depth is None) != (frame.get("depth") is None):
+        history = None
     halves = None
     if pilots is None and average:
         halves, pilots = averaged_frame_pilots(frame, history, params)

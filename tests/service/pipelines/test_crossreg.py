@@ -96,6 +96,18 @@ def test_network_input_follows_the_layout_and_history_is_used(odd_frames):
     assert second.sample().shape == (13, 17, 22)
 
 
+def test_depth_that_comes_and_goes_starts_the_history_again(odd_frames):
+    """`depth` is optional: a frame without it after frames with it (or the reverse) denoises as a new start,
+    and the frames after it with the same layers use the history again."""
+    without = [Frame({k: v for k, v in f.buffers.items() if k != "depth"}, {}) for f in odd_frames]
+    pipeline = pipelines.get("crossreg")
+    for sequence in ([odd_frames[0], without[1], without[2]], [without[0], odd_frames[1], odd_frames[2]]):
+        outs, state = _run(pipeline, sequence)
+        fresh, _ = _run(pipeline, sequence[1:2])
+        np.testing.assert_array_equal(outs[1], fresh[0])
+        assert prepare_frame(sequence[2], state.history).valid.any() and np.isfinite(outs[2]).all()
+
+
 def test_cached_pilots_give_the_same_network_input(odd_frames):
     """Offline training passes (3, H, W) pilot planes it computed once; the result equals computing them here."""
     pipeline = pipelines.get("crossreg")
