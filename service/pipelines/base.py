@@ -47,6 +47,12 @@ class SequenceState:
     def close(self) -> None:
         """Release what the state holds (an online worker); called once the sequence ends."""
 
+    def forget(self) -> None:
+        """Drop what the frames so far left, as a new sequence has none; called on a refused frame (the next
+        frame's motion points to it, which no history holds, and a stage that failed may have left part of
+        its history written). Subclasses drop their own history too and keep their resources."""
+        self.input_history.clear()
+
 
 # What `Pipeline.denoise_split` returns: the buffers, the names of those known to be finite, the state
 Split = tuple[dict[str, np.ndarray], set[str], SequenceState]
@@ -115,8 +121,8 @@ class Pipeline(ABC):
         """
         try:
             return self._step(frame, state)
-        except Exception:  # a refused frame: the next frame's motion points to it, not to the accumulated input
-            state.input_history.clear()
+        except Exception:  # a refused frame: the next frame's motion points to it, not to any history
+            state.forget()
             raise
 
     def _step(self, frame: Frame, state: SequenceState) -> tuple[Frame, SequenceState]:

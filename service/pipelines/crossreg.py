@@ -250,6 +250,11 @@ class CrossregState(SequenceState):
         if self.trainer is not None:
             self.trainer.close()
 
+    def forget(self) -> None:
+        """The history goes; the model and the online trainer (what the sequence has learned) stay."""
+        super().forget()
+        self.history = None
+
 
 @register
 class CrossregPipeline(Pipeline):

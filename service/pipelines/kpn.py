@@ -84,6 +84,10 @@ class KpnState(SequenceState):
     previous: np.ndarray | None = None
     history: OutputHistory = field(default_factory=OutputHistory)
 
+    def forget(self) -> None:
+        super().forget()
+        self.previous, self.history = None, OutputHistory()
+
 
 def warp_motion(frame: Frame, mode: str, trained: str = "dual") -> np.ndarray:
     """(H, W, 2) float32: the frame's `motionDual` or `motion`. mode "dual" or "plain" says which; "auto"

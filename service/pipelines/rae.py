@@ -82,6 +82,10 @@ class RaeState(SequenceState):
     hidden: list[np.ndarray] = field(default_factory=list)
     history: OutputHistory = field(default_factory=OutputHistory)  # the last step-5 output (module docstring)
 
+    def forget(self) -> None:
+        super().forget()
+        self.hidden, self.history = [], OutputHistory()
+
 
 def trained_with_warp(model: OnnxModel) -> bool:
     """Whether the weights were trained with the hidden-state warp (their `training.options.warp`)."""

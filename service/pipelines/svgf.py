@@ -72,6 +72,11 @@ class SvgfState(SequenceState):
     normal: np.ndarray | None = None
     scale: float = 1.0
 
+    def forget(self) -> None:
+        super().forget()
+        self.history = self.depth = self.normal = None
+        self.scale = 1.0
+
 
 @register
 class SvgfPipeline(Pipeline):

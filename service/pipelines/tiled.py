@@ -117,6 +117,12 @@ class AutoState(SequenceState):
             if state is not None:
                 state.close()
 
+    def forget(self) -> None:
+        """The next frame starts the sequence again (`AutoPipeline._setup`, with the candidates its layers allow:
+        a layer a candidate requires may be what the refused frame lacked)."""
+        super().forget()
+        self.frame_index = 0
+
 
 @register
 class AutoPipeline(Pipeline):

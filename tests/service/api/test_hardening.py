@@ -50,7 +50,7 @@ def create(url: str, pipeline: str, options: dict | None = None, timeout: float 
     ("flr", {"sigma": "abc"}, "sigma", "a number in (0, 8]"),
     ("flr", {"sigma": None}, "sigma", "a number in (0, 8]"),
     ("bilateral", {"radius": -3}, "radius", "an integer in [0, 16]"),
-    ("bilateral", {"sigma2_normal": 0}, "sigma2_normal", "a number in (0, 1e+06]"),
+    ("bilateral", {"sigma2_normal": 0}, "sigma2_normal", "a number in [1e-12, 1e+06]"),
     ("crossregression", {"window": 2}, "window", "an odd integer in [3, 31]"),
     ("bmfr", {"window": 1}, "window", "an odd integer in [3, 31]"),
     ("crossreg", {"screen": "x"}, "screen", "true or false"),

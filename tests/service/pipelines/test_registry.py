@@ -47,6 +47,24 @@ def test_frame_of_another_size_is_refused(name, tiny_layers):
         pipeline.step(Frame.from_buffers(tiny_layers[0]), state)
 
 
+@pytest.mark.parametrize("name", [n for n in pipelines.names() if pipelines.pipeline_class(n).temporal])
+def test_after_a_refused_frame_a_sequence_starts_again(name, tiny_layers):
+    """A refused frame leaves no history behind (the next frame's motion points to it; a stage that failed may
+    have written part of it): the frame after it comes out as the first frame of a new sequence."""
+    pipeline = pipelines.get(name)
+    frames = [Frame.from_buffers(layers) for layers in tiny_layers]
+    state = pipeline.start(24, 40)
+    _, state = pipeline.step(frames[0], state)
+    _, state = pipeline.step(frames[1], state)
+    with pytest.raises(FrameError, match="required by pipeline"):
+        pipeline.step(Frame.from_buffers({"depth": np.ones((24, 40, 1))}), state)
+    after, _ = pipeline.step(frames[2], state)
+    fresh, _ = pipeline.step(frames[2], pipeline.start(24, 40))
+    np.testing.assert_array_equal(after["color"], fresh["color"])
+    continued, _ = pipeline.step(frames[2], pipeline.step(frames[1], pipeline.start(24, 40))[1])
+    assert not np.array_equal(continued["color"], fresh["color"])  # the history would have shown
+
+
 @pytest.mark.parametrize("name", pipelines.names())
 def test_every_pipeline_denoises_the_synthetic_sequence(name, tiny_layers):
     from service.metrics import rel_l2
