@@ -53,16 +53,20 @@ def demodulated(color: np.ndarray, albedo: np.ndarray) -> np.ndarray:
 def guide_planes(normal: np.ndarray, depth: np.ndarray, roughness: np.ndarray | None,
                  out: np.ndarray | None = None) -> np.ndarray:
     """The non-radiance inputs. normal: (H, W, 3) float32 unit or zero; depth: (H, W, 1) float32 camera
-    distance, finite (the frame contract repairs NaN and Inf); roughness: (H, W, 1) float32 in [0, 1] or
-    None (ROUGHNESS_ABSENT). Returns (5, H, W) float32 planes in RAE_INPUTS order after the radiance:
-    normal, log1p relative depth, roughness; written into `out` when given."""
+    distance, finite (the frame contract repairs NaN and Inf); roughness: (H, W, 1) float32, clipped to its
+    range [0, 1] (the frame contract does not bound it, and a network fed 3e38 overflows), or None
+    (ROUGHNESS_ABSENT). Returns (5, H, W) float32 planes in RAE_INPUTS order after the radiance: normal, log1p
+    relative depth, roughness; written into `out` when given."""
     h, w = normal.shape[:2]
     out = np.empty((GUIDES, h, w), np.float32) if out is None else out
     out[GUIDE_PLANES["normal"]] = normal.transpose(2, 0, 1)
     scale = np.float32(median_depth(depth, normal))
     relative = np.minimum(np.maximum(depth[..., 0], 0) / scale, np.float32(DEPTH_CLIP))
     out[GUIDE_PLANES["depth"]] = np.log1p(relative)
-    out[GUIDE_PLANES["roughness"]] = ROUGHNESS_ABSENT if roughness is None else roughness[..., 0]
+    if roughness is None:
+        out[GUIDE_PLANES["roughness"]] = ROUGHNESS_ABSENT
+    else:
+        np.clip(roughness[..., 0], np.float32(0), np.float32(1), out=out[GUIDE_PLANES["roughness"]])
     return out
 
 

@@ -47,6 +47,14 @@ def test_planes_follow_the_layout_with_hand_computed_values():
     assert (rae_planes(color, albedo, normal, depth, None)[where["roughness"]] == ROUGHNESS_ABSENT).all()
 
 
+def test_roughness_is_held_to_its_range():
+    """The frame contract does not bound `roughness`; a network fed 3e38 made non-finite output (kpn, rae)."""
+    color, albedo, normal, depth, rough = _frame()
+    rough[0, :3, 0] = (3e38, -3e38, 1.5)
+    plane = guide_planes(normal, depth, rough)[channel_slices(RAE_INPUTS)["roughness"].start - RADIANCE.stop]
+    assert tuple(plane[0, :3]) == (1.0, 0.0, 1.0) and (plane[1:] == rough[1:, :, 0]).all()
+
+
 def test_depth_in_millimetres_or_metres_gives_the_same_planes():
     color, albedo, normal, depth, rough = _frame(seed=1)
     np.testing.assert_allclose(guide_planes(normal, depth, rough), guide_planes(normal, depth * 1000, rough),
