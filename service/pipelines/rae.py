@@ -6,7 +6,9 @@ Stages, per frame (emission already split off by Pipeline.step, added back after
      (service.stages.outliers.clamp_outliers on the demodulated radiance, down to no less than what both
      halves show; not in training): a firefly would enter the hidden state. make bench's four sequences,
      2026-11-27: relL2 lower by 0.3-1.5%, temporal error unchanged to 0.1%
-  2. optional (`warp`): each level's hidden state moved by the frame's motion (service/stages/hidden_warp.py)
+  2. optional (`warp`): each level's hidden state moved by the frame's motion (service/stages/hidden_warp.py);
+     a frame without `motion` starts the recurrence again (zero states), as the paper's first frame: an
+     absent motion is not a still camera, and a state left where it was would ghost
   3. the network in ONNX Runtime: (features, hidden states) -> (log1p demodulated radiance, next hidden states)
   4. expm1 (demodulated radiance), cropped back to the frame
   5. optional (`history`, on by default; frames with `motion`): blended with the previous frame's output of
@@ -110,12 +112,6 @@ class RaePipeline(NetworkPipeline):
         warp = self.options.warp
         return trained_with_warp(self.model()) if warp is None else warp
 
-    def check(self, frame: Frame, state: SequenceState) -> None:
-        """Pipeline.check, and `motion` is required while the hidden state is warped."""
-        super().check(frame, state)
-        if self.warps:
-            frame.require(("motion",), who=f"pipeline '{self.name}' with warp")
-
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         model = self.model()
         info = model.info
@@ -125,7 +121,7 @@ class RaePipeline(NetworkPipeline):
         padded = np.ascontiguousarray(pad_planes(planes, info.alignment))
         height, width = padded.shape[1:]
         hidden = state.hidden
-        if not hidden:
+        if not hidden or (self.warps and "motion" not in frame):  # a start (stage 2)
             hidden = [np.zeros(spec.shape(height, width), np.float32) for spec in info.state]
         elif self.warps:
             motion = pad_planes(frame["motion"].transpose(2, 0, 1), info.alignment).transpose(1, 2, 0)

@@ -118,11 +118,16 @@ def test_a_frame_without_motion_is_not_blended_and_restarts_the_output_history(f
         np.testing.assert_array_equal(a, b)
 
 
-def test_warping_needs_motion(frames):
+def test_a_frame_without_motion_starts_the_warped_recurrence_again(frames):
+    """`motion` is optional: with the warp, a frame without it is denoised as a sequence's first frame (zero
+    hidden states; the output history restarts too), and the frames after it carry on from it."""
     pipeline = pipelines.get("rae", warp=True)
-    frame = Frame({k: v for k, v in frames[0].buffers.items() if k != "motion"}, {})
-    with pytest.raises(FrameError, match="missing layer 'motion' required by pipeline 'rae' with warp"):
-        pipeline.step(frame, pipeline.start(120, 120))
+    gap = [frames[0], Frame({k: v for k, v in frames[1].buffers.items() if k != "motion"}, {}), frames[2]]
+    outs, _ = run_sequence(pipeline, gap)
+    first, _ = run_sequence(pipeline, gap[1:2])
+    np.testing.assert_array_equal(outs[1], first[0])
+    after, _ = run_sequence(pipeline, gap[1:])
+    np.testing.assert_array_equal(outs[2], after[1])
 
 
 @pytest.mark.parametrize("level", [0, 3])
