@@ -2,7 +2,9 @@
 
 Each frame is one job in the worker pool (decode, step, encode), accounted in the metrics whether it
 succeeds or fails. A session's frames run under its lock, so they step its state strictly in order;
-a refused frame changes nothing in the session but its error count. A frame past the deadline
+a frame refused before its step (not EXR, too large, a layer over its limit) changes nothing in the session
+but its error count, and one the pipeline refuses (a missing layer, another size, values its stages could not
+denoise: 422) also starts its sequence again (`SequenceState.forget`). A frame past the deadline
 (MCDENOISE_FRAME_TIMEOUT_S) is answered 504 at once, but its step runs on (see workers.py): in a session
 it still advances the state, and the session's next frame waits for it.
 """
@@ -129,8 +131,8 @@ async def session_frame(
 ) -> Denoised:
     """Denoise the next frame of `session`, in order with its other frames.
 
-    A frame refused for its content (FrameError, not EXR, too large, another size) leaves the state
-    as it was: pipelines check a frame before any work.
+    A frame refused before its step (not EXR, too large, a layer over its limit) leaves the state as it was;
+    one the pipeline refuses (FrameError, a stage's numerics) starts the sequence again (module docstring).
     """
     received = time.perf_counter()
 

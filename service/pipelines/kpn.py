@@ -85,6 +85,7 @@ class KpnState(SequenceState):
     history: OutputHistory = field(default_factory=OutputHistory)
 
     def forget(self) -> None:
+        """The previous output and the output history go (a new start)."""
         super().forget()
         self.previous, self.history = None, OutputHistory()
 
@@ -152,9 +153,7 @@ class KpnPipeline(NetworkPipeline):
         filtered = kernel_filter(features[RADIANCE], features[PREVIOUS], outputs[info.output_name][0], coarse[2],
                                  coarse[4], space_to_depth=int(info.metadata["space_to_depth"]))
         filtered = filtered[:, : frame.height, : frame.width]
-        if not np.isfinite(filtered).all():
-            state.previous = None  # the next frame starts afresh
-            state.history = OutputHistory()
+        if not np.isfinite(filtered).all():  # Pipeline.step's KpnState.forget: the next frame starts afresh
             raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite kernels; "
                                      "its recurrent state was reset")
         state.previous = np.ascontiguousarray(filtered)

@@ -85,6 +85,7 @@ class RaeState(SequenceState):
     history: OutputHistory = field(default_factory=OutputHistory)  # the last step-5 output (module docstring)
 
     def forget(self) -> None:
+        """The recurrent state and the output history go (a new start)."""
         super().forget()
         self.hidden, self.history = [], OutputHistory()
 
@@ -132,9 +133,8 @@ class RaePipeline(NetworkPipeline):
         # the radiance through that level's skip connection, and NaN and Inf survive convolutions and leaky
         # ReLU, so a non-finite state shows in this frame's radiance; one that got past (fed back in) shows
         # in the next frame's at the latest, and that frame resets the state.
-        if not np.isfinite(outputs[info.output_name]).all():
-            state.hidden = []  # a non-finite state would fail every later frame: the next starts afresh
-            state.history = OutputHistory()
+        if not np.isfinite(outputs[info.output_name]).all():  # a non-finite state would fail every later frame:
+            # Pipeline.step's RaeState.forget resets it, and the next frame starts afresh
             raise FloatingPointError(f"pipeline '{self.name}': the network produced non-finite values; "
                                      "its recurrent state was reset")
         state.hidden = [outputs[spec.output] for spec in info.state]

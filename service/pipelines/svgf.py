@@ -73,6 +73,7 @@ class SvgfState(SequenceState):
     scale: float = 1.0
 
     def forget(self) -> None:
+        """The history and its depth, normal and scale go (a new start)."""
         super().forget()
         self.history = self.depth = self.normal = None
         self.scale = 1.0

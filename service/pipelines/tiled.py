@@ -101,6 +101,7 @@ class AutoState(SequenceState):
     moved: np.ndarray | None = None  # (th, tw) float64 pixels each tile's content moved since the last evaluation
     members: tuple[int, ...] | None = None  # indices of the candidates the blend runs
     evaluated: int | None = None  # the frame index of the last evaluation
+    begun: int | None = 0  # the frame index the sequence (last) started at: set up there; None: at the next frame
     previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
 
     def shares(self) -> dict[str, float]:
@@ -119,9 +120,13 @@ class AutoState(SequenceState):
 
     def forget(self) -> None:
         """The next frame starts the sequence again (`AutoPipeline._setup`, with the candidates its layers allow:
-        a layer a candidate requires may be what the refused frame lacked)."""
+        a layer a candidate requires, or the halves, may be what the refused frame lacked); frame_index goes on."""
         super().forget()
-        self.frame_index = 0
+        self.begun = None
+
+    def since_start(self, index: int) -> int:
+        """Frame `index` of the sequence counted from where it (last) started."""
+        return index - (self.frame_index if self.begun is None else self.begun)
 
 
 @register
@@ -143,7 +148,7 @@ class AutoPipeline(Pipeline):
     def check(self, frame: Frame, state: SequenceState) -> None:
         """Also: once the first frame's halves started the per-tile blend, every frame must have them."""
         super().check(frame, state)
-        if isinstance(state, AutoState) and state.candidates:
+        if isinstance(state, AutoState) and state.candidates and state.begun is not None:
             for name in HALVES:
                 if name not in frame:
                     raise FrameError(f"pipeline 'auto' blends per tile from the half buffers since the sequence's "
@@ -156,14 +161,14 @@ class AutoPipeline(Pipeline):
 
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         assert isinstance(state, AutoState)
-        if state.frame_index == 0:
+        if state.frame_index == 0 or state.begun is None:
             self._setup(frame, state)
         if state.fallback is not None:
             out, state.fallback_state = state.fallback.step(frame, state.fallback_state)
             return {"color": out["color"]}, state
         if state.evaluated is not None:  # the first frame's motion points before the sequence
             self._track_motion(frame, state)
-        stepped = self._evaluate(frame, state) if self.evaluates(state.frame_index) else {}
+        stepped = self._evaluate(frame, state) if self.evaluates(state.since_start(state.frame_index)) else {}
         names = list(state.candidates)
         for index, name in enumerate(names):  # a candidate that left the blend loses its history
             if index not in state.members and name in state.states:
@@ -179,7 +184,7 @@ class AutoPipeline(Pipeline):
                 out, state.states[name] = pipeline.step(frame, sub)
                 out = out["color"]
             color += weights[index][..., None] * out
-        state.previous = frame if self.evaluates(state.frame_index + 1) else None  # for the next evaluation only
+        state.previous = frame if self.evaluates(state.since_start(state.frame_index + 1)) else None  # the next only
         return {"color": color, "error": state.error.copy()}, state
 
     def evaluates(self, index: int) -> bool:
@@ -190,7 +195,7 @@ class AutoPipeline(Pipeline):
         state.close()  # a first frame that failed may have set some of it
         state.fallback = state.fallback_state = state.covariance = state.blend = None
         state.previous = state.members = state.evaluated = state.error_tiles = state.variance_factor = None
-        state.moved = None
+        state.moved, state.begun = None, state.frame_index
         state.candidates, state.states = {}, {}
         layers = set(frame.buffers)
         names = [n for n in CANDIDATES if set(pipelines.pipeline_class(n).requires) <= layers]
@@ -217,7 +222,7 @@ class AutoPipeline(Pipeline):
             outs_b = outputs.get("colorB")
             covariance = tile_covariance(outputs["colorA"], a, b, scale, tile, cap=FIREFLY_CAP, outs_b=outs_b)
             keep = state.moved is None or state.moved <= MOVED  # per tile: the last estimate is of the same content
-            first = state.covariance is None or state.frame_index <= 1  # the first frame's is made without history
+            first = state.covariance is None or state.since_start(state.frame_index) <= 1  # made without history
             if not first:
                 covariance = np.where(keep, 0.5 * (state.covariance + covariance), covariance)
             costs = np.array([COSTS[name] for name in state.candidates])

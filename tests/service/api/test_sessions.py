@@ -64,6 +64,24 @@ def test_session_survives_bad_frames_and_goes_on(server, sequence_exr, cli_outpu
     call(server, "DELETE", path)
 
 
+def test_a_temporal_session_starts_its_sequence_again_after_a_refused_frame(server, sequence_exr):
+    """svgf: after a 422 the pipeline gave, the next good frame comes out as the first frame of a sequence (what
+    the stateless route makes of it), its index counting on; a 400 before the step leaves the history as it was."""
+    path = f"/v1/sessions/{open_session(server, pipeline='svgf')['id']}"
+    assert exr_post(server, f"{path}/frames", sequence_exr[0]).status == 200
+    assert exr_post(server, f"{path}/frames", b"garbage" * 50).status == 400
+    kept = exr_post(server, f"{path}/frames", sequence_exr[1])
+    first = read_frame(exr_post(server, "/v1/denoise?pipeline=svgf", sequence_exr[1]).body)["color"]
+    assert kept.status == 200 and not np.array_equal(read_frame(kept.body)["color"], first)
+    refused = exr_post(server, f"{path}/frames", encode_frame({"color": np.ones((HEIGHT, WIDTH, 3), np.float32)}))
+    assert refused.status == 422 and refused.json()["layer"] == "normal"
+    again = exr_post(server, f"{path}/frames", sequence_exr[2])
+    assert again.status == 200 and again.headers["x-frame-index"] == "2"
+    expected = read_frame(exr_post(server, "/v1/denoise?pipeline=svgf", sequence_exr[2]).body)["color"]
+    np.testing.assert_array_equal(read_frame(again.body)["color"], expected)
+    call(server, "DELETE", path)
+
+
 @pytest.mark.parametrize(("spec", "status", "code", "message"), [
     ({"pipeline": "nope"}, 400, "unknown_pipeline", None),
     ({"options": {"radios": 3}}, 400, "invalid_options", "pipeline 'bilateral' has no option 'radios'; options: "

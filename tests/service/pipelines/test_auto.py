@@ -8,7 +8,7 @@ import pytest
 
 from bench.synthetic import synthetic_sequence
 from service import pipelines
-from service.frame import Frame
+from service.frame import Frame, FrameError
 from service.pipelines import tiled
 from service.pipelines.tiled import CANDIDATES, one_half, run_half
 from service.stages.error_estimate import interpolate_tiles
@@ -90,8 +90,6 @@ def test_a_candidate_alone_is_served_exactly_when_every_tile_chooses_it(frames, 
 
 
 def test_a_frame_without_halves_after_the_blend_started_is_refused_naming_the_layer(frames):
-    from service.frame import FrameError
-
     pipeline = pipelines.get("auto", every=2)
     state = pipeline.start(40, 72)
     _, state = pipeline.step(frames[0], state)
@@ -99,7 +97,25 @@ def test_a_frame_without_halves_after_the_blend_started_is_refused_naming_the_la
     with pytest.raises(FrameError, match="pipeline 'auto' .* no layer 'colorB'"):
         pipeline.step(plain, state)
     out, state = pipeline.step(frames[1], state)  # the session goes on with the next good frame, as a new start
-    assert state.frame_index == 1 and np.isfinite(out["color"]).all()
+    assert state.frame_index == 2 and state.begun == 1 and np.isfinite(out["color"]).all()
+    fresh, _ = pipeline.step(frames[1], pipeline.start(40, 72))
+    np.testing.assert_array_equal(out["color"], fresh["color"])
+
+
+def test_after_a_refused_frame_a_frame_without_halves_starts_a_sequence_of_the_fallback(frames):
+    """A refused frame starts the sequence again with what the next frame has: without halves, the fallback,
+    as a fresh sequence would take it; the frame index goes on counting."""
+    pipeline = pipelines.get("auto")
+    state = pipeline.start(40, 72)
+    _, state = pipeline.step(frames[0], state)
+    with pytest.raises(FrameError):
+        pipeline.step(Frame({k: v for k, v in frames[1].buffers.items() if k != "normal"}), state)
+    plain = Frame({k: v for k, v in frames[2].buffers.items() if k not in ("colorA", "colorB")})
+    out, state = pipeline.step(plain, state)
+    fresh, fresh_state = pipeline.step(plain, pipeline.start(40, 72))
+    assert state.fallback is not None and state.fallback.name == fresh_state.fallback.name
+    assert state.frame_index == 2
+    np.testing.assert_array_equal(out["color"], fresh["color"])
 
 
 def test_an_error_pass_in_an_input_file_is_ignored(tmp_path, frames):

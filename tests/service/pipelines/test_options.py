@@ -25,7 +25,7 @@ BAD = [
     ("crossreg", "worker_threads", 1000), ("crossreg", "crop", 10**9), ("crossreg", "publish_every", 0),
     ("crossreg", "steps_per_frame", 10**6), ("crossreg", "weights", "/etc/shadow"),
     ("crossreg", "weights", "../weights/crossreg_unet"), ("crossreg", "weights", "missing.onnx"),
-    # numbers a float cannot hold, or whose arithmetic underflows (a fuzz of the HTTP API, 2026-11-28)
+    # numbers a float cannot hold, or whose arithmetic would underflow
     ("flr", "sigma", 10**400), ("svgf", "alpha_color", -(10**400)), ("bilateral", "sigma2_albedo", 1e-300),
     ("bilateral", "sigma2_log_depth", 1e-13), ("statistical", "sigma2_normal", 1e-300), ("statistical", "alpha", 1e-17),
 ]

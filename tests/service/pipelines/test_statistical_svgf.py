@@ -68,7 +68,7 @@ def test_svgf_history_survives_radiance_scale_jumps(tiny_layers):
 def test_svgf_takes_normals_longer_than_one(value):
     """The frame contract lets normals of any length up to 1e6 in; the edge-stopping weight's cosine is held at
     1, so a frame of long normals denoises (finite, its history too) and the frames after it as well (a NaN
-    history had refused every later frame of the session, found by a fuzz of the HTTP API)."""
+    history would refuse every later frame of the session)."""
     pipeline = pipelines.get("svgf")
     state = pipeline.start(32, 48)
     for i, layers in enumerate(synthetic_sequence(32, 48, frames=6, spp=4, seed=11)):

@@ -17,31 +17,34 @@ from service.stages.atrous import (
 from tests.tolerances import FILTER_ATOL
 
 
-def _guides(h, w, seed=0, background=False):
+def _guides(h, w, seed=0, background=False, length=1.0):
     rng = np.random.default_rng(seed)
     depth = (2 + rng.random((h, w, 1)) * 0.1 + np.linspace(0, 1, h)[:, None, None]).astype(np.float32)
-    normal = np.tile(np.float32([0, 0, 1]), (h, w, 1))
-    normal[: h // 3] = np.float32([0, 1, 0])
+    normal = np.tile(np.float32([0, 0, length]), (h, w, 1))
+    normal[: h // 3] = np.float32([0, length, 0])
     if background:
         normal[-2:] = 0
     return edge_guides(depth, normal)
 
 
 @pytest.mark.parametrize(
-    "step, sigma_normal, squared, shape",
-    [(1, 128.0, 3, (13, 17)), (2, 3.0, -1, (13, 17)), (4, 128.0, 0, (13, 17)), (1, 2048.0, 3, (9, 40)),
-     (16, 1.0, 3, (40, 9)), (1, 128.0, 3, (1, 1))],
+    "step, sigma_normal, squared, shape, length",
+    [(1, 128.0, 3, (13, 17), 1.0), (2, 3.0, -1, (13, 17), 1.0), (4, 128.0, 0, (13, 17), 1.0),
+     (1, 2048.0, 3, (9, 40), 1.0), (16, 1.0, 3, (40, 9), 1.0), (1, 128.0, 3, (1, 1), 1.0),
+     (1, 128.0, 3, (13, 17), 3.0), (2, 3.0, -1, (13, 17), 1000.0)],  # normals longer than 1: cos held at 1
 )
-def test_compiled_pass_matches_numpy_reference(step, sigma_normal, squared, shape):
+def test_compiled_pass_matches_numpy_reference(step, sigma_normal, squared, shape, length):
     rng = np.random.default_rng(1)
     h, w = shape
-    guides = _guides(h, w, background=True)
+    guides = _guides(h, w, background=True, length=length)
     values = rng.random((h, w, 4), dtype=np.float32)
     lum = luminance(values[..., :3])
     phi = (0.1 + rng.random((h, w))).astype(np.float32)
     kernel = np.asarray(B3_SPLINE, np.float32)
     args = values, lum, phi, guides, kernel, step, 1.0, sigma_normal, squared
-    np.testing.assert_allclose(edge_aware_filter(*args), edge_aware_filter_numpy(*args), rtol=2e-5, atol=1e-6)
+    out = edge_aware_filter(*args)
+    assert np.isfinite(out).all()
+    np.testing.assert_allclose(out, edge_aware_filter_numpy(*args), rtol=2e-5, atol=1e-6)
 
 
 def test_constant_image_is_unchanged_and_variance_shrinks():
