@@ -1,7 +1,8 @@
 """`auto`: a per-tile blend of denoisers whose weights minimise their error, estimated without a reference,
 within a cost budget.
 
-At the first two frames and every `every` frames, each candidate (CANDIDATES whose layers the frame has)
+At the first two frames (of the sequence, or since a refused frame started it again: `AutoState.forget`) and
+every `every` frames, each candidate (CANDIDATES whose layers the frame has)
 denoises half A alone and half B alone (`both_halves`; else half A only), with a history where it is temporal:
 from a copy of its running state, or, where it is not running, from a state stepped through the previous frame
 (`_history`; the first frame has none: all start fresh), so that a temporal candidate is judged as it would
@@ -101,7 +102,7 @@ class AutoState(SequenceState):
     moved: np.ndarray | None = None  # (th, tw) float64 pixels each tile's content moved since the last evaluation
     members: tuple[int, ...] | None = None  # indices of the candidates the blend runs
     evaluated: int | None = None  # the frame index of the last evaluation
-    begun: int | None = 0  # the frame index the sequence (last) started at: set up there; None: at the next frame
+    begun: int | None = None  # the frame index the sequence (last) started at, set up there; None: the next
     previous: Frame | None = None  # the last frame, for a temporal candidate's history at an evaluation
 
     def shares(self) -> dict[str, float]:
@@ -125,8 +126,9 @@ class AutoState(SequenceState):
         self.begun = None
 
     def since_start(self, index: int) -> int:
-        """Frame `index` of the sequence counted from where it (last) started."""
-        return index - (self.frame_index if self.begun is None else self.begun)
+        """Frame `index` of the sequence counted from where it (last) started (after the set-up)."""
+        assert self.begun is not None
+        return index - self.begun
 
 
 @register
@@ -161,7 +163,7 @@ class AutoPipeline(Pipeline):
 
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         assert isinstance(state, AutoState)
-        if state.frame_index == 0 or state.begun is None:
+        if state.begun is None:
             self._setup(frame, state)
         if state.fallback is not None:
             out, state.fallback_state = state.fallback.step(frame, state.fallback_state)
