@@ -35,7 +35,17 @@ tile's weight was diluted by its neighbours' 1 over half of its pixels: a mirror
 lifted by bmfr, stayed 1.16x worse than the input in its tile (hard case `bulb`), and a dark band
 crossregression blurred, 1.13x (`glints`). It needs NOISY_SHARE of its pixels to have halves
 that differ: where both halves of most pixels saw nothing (a dim region at 1 spp per half), Ec is about 0
-because the samples are few, not because the input is right. The result is c' + t (o - c'), with c' the
+because the samples are few, not because the input is right. A silent half tile, none of whose pixels has
+halves that differ (all its samples agree, mostly at 0: a region a light has just left), goes back to its
+input c over all its pixels (weight 0, no ramp inward, and not the accumulated input) where the output adds
+more over it than SILENT_EVIDENCE one-hit values: were the output right, its samples would all have missed
+with a chance of about e^-(added / one-hit value). The one-hit value (a pixel's mean from one nonzero sample)
+is the least variance-to-mean ratio v / c of the 3x3 half tiles around that have NOISY_SHARE noisy pixels
+(for a 0/1 signal of n samples it is 1 / n; where samples rarely miss it is smaller, so the rule is bolder
+there). On the 8-frame `fireflies` benchmark, where a light leaves a region in frame 7, svgf's worst tiles
+there went from 122-126x the input's error to 52x and kpn's from 41x to 37x; a lift below the evidence stays
+(docs/benchmarks.md); relL2 on `fireflies` fell by 0.2-1.4% for the temporal pipelines, and nothing else in
+`make bench` or the hard cases moved. The result is c' + t (o - c'), with c' the
 input with its fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in
 one half only, while a light seen directly is in both): the part of the input the blend takes back should
 not bring them with it. Lights (pixels with emission) are left out of their neighbours' ranges: beside a
@@ -98,6 +108,12 @@ WORSE = 0.5  # a half tile whose weight is below this (its output estimated wors
 NOISY_SHARE = 0.25  # ... where at least this share of its pixels have halves that differ (module docstring)
 HALF_RAMP = 1  # ... over its own pixels, eased over the (2 r + 1)^2 box of the pixels around (module docstring)
 TILE_MEMORY = 0.3  # a temporal pipeline's tile sums: this share of the previous frames' average (module docstring)
+# A silent half tile (no pixel's halves differ) goes back to its input where the output adds more than this many
+# of its neighbourhood's one-hit values over it: e^-7 ~ 1e-3, the chance that its samples all missed (docstring)
+SILENT_EVIDENCE = 7.0
+# Rows of the tile sums: weighted e, the input's weighted error, pixels whose halves differ, the weighted floor
+# of the input's error, the output less the input, and over the pixels whose halves differ the input and v
+SUM_ROWS = 7
 
 
 def blend_weights(error_out: np.ndarray, error_in: np.ndarray) -> np.ndarray:
@@ -149,8 +165,8 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
         use = takes_accumulated(stats)
     half = half_tile(tile)
 
-    def sums(side: int) -> np.ndarray:  # (4, th, tw): `_tile_kernel`'s sums over tiles of this side
-        out = np.zeros((4, -(-height // side), -(-width // side)), np.float64)
+    def sums(side: int) -> np.ndarray:  # (SUM_ROWS, th, tw): `_tile_kernel`'s sums over tiles of this side
+        out = np.zeros((SUM_ROWS, -(-height // side), -(-width // side)), np.float64)
         _tile_kernel(*arrays[:4], e, has_emission, level, input_error, floor, use, tile, choice is not None, side,
                      REL_L2_EPS, PROXY_FLOOR, out)
         return out
@@ -158,16 +174,19 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     fine = sums(half)
     if tile == 2 * half:  # an even tile: its sums are those of its 2x2 half tiles
         padded = np.pad(fine, ((0, 0), (0, fine.shape[1] % 2), (0, fine.shape[2] % 2)))
-        coarse = padded.reshape(4, padded.shape[1] // 2, 2, padded.shape[2] // 2, 2).sum(axis=(2, 4))
+        coarse = padded.reshape(SUM_ROWS, padded.shape[1] // 2, 2, padded.shape[2] // 2, 2).sum(axis=(2, 4))
     else:
         coarse = fine if tile == half else sums(tile)
     fine, coarse = remembered_sums(history, fine, coarse, choice is not None)
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3])).astype(np.float32)
-    t_half = half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2],
-                               tile_counts(height, width, half)).astype(np.float32)
+    pixels = tile_counts(height, width, half)
+    silent = silent_half_tiles(fine, pixels)
+    t_half = np.where(silent, 0.0, half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2],
+                                                     pixels)).astype(np.float32)
     result = np.empty_like(arrays[0])
     _blend_kernel(*arrays[:4], e, has_emission, clipped, accumulated, use, tile, choice is not None, t,
-                  *_interpolation(height, tile), *_interpolation(width, tile), t_half, half, HALF_RAMP, result)
+                  *_interpolation(height, tile), *_interpolation(width, tile), t_half, silent, half, HALF_RAMP,
+                  result)
     return result
 
 
@@ -219,6 +238,20 @@ def half_tile_weights(error_out: np.ndarray, error_in: np.ndarray, noisy: np.nda
     return np.where((weights < WORSE) & (noisy >= NOISY_SHARE * pixels), weights, 1.0)
 
 
+def silent_half_tiles(fine: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Per half tile whether it goes back to its input as silent (module docstring): none of its pixels has
+    halves that differ (row 2 of `fine`, the (SUM_ROWS, th', tw') float64 half-tile sums, is 0) and the output
+    adds more over it (row 4, the sum of its channel means less the input's) than SILENT_EVIDENCE times the
+    one-hit value of the 3x3 half tiles around it: the least of their variance-to-mean ratios (rows 6 / 5)
+    among those with at least NOISY_SHARE of their `pixels` ((th', tw') int64) noisy. Returns (th', tw') bool."""
+    noisy = fine[2] >= NOISY_SHARE * np.maximum(pixels, 1)
+    ratio = np.where(noisy & (fine[5] > 0), fine[6] / np.where(fine[5] > 0, fine[5], 1.0), np.inf)
+    padded = np.pad(ratio, 1, constant_values=np.inf)
+    th, tw = ratio.shape
+    one_hit = np.min([padded[dy:dy + th, dx:dx + tw] for dy in range(3) for dx in range(3)], axis=0)
+    return (fine[2] == 0) & (fine[4] > SILENT_EVIDENCE * one_hit)
+
+
 def half_tile(tile: int) -> int:
     """The side of the finer tiles whose weight overrides where it says the output is worse (module docstring)."""
     return max(tile // 2, 1)
@@ -268,14 +301,22 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     half = half_tile(tile)
     noisy_pixels = (variance > 0).any(axis=-1).astype(np.float64)
 
-    def sums(side: int) -> np.ndarray:  # (4, th, tw), as `_tile_kernel`'s
-        return np.stack([tile_sums(x, side)[0] for x in (pixel_out, pixel_in, noisy_pixels, least)])
+    excess, lit = (o - c).mean(axis=-1), np.maximum(c.mean(axis=-1), 0.0) * noisy_pixels
+    rows = (pixel_out, pixel_in, noisy_pixels, least, excess, lit, variance.mean(axis=-1))
+
+    def sums(side: int) -> np.ndarray:  # (SUM_ROWS, th, tw), as `_tile_kernel`'s
+        return np.stack([tile_sums(x, side)[0] for x in rows])
 
     fine, coarse = remembered_sums(history, sums(half), sums(tile), choice is not None)
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3]))
-    t_half = half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2], tile_sums(noisy_pixels, half)[1])
+    pixels = tile_sums(noisy_pixels, half)[1]
+    silent = silent_half_tiles(fine, pixels)
+    t_half = np.where(silent, 0.0, half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2], pixels))
     own = np.repeat(np.repeat(t_half, half, axis=0), half, axis=1)[:height, :width, None].astype(np.float32)
     t = np.minimum(interpolate_tiles(t, tile, height, width), box_mean(own, HALF_RAMP)[..., 0])[..., None]
+    quiet = np.repeat(np.repeat(silent, half, axis=0), half, axis=1)[:height, :width, None]
+    t = np.where(quiet, 0.0, t)
+    taken = np.where(quiet, color.astype(np.float64), taken)
     t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
     blended = np.clip((1.0 - t) * taken + t * out.astype(np.float64), -FLOAT32_MAX, FLOAT32_MAX)
     return np.where(out == color, color, blended).astype(np.float32)
@@ -333,11 +374,26 @@ def _pixel_errors(out, color, a, b, y, x):  # pragma: no cover - jitted
     return err, var
 
 
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _channel_means(out, color, e, has_emission, y, x):  # pragma: no cover - jitted
+    """(the mean over channels of out less color, that of color less e (with `has_emission`), at least 0) of
+    pixel (y, x), float64."""
+    channels = out.shape[2]
+    excess, level = 0.0, 0.0
+    for c in range(channels):
+        col = np.float64(color[y, x, c])
+        excess += np.float64(out[y, x, c]) - col
+        level += col - e[y, x, c] if has_emission else col
+    return excess / channels, max(level / channels, 0.0)
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_floor, use, use_tile, has_choice,
                  tile, eps, floor, sums):  # pragma: no cover - jitted
-    """sums (4, th, tw): per tile the weighted sums of e and of the input's error, the count of pixels whose
-    halves differ, and the weighted sum of the input error's floor, in float64; weights `_pixel_weight` (eps =
+    """sums (SUM_ROWS, th, tw): per tile the weighted sums of e and of the input's error, the count of pixels
+    whose halves differ, the weighted sum of the input error's floor, the sum of the output's channel means less
+    the input's, and over the pixels whose halves differ the sums of the input's channel means (at least 0) and
+    of v's, in float64 (radiance less e); weights `_pixel_weight` (eps =
     REL_L2_EPS, radiance^2; floor PROXY_FLOOR; level (H, W) float32, the 3x3 box mean of the colour less e).
     The input's error and its floor are v, or, with `has_choice`, input_error and input_floor ((H, W) float64,
     the accumulated input's and a^2 v, the channels' means) where `use` ((th', tw') bool, per tile of side
@@ -355,6 +411,11 @@ def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_fl
                 sums[1, ty, x // tile] += w * taken
                 sums[2, ty, x // tile] += 1.0 if var > 0 else 0.0
                 sums[3, ty, x // tile] += w * least
+                excess, lit = _channel_means(out, color, e, has_emission, y, x)
+                sums[4, ty, x // tile] += excess
+                if var > 0:
+                    sums[5, ty, x // tile] += lit
+                    sums[6, ty, x // tile] += var / channels
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -435,14 +496,16 @@ def _clip_kernel(color, a, b, e, has_emission, k, clipped):  # pragma: no cover 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _blend_kernel(out, color, a, b, e, has_emission, clipped, accumulated, use, use_tile, has_choice, t,
-                  row0, row1, row_w, col0, col1, col_w, tf, half, ramp, result):  # pragma: no cover - jitted
+                  row0, row1, row_w, col0, col1, col_w, tf, silent, half, ramp, result):  # pragma: no cover - jitted
     """result = c' + w (out - c'), w the smaller of t, bilinear between its tiles' centres (the `_interpolation`
     tables), and of tf's mean over the in-frame (2 ramp + 1)^2 box of pixels, each pixel taking its own half
     tile's; c' the emission e (with `has_emission`) plus `accumulated` ((H, W, C) float32) where `use` ((th',
     tw') bool per tile of side use_tile, with `has_choice`) takes it, else plus `clipped` ((H, W, C) float32,
     `_clip_kernel`'s) where the clip moved the value, else the colour. t: (th, tw) and tf: (th', tw') float32
     weights of the tiles and of the half tiles (side `half` pixels); row0, row1, row_w (H,) and col0, col1,
-    col_w (W,): `_interpolation`'s tables for t. A task per row (float64, within float32's range)."""
+    col_w (W,): `_interpolation`'s tables for t. A pixel of a `silent` ((th', tw') bool) half tile takes its
+    input, the colour (its tf, 0, holds over its pixels: no ramp inward). A task per row (float64, within
+    float32's range)."""
     height, width, channels = out.shape
     n = width * channels
     for y in numba.prange(height):
@@ -469,11 +532,14 @@ def _blend_kernel(out, color, a, b, e, has_emission, clipped, accumulated, use, 
             for xx in range(x0, x1):
                 total += held[xx]
             w = min(w, np.float32(total / (x1 - x0)))
+            quiet = silent[y // half, x // half]
+            if quiet:
+                w = np.float32(0)
             if has_emission:  # a pixel with emission keeps the output, as the noise clamp leaves it
                 for c in range(channels):
                     if e[y, x, c] != 0:
                         w = np.float32(1)
-            history = has_choice and use[y // use_tile, x // use_tile]
+            history = has_choice and use[y // use_tile, x // use_tile] and not quiet
             for c in range(channels):
                 weights[x * channels + c] = w
                 source[x * channels + c] = history

@@ -319,3 +319,40 @@ def test_a_one_half_firefly_beside_a_light_is_clipped_to_its_unlit_neighbours():
         blended = blend(out, color, a, b, emission)
         assert blended[13, 11].max() < 10.0
         np.testing.assert_array_equal(blended[emission != 0], color[emission != 0])  # the light as it came
+
+
+def test_a_silent_half_tile_the_output_lit_goes_back_to_its_black_input(monkeypatch):
+    """A light has left the right of the frame: every sample of both halves is 0 there (the truth too), while
+    the left is lit (1, halves with sd 0.3). An output that leaks 0.05 into the first dark column of half tiles
+    adds 3.2 over each, 70 of the lit neighbours' one-hit values (their v / mean, 0.045): its samples could not
+    all have missed, and the column comes back as its input, 0, exactly. Without the rule the tiles' weights,
+    interpolated with the lit tiles', keep part of the leak; the lit side does not change."""
+    from service.stages import noise_blend as module
+
+    rng = np.random.default_rng(3)
+    truth = np.zeros((64, 64, 3), np.float32)
+    truth[:, :40] = 1.0
+    a, b, color = _halves(rng, truth, 0.3 * truth)
+    out = truth.copy()
+    out[:, 40:48] = 0.05
+    blended = noise_blend(out, color, a, b)
+    np.testing.assert_array_equal(blended[:, 40:], 0.0)
+    np.testing.assert_allclose(blended, noise_blend_reference(out, color, a, b), rtol=1e-5, atol=1e-6)
+    monkeypatch.setattr(module, "SILENT_EVIDENCE", np.inf)
+    without = noise_blend(out, color, a, b)
+    assert float(without[:, 40:48].mean()) > 0.01
+    np.testing.assert_array_equal(blended[:, :39], without[:, :39])  # beyond the ramp's pixel, nothing else moves
+
+
+def test_a_silent_half_tile_keeps_a_lift_its_samples_could_have_missed():
+    """The same frame with a leak of 0.002: 0.128 over each half tile, under 7 one-hit values (0.3), which all
+    of its samples could have missed by chance: the rule does not apply and the tiles' weights decide."""
+    rng = np.random.default_rng(3)
+    truth = np.zeros((64, 64, 3), np.float32)
+    truth[:, :40] = 1.0
+    a, b, color = _halves(rng, truth, 0.3 * truth)
+    out = truth.copy()
+    out[:, 40:48] = 0.002
+    blended = noise_blend(out, color, a, b)
+    assert float(blended[:, 40:48].min()) > 0.0
+    np.testing.assert_allclose(blended, noise_blend_reference(out, color, a, b), rtol=1e-5, atol=1e-6)
