@@ -374,19 +374,6 @@ def _pixel_errors(out, color, a, b, y, x):  # pragma: no cover - jitted
     return err, var
 
 
-@numba.njit(inline="always", cache=True, error_model="numpy")
-def _channel_means(out, color, e, has_emission, y, x):  # pragma: no cover - jitted
-    """(the mean over channels of out less color, that of color less e (with `has_emission`), at least 0) of
-    pixel (y, x), float64."""
-    channels = out.shape[2]
-    excess, level = 0.0, 0.0
-    for c in range(channels):
-        col = np.float64(color[y, x, c])
-        excess += np.float64(out[y, x, c]) - col
-        level += col - e[y, x, c] if has_emission else col
-    return excess / channels, max(level / channels, 0.0)
-
-
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_floor, use, use_tile, has_choice,
                  tile, eps, floor, sums):  # pragma: no cover - jitted
@@ -400,22 +387,31 @@ def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_fl
     use_tile) takes the accumulated input. tile: side in pixels. A task per row of tiles."""
     height, width, channels = out.shape
     for ty in numba.prange(sums.shape[1]):
+        acc = np.zeros((SUM_ROWS, sums.shape[2]))  # this row of tiles' sums
         for y in range(ty * tile, min((ty + 1) * tile, height)):
             for x in range(width):
+                tx = x // tile
                 w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor) / channels
-                err, var = _pixel_errors(out, color, a, b, y, x)
+                err, var, excess, lit = 0.0, 0.0, 0.0, 0.0
+                for c in range(channels):
+                    o, col = np.float64(out[y, x, c]), np.float64(color[y, x, c])
+                    h = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
+                    err += (o - col) * (o - col) - h * h
+                    var += h * h
+                    excess += o - col
+                    lit += col - e[y, x, c] if has_emission else col
                 taken, least = var, var
                 if has_choice and use[y // use_tile, x // use_tile]:
                     taken, least = input_error[y, x] * channels, input_floor[y, x] * channels
-                sums[0, ty, x // tile] += w * err
-                sums[1, ty, x // tile] += w * taken
-                sums[2, ty, x // tile] += 1.0 if var > 0 else 0.0
-                sums[3, ty, x // tile] += w * least
-                excess, lit = _channel_means(out, color, e, has_emission, y, x)
-                sums[4, ty, x // tile] += excess
+                acc[0, tx] += w * err
+                acc[1, tx] += w * taken
+                acc[3, tx] += w * least
+                acc[4, tx] += excess / channels
                 if var > 0:
-                    sums[5, ty, x // tile] += lit
-                    sums[6, ty, x // tile] += var / channels
+                    acc[2, tx] += 1.0
+                    acc[5, tx] += max(lit / channels, 0.0)
+                    acc[6, tx] += var / channels
+        sums[:, ty] += acc
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
