@@ -35,17 +35,13 @@ tile's weight was diluted by its neighbours' 1 over half of its pixels: a mirror
 lifted by bmfr, stayed 1.16x worse than the input in its tile (hard case `bulb`), and a dark band
 crossregression blurred, 1.13x (`glints`). It needs NOISY_SHARE of its pixels to have halves
 that differ: where both halves of most pixels saw nothing (a dim region at 1 spp per half), Ec is about 0
-because the samples are few, not because the input is right. A silent half tile, none of whose pixels has
-halves that differ (all its samples agree, mostly at 0: a region a light has just left), goes back to its
-input c over all its pixels (weight 0, no ramp inward, and not the accumulated input) where the output adds
-more over it than SILENT_EVIDENCE one-hit values: were the output right, its samples would all have missed
-with a chance of about e^-(added / one-hit value). The one-hit value (a pixel's mean from one nonzero sample)
-is the least variance-to-mean ratio v / c of the 3x3 half tiles around that have NOISY_SHARE noisy pixels
-(for a 0/1 signal of n samples it is 1 / n; where samples rarely miss it is smaller, so the rule is bolder
-there). On the 8-frame `fireflies` benchmark, where a light leaves a region in frame 7, svgf's worst tiles
-there went from 122-126x the input's error to 52x and kpn's from 41x to 37x; a lift below the evidence stays
-(docs/benchmarks.md); relL2 on `fireflies` fell by 0.2-1.4% for the temporal pipelines, and nothing else in
-`make bench` or the hard cases moved. The result is c' + t (o - c'), with c' the
+because the samples are few, not because the input is right, unless the dark pixels there (both halves 0)
+refute the output (service/stages/dark_tiles.py: far more of them than the output's light leaves a chance
+for, judged by the one-hit value of the noisy half tiles around): then it overrides all the same. A light that
+left a region, or a filter that smeared light into a hard shadow, is caught so (`make bench`: relL2 on
+`fireflies` up to 3.9% lower, nothing else moved; docs/benchmarks.md). Where all of a half tile's pixels are
+dark (none has halves that differ) it goes back to its input c over all its pixels (weight 0, no ramp
+inward, and not the accumulated input). The result is c' + t (o - c'), with c' the
 input with its fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in
 one half only, while a light seen directly is in both): the part of the input the blend takes back should
 not bring them with it. Lights (pixels with emission) are left out of their neighbours' ranges: beside a
@@ -95,6 +91,7 @@ import numpy as np
 
 from service.kernels.fill import filled
 from service.metrics import REL_L2_EPS
+from service.stages.dark_tiles import one_hit_values, refuted, refuted_reference
 from service.stages.error_estimate import interpolate_tiles, interpolation_matrix, tile_counts, tile_sums
 from service.stages.input_history import CONFIDENCE, Accumulated, InputHistory, accumulate
 from service.stages.outliers import FIREFLY_K, clamp_fireflies_reference
@@ -108,12 +105,9 @@ WORSE = 0.5  # a half tile whose weight is below this (its output estimated wors
 NOISY_SHARE = 0.25  # ... where at least this share of its pixels have halves that differ (module docstring)
 HALF_RAMP = 1  # ... over its own pixels, eased over the (2 r + 1)^2 box of the pixels around (module docstring)
 TILE_MEMORY = 0.3  # a temporal pipeline's tile sums: this share of the previous frames' average (module docstring)
-# A silent half tile (no pixel's halves differ) goes back to its input where the output adds more than this many
-# of its neighbourhood's one-hit values over it: e^-7 ~ 1e-3, the chance that its samples all missed (docstring)
-SILENT_EVIDENCE = 7.0
 # Rows of the tile sums: weighted e, the input's weighted error, pixels whose halves differ, the weighted floor
-# of the input's error, the output less the input, and over the pixels whose halves differ the input and v
-SUM_ROWS = 7
+# of the input's error, and over the pixels whose halves differ the input (at least 0) and v
+SUM_ROWS = 6
 
 
 def blend_weights(error_out: np.ndarray, error_in: np.ndarray) -> np.ndarray:
@@ -180,9 +174,11 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     fine, coarse = remembered_sums(history, fine, coarse, choice is not None)
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3])).astype(np.float32)
     pixels = tile_counts(height, width, half)
-    silent = silent_half_tiles(fine, pixels)
-    t_half = np.where(silent, 0.0, half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2],
-                                                     pixels)).astype(np.float32)
+    one_hit = one_hit_values(fine[2], fine[4], fine[5], pixels, NOISY_SHARE)
+    refute = refuted(*arrays[:4], arrays[4] if has_emission else None, one_hit, fine[2] < NOISY_SHARE * pixels, half)
+    silent = refute & (fine[2] == 0)
+    t_half = np.where(silent, 0.0, half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2], pixels,
+                                                     refute)).astype(np.float32)
     result = np.empty_like(arrays[0])
     _blend_kernel(*arrays[:4], e, has_emission, clipped, accumulated, use, tile, choice is not None, t,
                   *_interpolation(height, tile), *_interpolation(width, tile), t_half, silent, half, HALF_RAMP,
@@ -230,26 +226,14 @@ def takes_accumulated(stats: np.ndarray) -> np.ndarray:
     return mean + CONFIDENCE * spread < 0
 
 
-def half_tile_weights(error_out: np.ndarray, error_in: np.ndarray, noisy: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+def half_tile_weights(error_out: np.ndarray, error_in: np.ndarray, noisy: np.ndarray, pixels: np.ndarray,
+                      refute: np.ndarray) -> np.ndarray:
     """Per half tile the weight that overrides the tile's (module docstring): `blend_weights`' where it is below
-    WORSE and at least NOISY_SHARE of the half tile's `pixels` are `noisy` (their halves differ), else 1.
-    All (th', tw') float64 (`pixels` int64); returns float64 in [0, 1]."""
+    WORSE and at least NOISY_SHARE of the half tile's `pixels` are `noisy` (their halves differ) or its dark
+    pixels `refute` the output (`dark_tiles`), else 1. All (th', tw') float64 (`pixels` int64, `refute` bool);
+    returns float64 in [0, 1]."""
     weights = blend_weights(error_out, error_in)
-    return np.where((weights < WORSE) & (noisy >= NOISY_SHARE * pixels), weights, 1.0)
-
-
-def silent_half_tiles(fine: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """Per half tile whether it goes back to its input as silent (module docstring): none of its pixels has
-    halves that differ (row 2 of `fine`, the (SUM_ROWS, th', tw') float64 half-tile sums, is 0) and the output
-    adds more over it (row 4, the sum of its channel means less the input's) than SILENT_EVIDENCE times the
-    one-hit value of the 3x3 half tiles around it: the least of their variance-to-mean ratios (rows 6 / 5)
-    among those with at least NOISY_SHARE of their `pixels` ((th', tw') int64) noisy. Returns (th', tw') bool."""
-    noisy = fine[2] >= NOISY_SHARE * np.maximum(pixels, 1)
-    ratio = np.where(noisy & (fine[5] > 0), fine[6] / np.where(fine[5] > 0, fine[5], 1.0), np.inf)
-    padded = np.pad(ratio, 1, constant_values=np.inf)
-    th, tw = ratio.shape
-    one_hit = np.min([padded[dy:dy + th, dx:dx + tw] for dy in range(3) for dx in range(3)], axis=0)
-    return (fine[2] == 0) & (fine[4] > SILENT_EVIDENCE * one_hit)
+    return np.where((weights < WORSE) & ((noisy >= NOISY_SHARE * pixels) | refute), weights, 1.0)
 
 
 def half_tile(tile: int) -> int:
@@ -301,8 +285,8 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     half = half_tile(tile)
     noisy_pixels = (variance > 0).any(axis=-1).astype(np.float64)
 
-    excess, lit = (o - c).mean(axis=-1), np.maximum(c.mean(axis=-1), 0.0) * noisy_pixels
-    rows = (pixel_out, pixel_in, noisy_pixels, least, excess, lit, variance.mean(axis=-1))
+    lit = np.maximum(c.mean(axis=-1), 0.0) * noisy_pixels
+    rows = (pixel_out, pixel_in, noisy_pixels, least, lit, variance.mean(axis=-1))
 
     def sums(side: int) -> np.ndarray:  # (SUM_ROWS, th, tw), as `_tile_kernel`'s
         return np.stack([tile_sums(x, side)[0] for x in rows])
@@ -310,8 +294,10 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     fine, coarse = remembered_sums(history, sums(half), sums(tile), choice is not None)
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3]))
     pixels = tile_sums(noisy_pixels, half)[1]
-    silent = silent_half_tiles(fine, pixels)
-    t_half = np.where(silent, 0.0, half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2], pixels))
+    one_hit = one_hit_values(fine[2], fine[4], fine[5], pixels, NOISY_SHARE)
+    refute = refuted_reference(out, color, color_a, color_b, emission, one_hit, fine[2] < NOISY_SHARE * pixels, half)
+    silent = refute & (fine[2] == 0)
+    t_half = np.where(silent, 0.0, half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2], pixels, refute))
     own = np.repeat(np.repeat(t_half, half, axis=0), half, axis=1)[:height, :width, None].astype(np.float32)
     t = np.minimum(interpolate_tiles(t, tile, height, width), box_mean(own, HALF_RAMP)[..., 0])[..., None]
     quiet = np.repeat(np.repeat(silent, half, axis=0), half, axis=1)[:height, :width, None]
@@ -378,10 +364,10 @@ def _pixel_errors(out, color, a, b, y, x):  # pragma: no cover - jitted
 def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_floor, use, use_tile, has_choice,
                  tile, eps, floor, sums):  # pragma: no cover - jitted
     """sums (SUM_ROWS, th, tw): per tile the weighted sums of e and of the input's error, the count of pixels
-    whose halves differ, the weighted sum of the input error's floor, the sum of the output's channel means less
-    the input's, and over the pixels whose halves differ the sums of the input's channel means (at least 0) and
-    of v's, in float64 (radiance less e); weights `_pixel_weight` (eps =
-    REL_L2_EPS, radiance^2; floor PROXY_FLOOR; level (H, W) float32, the 3x3 box mean of the colour less e).
+    whose halves differ, the weighted sum of the input error's floor, and over the pixels whose halves differ
+    the sums of the input's channel means (at least 0) and of v's, in float64 (radiance less e); weights
+    `_pixel_weight` (eps = REL_L2_EPS, radiance^2; floor PROXY_FLOOR; level (H, W) float32, the 3x3 box mean
+    of the colour less e).
     The input's error and its floor are v, or, with `has_choice`, input_error and input_floor ((H, W) float64,
     the accumulated input's and a^2 v, the channels' means) where `use` ((th', tw') bool, per tile of side
     use_tile) takes the accumulated input. tile: side in pixels. A task per row of tiles."""
@@ -392,13 +378,12 @@ def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_fl
             for x in range(width):
                 tx = x // tile
                 w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor) / channels
-                err, var, excess, lit = 0.0, 0.0, 0.0, 0.0
+                err, var, lit = 0.0, 0.0, 0.0
                 for c in range(channels):
                     o, col = np.float64(out[y, x, c]), np.float64(color[y, x, c])
                     h = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
                     err += (o - col) * (o - col) - h * h
                     var += h * h
-                    excess += o - col
                     lit += col - e[y, x, c] if has_emission else col
                 taken, least = var, var
                 if has_choice and use[y // use_tile, x // use_tile]:
@@ -406,11 +391,10 @@ def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_fl
                 acc[0, tx] += w * err
                 acc[1, tx] += w * taken
                 acc[3, tx] += w * least
-                acc[4, tx] += excess / channels
                 if var > 0:
                     acc[2, tx] += 1.0
-                    acc[5, tx] += max(lit / channels, 0.0)
-                    acc[6, tx] += var / channels
+                    acc[4, tx] += max(lit / channels, 0.0)
+                    acc[5, tx] += var / channels
         sums[:, ty] += acc
 
 

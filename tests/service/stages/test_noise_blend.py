@@ -327,7 +327,7 @@ def test_a_silent_half_tile_the_output_lit_goes_back_to_its_black_input(monkeypa
     adds 3.2 over each, 70 of the lit neighbours' one-hit values (their v / mean, 0.045): its samples could not
     all have missed, and the column comes back as its input, 0, exactly. Without the rule the tiles' weights,
     interpolated with the lit tiles', keep part of the leak; the lit side does not change."""
-    from service.stages import noise_blend as module
+    from service.stages import dark_tiles
 
     rng = np.random.default_rng(3)
     truth = np.zeros((64, 64, 3), np.float32)
@@ -338,7 +338,7 @@ def test_a_silent_half_tile_the_output_lit_goes_back_to_its_black_input(monkeypa
     blended = noise_blend(out, color, a, b)
     np.testing.assert_array_equal(blended[:, 40:], 0.0)
     np.testing.assert_allclose(blended, noise_blend_reference(out, color, a, b), rtol=1e-5, atol=1e-6)
-    monkeypatch.setattr(module, "SILENT_EVIDENCE", np.inf)
+    monkeypatch.setattr(dark_tiles, "EVIDENCE", np.inf)
     without = noise_blend(out, color, a, b)
     assert float(without[:, 40:48].mean()) > 0.01
     np.testing.assert_array_equal(blended[:, :39], without[:, :39])  # beyond the ramp's pixel, nothing else moves
@@ -356,3 +356,27 @@ def test_a_silent_half_tile_keeps_a_lift_its_samples_could_have_missed():
     blended = noise_blend(out, color, a, b)
     assert float(blended[:, 40:48].min()) > 0.0
     np.testing.assert_allclose(blended, noise_blend_reference(out, color, a, b), rtol=1e-5, atol=1e-6)
+
+
+def test_a_hard_shadow_the_output_smeared_goes_back_despite_a_few_noisy_pixels(monkeypatch):
+    """A lit frame (1, halves with sd 0.3) with an 8x8 shadow whose samples all missed but for 4 one-half hits
+    (4 of 64 pixels noisy: under NOISY_SHARE, which alone would leave the tiles' weights to decide); the output
+    smeared the light into it (0.5). Its 60 dark pixels refute that (dark_tiles), so the half tile's own weight
+    overrides, and the shadow comes back far darker than without the test."""
+    from service.stages import dark_tiles
+
+    rng = np.random.default_rng(8)
+    truth = np.ones((48, 48, 3), np.float32)
+    truth[24:32, 24:32] = 0.0
+    a, b, color = _halves(rng, truth, 0.3 * truth)
+    for i, (y, x) in enumerate([(25, 26), (27, 30), (29, 25), (31, 28)]):
+        (a if i % 2 else b)[y, x] = 0.4
+    color = ((a + b) / 2).astype(np.float32)
+    out = truth.copy()
+    out[24:32, 24:32] = 0.5
+    blended = noise_blend(out, color, a, b)
+    np.testing.assert_allclose(blended, noise_blend_reference(out, color, a, b), rtol=1e-5, atol=1e-6)
+    monkeypatch.setattr(dark_tiles, "EVIDENCE", np.inf)
+    without = noise_blend(out, color, a, b)
+    shadow = (slice(25, 31), slice(25, 31))
+    assert float(blended[shadow].mean()) < 0.05 < 0.2 < float(without[shadow].mean())
