@@ -11,12 +11,18 @@ all missed, far more of them than the output's light allows. A dim region whose 
 of tests/service/stages/test_noise_blend.py, one sample per half hitting with a chance of 0.01) keeps about
 the count of dark pixels its light predicts, and passes.
 
-The one-hit value is estimated as the least variance-to-mean ratio v / c (v = ((A - B) / 2)^2, the pixel
-estimate's variance) of the 3x3 half tiles around whose share of noisy pixels (halves that differ) is at
-least the blend's NOISY_SHARE: for n samples that each hit (value M) or miss, v / c = M (1 - q) / n with q
-the chance of a hit, which is M / n where hits are rare and less where samples rarely miss. A smaller h
-refutes more readily; where no neighbour qualifies nothing is refuted. Pixels whose halves agree on a value
-other than 0 (exact pixels) take no part. Tested only on the half tiles the blend asks about (`candidates`).
+The one-hit value is estimated from variance-to-mean ratios v / c (v = ((A - B) / 2)^2, the pixel estimate's
+variance): for n samples that each hit (value M) or miss, v / c = M (1 - q) / n with q the chance of a hit,
+which is M / n where hits are rare and less where samples rarely miss, so that a smaller h refutes more
+readily. It is the least ratio of the 3x3 half tiles around whose share of noisy pixels (halves that differ)
+is at least the blend's NOISY_SHARE, or the half tile's own ratio over its noisy pixels where that is larger:
+a dim room's few bright sky samples (a one-hit value of ~25 in tests/service/stages/test_noise_blend.py,
+beside a lit floor of ratio 0.2) must not make its many dark pixels refute an output that is right. Where no
+neighbour qualifies nothing is refuted. An all-dark half tile beside a region whose samples rarely miss is
+judged by that region's ratio, the boldest case: its light must add up to 7 of those one-hit values. A pixel
+is dark where both its halves, less emission, are within DARK_FRACTION of one hit of 0 (a renderer's shadow
+holds values of 1e-15); pixels whose halves agree on another value (exact pixels) take no part. Tested only on
+the half tiles the blend asks about (`candidates`).
 
 numba kernel `_dark_kernel`; `refuted_reference` is the numpy twin.
 """
@@ -29,33 +35,42 @@ import numba
 import numpy as np
 
 EVIDENCE = 7.0  # refuted where the output's light leaves the dark pixels a chance below exp(-7) ~ 1e-3
+DARK_FRACTION = 1e-3  # a pixel is dark where both halves (less emission) are within this share of one hit of 0
 
 
 def one_hit_values(noisy: np.ndarray, lit: np.ndarray, variance: np.ndarray, pixels: np.ndarray,
                    share: float) -> np.ndarray:
-    """Per half tile the one-hit value (module docstring), inf where none of the 3x3 half tiles around
-    qualifies. noisy: count of pixels whose halves differ; lit, variance: sums over those pixels of the
-    channel means of the input (at least 0) and of v; pixels: the half tiles' pixel counts; all (th', tw')
-    float64 (pixels int64); share: the least share of noisy pixels a neighbour needs. Returns (th', tw')
+    """Per half tile the one-hit value (module docstring): the least variance-to-mean ratio of the 3x3 half
+    tiles around that qualify, or the half tile's own where it has noisy pixels and that is larger; inf where
+    no neighbour qualifies. noisy: count of pixels whose halves differ; lit, variance: sums over those pixels
+    of the channel means of the input (at least 0) and of v; pixels: the half tiles' pixel counts; all (th',
+    tw') float64 (pixels int64); share: the least share of noisy pixels a neighbour needs. Returns (th', tw')
     float64, radiance."""
+    ratio = variance / np.where(lit > 0, lit, 1.0)
     qualifies = (noisy >= share * np.maximum(pixels, 1)) & (lit > 0)
-    ratio = np.where(qualifies, variance / np.where(lit > 0, lit, 1.0), np.inf)
-    padded = np.pad(ratio, 1, constant_values=np.inf)
+    padded = np.pad(np.where(qualifies, ratio, np.inf), 1, constant_values=np.inf)
     th, tw = ratio.shape
-    return np.min([padded[dy:dy + th, dx:dx + tw] for dy in range(3) for dx in range(3)], axis=0)
+    around = np.min([padded[dy:dy + th, dx:dx + tw] for dy in range(3) for dx in range(3)], axis=0)
+    return np.maximum(around, np.where((noisy > 0) & (lit > 0), ratio, 0.0))
 
 
-def refuted(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
-            emission: np.ndarray | None, one_hit: np.ndarray, candidates: np.ndarray, half: int) -> np.ndarray:
-    """Per half tile of side `half` whether its dark pixels refute `out` (module docstring). out, color and
-    its halves, emission (or None): (H, W, C) float32, C-contiguous, linear radiance; one_hit, candidates:
+def refuted(out: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, emission: np.ndarray | None,
+            one_hit: np.ndarray, candidates: np.ndarray, half: int) -> np.ndarray:
+    """Per half tile of side `half` whether its dark pixels refute `out` (module docstring). out, the input's
+    halves, emission (or None): (H, W, C) float32, C-contiguous, linear radiance; one_hit, candidates:
     (th', tw') float64 and bool, the half tiles tested. Returns (th', tw') bool."""
     chance = np.ones(one_hit.shape, np.float64)
     hit = np.where(candidates & np.isfinite(one_hit), one_hit, np.inf)
-    e = color if emission is None else emission  # not read without emission
-    _dark_kernel(out, color, color_a, color_b, e, emission is not None, hit, half, chance)
+    e = out if emission is None else emission  # not read without emission
+    _dark_kernel(out, color_a, color_b, e, emission is not None, hit, half, chance)
     with np.errstate(divide="ignore"):  # log 0 = -inf: refuted
         return np.log(chance) < -EVIDENCE
+
+
+def dark_levels(one_hit: np.ndarray, refute: np.ndarray) -> np.ndarray:
+    """Per half tile the level within which a pixel is dark (`is_dark`) where `refute` ((th', tw') bool) says
+    its dark pixels refute the output, -1 elsewhere: (th', tw') float64, radiance."""
+    return np.where(refute, DARK_FRACTION * one_hit, -1.0)
 
 
 def lower_tail(dark_chances: np.ndarray, lit: int) -> float:
@@ -69,17 +84,15 @@ def lower_tail(dark_chances: np.ndarray, lit: int) -> float:
     return float(tail.sum())
 
 
-def refuted_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
-                      emission: np.ndarray | None, one_hit: np.ndarray, candidates: np.ndarray,
-                      half: int) -> np.ndarray:
+def refuted_reference(out: np.ndarray, color_a: np.ndarray, color_b: np.ndarray, emission: np.ndarray | None,
+                      one_hit: np.ndarray, candidates: np.ndarray, half: int) -> np.ndarray:
     """Plain-numpy twin of `refuted`."""
     e = np.zeros(out.shape, np.float64) if emission is None else emission.astype(np.float64)
-    o, c, a, b = (x.astype(np.float64) - e for x in (out, color, color_a, color_b))
-    agree = (color_a == color_b).all(axis=-1)
-    dark = agree & (c == 0).all(axis=-1)
-    taking = ~agree | dark
     hit = np.where(candidates & np.isfinite(one_hit), one_hit, np.inf)
-    per_pixel = np.repeat(np.repeat(hit, half, axis=0), half, axis=1)[:o.shape[0], :o.shape[1]]
+    per_pixel = np.repeat(np.repeat(hit, half, axis=0), half, axis=1)[:out.shape[0], :out.shape[1]]
+    o = out.astype(np.float64) - e
+    dark = dark_mask_reference(color_a, color_b, emission, DARK_FRACTION * per_pixel)
+    taking = ~(color_a == color_b).all(axis=-1) | dark
     dark_chance = np.exp(-np.maximum(o.mean(axis=-1), 0.0) / per_pixel)
     result = np.zeros(hit.shape, np.bool_)
     for ty, tx in zip(*np.nonzero(np.isfinite(hit)), strict=True):
@@ -92,23 +105,41 @@ def refuted_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, c
     return result
 
 
+def dark_mask_reference(color_a: np.ndarray, color_b: np.ndarray, emission: np.ndarray | None,
+                        level: np.ndarray) -> np.ndarray:
+    """(H, W) bool: `is_dark` per pixel, level (H, W) float64; numpy."""
+    e = 0.0 if emission is None else emission.astype(np.float64)
+    near = (np.abs(color_a.astype(np.float64) - e) <= level[..., None]) & (np.abs(color_b.astype(np.float64) - e)
+                                                                          <= level[..., None])
+    return near.all(axis=-1)
+
+
 @numba.njit(inline="always", cache=True, error_model="numpy")
-def _pixel(out, color, a, b, e, has_emission, y, x):  # pragma: no cover - jitted
-    """(kind, o) of pixel (y, x): kind 0 exact (halves agree, not 0 less e: takes no part), 1 dark (both
-    halves 0 less e), 2 noisy (halves differ); o the output's channel mean less e, at least 0 (float64)."""
+def is_dark(a, b, e, has_emission, y, x, level):  # pragma: no cover - jitted
+    """Whether both halves a, b of pixel (y, x), less e with `has_emission`, are within `level` of 0 in every
+    channel (float64 arithmetic)."""
+    dark = True
+    for c in range(a.shape[2]):
+        ea = np.float64(e[y, x, c]) if has_emission else 0.0
+        dark = dark and abs(np.float64(a[y, x, c]) - ea) <= level and abs(np.float64(b[y, x, c]) - ea) <= level
+    return dark
+
+
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _pixel(out, a, b, e, has_emission, y, x, level):  # pragma: no cover - jitted
+    """(kind, o) of pixel (y, x): kind 1 dark (`is_dark` within `level`), 0 exact (halves agree, not dark:
+    takes no part), 2 noisy (halves differ); o the output's channel mean less e, at least 0 (float64)."""
     channels = out.shape[2]
-    agree, zero, mean_out = True, True, 0.0
+    agree, mean_out = True, 0.0
     for c in range(channels):
         agree = agree and a[y, x, c] == b[y, x, c]
-        level = np.float64(color[y, x, c]) - e[y, x, c] if has_emission else np.float64(color[y, x, c])
-        zero = zero and level == 0
         mean_out += np.float64(out[y, x, c]) - e[y, x, c] if has_emission else np.float64(out[y, x, c])
-    kind = (1 if zero else 0) if agree else 2
+    kind = 1 if is_dark(a, b, e, has_emission, y, x, level) else (0 if agree else 2)
     return kind, max(mean_out / channels, 0.0)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _dark_kernel(out, color, a, b, e, has_emission, hit, half, chance):  # pragma: no cover - jitted
+def _dark_kernel(out, a, b, e, has_emission, hit, half, chance):  # pragma: no cover - jitted
     """chance (th', tw') float64: per half tile with a finite `hit` (its one-hit value) and a dark pixel,
     P(K <= k) (module docstring, `lower_tail`), else left as it is. A task per row of half tiles: per tile one
     pass counting, one for the dynamic programme."""
@@ -122,7 +153,7 @@ def _dark_kernel(out, color, a, b, e, has_emission, hit, half, chance):  # pragm
             dark, lit = 0, 0
             for y in range(y0, y1):
                 for x in range(x0, x1):
-                    kind = _pixel(out, color, a, b, e, has_emission, y, x)[0]
+                    kind = _pixel(out, a, b, e, has_emission, y, x, DARK_FRACTION * h)[0]
                     dark += kind == 1
                     lit += kind == 2
             if dark == 0:
@@ -131,7 +162,7 @@ def _dark_kernel(out, color, a, b, e, has_emission, hit, half, chance):  # pragm
             tail[0] = 1.0
             for y in range(y0, y1):
                 for x in range(x0, x1):
-                    kind, o = _pixel(out, color, a, b, e, has_emission, y, x)
+                    kind, o = _pixel(out, a, b, e, has_emission, y, x, DARK_FRACTION * h)
                     if kind == 0:
                         continue
                     p = math.exp(-o / h)

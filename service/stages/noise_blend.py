@@ -35,13 +35,13 @@ tile's weight was diluted by its neighbours' 1 over half of its pixels: a mirror
 lifted by bmfr, stayed 1.16x worse than the input in its tile (hard case `bulb`), and a dark band
 crossregression blurred, 1.13x (`glints`). It needs NOISY_SHARE of its pixels to have halves
 that differ: where both halves of most pixels saw nothing (a dim region at 1 spp per half), Ec is about 0
-because the samples are few, not because the input is right, unless the dark pixels there (both halves 0)
-refute the output (service/stages/dark_tiles.py: far more of them than the output's light leaves a chance
-for, judged by the one-hit value of the noisy half tiles around): then it overrides all the same. A light that
+because the samples are few, not because the input is right, unless the dark pixels there (both halves
+about 0) refute the output (service/stages/dark_tiles.py: far more of them than the output's light leaves a
+chance for, judged by the one-hit value of the noisy half tiles around): then it overrides all the same, and
+its dark pixels take their input (weight 0, no ramp inward, and not the accumulated input). A light that
 left a region, or a filter that smeared light into a hard shadow, is caught so (`make bench`: relL2 on
-`fireflies` up to 3.9% lower, nothing else moved; docs/benchmarks.md). Where all of a half tile's pixels are
-dark (none has halves that differ) it goes back to its input c over all its pixels (weight 0, no ramp
-inward, and not the accumulated input). The result is c' + t (o - c'), with c' the
+`fireflies` up to 3.1% lower, nothing else moved; docs/benchmarks.md). The test also runs on half tiles
+whose weight is below WORSE. The result is c' + t (o - c'), with c' the
 input with its fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in
 one half only, while a light seen directly is in both): the part of the input the blend takes back should
 not bring them with it. Lights (pixels with emission) are left out of their neighbours' ranges: beside a
@@ -91,7 +91,14 @@ import numpy as np
 
 from service.kernels.fill import filled
 from service.metrics import REL_L2_EPS
-from service.stages.dark_tiles import one_hit_values, refuted, refuted_reference
+from service.stages.dark_tiles import (
+    dark_levels,
+    dark_mask_reference,
+    is_dark,
+    one_hit_values,
+    refuted,
+    refuted_reference,
+)
 from service.stages.error_estimate import interpolate_tiles, interpolation_matrix, tile_counts, tile_sums
 from service.stages.input_history import CONFIDENCE, Accumulated, InputHistory, accumulate
 from service.stages.outliers import FIREFLY_K, clamp_fireflies_reference
@@ -174,15 +181,15 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     fine, coarse = remembered_sums(history, fine, coarse, choice is not None)
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3])).astype(np.float32)
     pixels = tile_counts(height, width, half)
+    weights = blend_weights(fine[0], np.maximum(fine[1], fine[3]))
     one_hit = one_hit_values(fine[2], fine[4], fine[5], pixels, NOISY_SHARE)
-    refute = refuted(*arrays[:4], arrays[4] if has_emission else None, one_hit, fine[2] < NOISY_SHARE * pixels, half)
-    silent = refute & (fine[2] == 0)
-    t_half = np.where(silent, 0.0, half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2], pixels,
-                                                     refute)).astype(np.float32)
+    candidates = (fine[2] < NOISY_SHARE * pixels) | (weights < WORSE)
+    refute = refuted(arrays[0], arrays[2], arrays[3], arrays[4] if has_emission else None, one_hit, candidates, half)
+    t_half = half_tile_weights(weights, fine[2], pixels, refute).astype(np.float32)
     result = np.empty_like(arrays[0])
     _blend_kernel(*arrays[:4], e, has_emission, clipped, accumulated, use, tile, choice is not None, t,
-                  *_interpolation(height, tile), *_interpolation(width, tile), t_half, silent, half, HALF_RAMP,
-                  result)
+                  *_interpolation(height, tile), *_interpolation(width, tile), t_half, dark_levels(one_hit, refute),
+                  half, HALF_RAMP, result)
     return result
 
 
@@ -226,13 +233,11 @@ def takes_accumulated(stats: np.ndarray) -> np.ndarray:
     return mean + CONFIDENCE * spread < 0
 
 
-def half_tile_weights(error_out: np.ndarray, error_in: np.ndarray, noisy: np.ndarray, pixels: np.ndarray,
-                      refute: np.ndarray) -> np.ndarray:
-    """Per half tile the weight that overrides the tile's (module docstring): `blend_weights`' where it is below
-    WORSE and at least NOISY_SHARE of the half tile's `pixels` are `noisy` (their halves differ) or its dark
-    pixels `refute` the output (`dark_tiles`), else 1. All (th', tw') float64 (`pixels` int64, `refute` bool);
-    returns float64 in [0, 1]."""
-    weights = blend_weights(error_out, error_in)
+def half_tile_weights(weights: np.ndarray, noisy: np.ndarray, pixels: np.ndarray, refute: np.ndarray) -> np.ndarray:
+    """Per half tile the weight that overrides the tile's (module docstring): its `weights` (`blend_weights`')
+    where below WORSE and at least NOISY_SHARE of the half tile's `pixels` are `noisy` (their halves differ) or
+    its dark pixels `refute` the output (`dark_tiles`), else 1. All (th', tw') float64 (`pixels` int64,
+    `refute` bool); returns float64 in [0, 1]."""
     return np.where((weights < WORSE) & ((noisy >= NOISY_SHARE * pixels) | refute), weights, 1.0)
 
 
@@ -273,7 +278,7 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     clipped = np.where(moved, clipped, c.astype(np.float32))
     arrays = [np.asarray(x, np.float32) for x in (out, color, color_a, color_b)]
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, True)
-    taken = np.where(moved, e + clipped, color.astype(np.float64))
+    frame_input = taken = np.where(moved, e + clipped, color.astype(np.float64))
     least = pixel_in  # per pixel, the floor of the input's error
     if choice is not None:
         accumulated, input_error, floor = choice
@@ -294,15 +299,17 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     fine, coarse = remembered_sums(history, sums(half), sums(tile), choice is not None)
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3]))
     pixels = tile_sums(noisy_pixels, half)[1]
+    weights = blend_weights(fine[0], np.maximum(fine[1], fine[3]))
     one_hit = one_hit_values(fine[2], fine[4], fine[5], pixels, NOISY_SHARE)
-    refute = refuted_reference(out, color, color_a, color_b, emission, one_hit, fine[2] < NOISY_SHARE * pixels, half)
-    silent = refute & (fine[2] == 0)
-    t_half = np.where(silent, 0.0, half_tile_weights(fine[0], np.maximum(fine[1], fine[3]), fine[2], pixels, refute))
+    candidates = (fine[2] < NOISY_SHARE * pixels) | (weights < WORSE)
+    refute = refuted_reference(out, color_a, color_b, emission, one_hit, candidates, half)
+    t_half = half_tile_weights(weights, fine[2], pixels, refute)
     own = np.repeat(np.repeat(t_half, half, axis=0), half, axis=1)[:height, :width, None].astype(np.float32)
     t = np.minimum(interpolate_tiles(t, tile, height, width), box_mean(own, HALF_RAMP)[..., 0])[..., None]
-    quiet = np.repeat(np.repeat(silent, half, axis=0), half, axis=1)[:height, :width, None]
+    dark = np.repeat(np.repeat(dark_levels(one_hit, refute), half, axis=0), half, axis=1)[:height, :width]
+    quiet = ((dark >= 0) & dark_mask_reference(color_a, color_b, emission, dark))[..., None]
     t = np.where(quiet, 0.0, t)
-    taken = np.where(quiet, color.astype(np.float64), taken)
+    taken = np.where(quiet, frame_input, taken)
     t = np.where((e != 0).any(axis=-1, keepdims=True), 1.0, t)
     blended = np.clip((1.0 - t) * taken + t * out.astype(np.float64), -FLOAT32_MAX, FLOAT32_MAX)
     return np.where(out == color, color, blended).astype(np.float32)
@@ -476,15 +483,16 @@ def _clip_kernel(color, a, b, e, has_emission, k, clipped):  # pragma: no cover 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _blend_kernel(out, color, a, b, e, has_emission, clipped, accumulated, use, use_tile, has_choice, t,
-                  row0, row1, row_w, col0, col1, col_w, tf, silent, half, ramp, result):  # pragma: no cover - jitted
+                  row0, row1, row_w, col0, col1, col_w, tf, dark, half, ramp, result):  # pragma: no cover - jitted
     """result = c' + w (out - c'), w the smaller of t, bilinear between its tiles' centres (the `_interpolation`
     tables), and of tf's mean over the in-frame (2 ramp + 1)^2 box of pixels, each pixel taking its own half
     tile's; c' the emission e (with `has_emission`) plus `accumulated` ((H, W, C) float32) where `use` ((th',
     tw') bool per tile of side use_tile, with `has_choice`) takes it, else plus `clipped` ((H, W, C) float32,
     `_clip_kernel`'s) where the clip moved the value, else the colour. t: (th, tw) and tf: (th', tw') float32
     weights of the tiles and of the half tiles (side `half` pixels); row0, row1, row_w (H,) and col0, col1,
-    col_w (W,): `_interpolation`'s tables for t. A pixel of a `silent` ((th', tw') bool) half tile takes its
-    input, the colour (its tf, 0, holds over its pixels: no ramp inward). A task per row (float64, within
+    col_w (W,): `_interpolation`'s tables for t. A pixel dark within its half tile's `dark` level ((th', tw')
+    float64, -1: none; `dark_tiles.is_dark`) takes c' without the accumulated input, at weight 0 (no ramp
+    inward). A task per row (float64, within
     float32's range)."""
     height, width, channels = out.shape
     n = width * channels
@@ -512,7 +520,8 @@ def _blend_kernel(out, color, a, b, e, has_emission, clipped, accumulated, use, 
             for xx in range(x0, x1):
                 total += held[xx]
             w = min(w, np.float32(total / (x1 - x0)))
-            quiet = silent[y // half, x // half]
+            level = dark[y // half, x // half]
+            quiet = level >= 0 and is_dark(a, b, e, has_emission, y, x, level)
             if quiet:
                 w = np.float32(0)
             if has_emission:  # a pixel with emission keeps the output, as the noise clamp leaves it

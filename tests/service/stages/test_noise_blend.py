@@ -247,6 +247,7 @@ def test_pixels_darkened_to_zero_do_not_hide_a_row_lifted_beside_a_window(monkey
     to 0, while it lifted the row under the window to 200. With the stand-in level at least PROXY_FLOOR of
     the box mean the lifted row weighs as it should and the blend takes it back; without it each darkened
     pixel weighs 1 / REL_L2_EPS and the tile keeps the lifted row. The tile far from it keeps the output."""
+    from service.stages import dark_tiles
     from service.stages import noise_blend as module
 
     rng = np.random.default_rng(0)
@@ -265,8 +266,10 @@ def test_pixels_darkened_to_zero_do_not_hide_a_row_lifted_beside_a_window(monkey
     out[3, :16] = 200.0
     for y, x in hits:
         out[y, x] = 0.0
+    np.testing.assert_allclose(noise_blend(out, color, a, b), noise_blend_reference(out, color, a, b), rtol=1e-5,
+                               atol=1e-6)
+    monkeypatch.setattr(dark_tiles, "EVIDENCE", np.inf)  # the floor alone (the room's dark pixels refute the row too)
     blended = noise_blend(out, color, a, b)
-    np.testing.assert_allclose(blended, noise_blend_reference(out, color, a, b), rtol=1e-5, atol=1e-6)
     monkeypatch.setattr(module, "PROXY_FLOOR", 0.0)
     unfloored = noise_blend(out, color, a, b)
     row = (slice(3, 4), slice(0, 16))
@@ -380,3 +383,24 @@ def test_a_hard_shadow_the_output_smeared_goes_back_despite_a_few_noisy_pixels(m
     without = noise_blend(out, color, a, b)
     shadow = (slice(25, 31), slice(25, 31))
     assert float(blended[shadow].mean()) < 0.05 < 0.2 < float(without[shadow].mean())
+
+
+def test_a_dim_room_of_rare_bright_samples_beside_a_lit_floor_is_not_refuted(monkeypatch):
+    """A room whose light comes in rare bright samples (15% of pixels with one half of 50: the truth 3.75,
+    a one-hit value of 25) beside a floor lit at 10 (halves with sd 2, variance-to-mean ratio 0.2), the output
+    the truth. Judged by the floor's ratio, the room's 85% dark pixels would refute it (3.75 / 0.2 a pixel);
+    by the room's own ratio, which is larger, they do not: the blend is what it is without the test."""
+    from service.stages import dark_tiles
+
+    rng = np.random.default_rng(9)
+    truth = np.full((32, 32, 3), 10.0, np.float32)
+    truth[:16, :16] = 3.75
+    a, b, color = _halves(rng, truth, np.where(truth == 10.0, 2.0, 0.0))
+    a[:16, :16] = b[:16, :16] = 0.0
+    for i, (y, x) in enumerate((y, x) for y in range(16) for x in range(16) if rng.random() < 0.15):
+        (a if i % 2 else b)[y, x] = 50.0
+    color = ((a + b) / 2).astype(np.float32)
+    blended = noise_blend(truth, color, a, b)
+    np.testing.assert_allclose(blended, noise_blend_reference(truth, color, a, b), rtol=1e-5, atol=1e-6)
+    monkeypatch.setattr(dark_tiles, "EVIDENCE", np.inf)
+    np.testing.assert_array_equal(blended, noise_blend(truth, color, a, b))
