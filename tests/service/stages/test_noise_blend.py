@@ -324,7 +324,7 @@ def test_a_one_half_firefly_beside_a_light_is_clipped_to_its_unlit_neighbours():
         np.testing.assert_array_equal(blended[emission != 0], color[emission != 0])  # the light as it came
 
 
-def test_a_silent_half_tile_the_output_lit_goes_back_to_its_black_input(monkeypatch):
+def test_an_all_dark_half_tile_the_output_lit_goes_back_to_its_black_input(monkeypatch):
     """A light has left the right of the frame: every sample of both halves is 0 there (the truth too), while
     the left is lit (1, halves with sd 0.3). An output that leaks 0.05 into the first dark column of half tiles
     adds 3.2 over each, 70 of the lit neighbours' one-hit values (their v / mean, 0.045): its samples could not
@@ -347,7 +347,7 @@ def test_a_silent_half_tile_the_output_lit_goes_back_to_its_black_input(monkeypa
     np.testing.assert_array_equal(blended[:, :39], without[:, :39])  # beyond the ramp's pixel, nothing else moves
 
 
-def test_a_silent_half_tile_keeps_a_lift_its_samples_could_have_missed():
+def test_an_all_dark_half_tile_keeps_a_lift_its_samples_could_have_missed():
     """The same frame with a leak of 0.002: 0.128 over each half tile, under 7 one-hit values (0.3), which all
     of its samples could have missed by chance: the rule does not apply and the tiles' weights decide."""
     rng = np.random.default_rng(3)
