@@ -324,6 +324,17 @@ def test_a_one_half_firefly_beside_a_light_is_clipped_to_its_unlit_neighbours():
         np.testing.assert_array_equal(blended[emission != 0], color[emission != 0])  # the light as it came
 
 
+def _light_left(leak):
+    """A 64x64 frame lit (1, halves with sd 0.3) left of column 40, every sample 0 right of it, and an output
+    that is the truth but for `leak` in columns 40-47. Returns (out, color, colorA, colorB)."""
+    truth = np.zeros((64, 64, 3), np.float32)
+    truth[:, :40] = 1.0
+    a, b, color = _halves(np.random.default_rng(3), truth, 0.3 * truth)
+    out = truth.copy()
+    out[:, 40:48] = leak
+    return out, color, a, b
+
+
 def test_an_all_dark_half_tile_the_output_lit_goes_back_to_its_black_input(monkeypatch):
     """A light has left the right of the frame: every sample of both halves is 0 there (the truth too), while
     the left is lit (1, halves with sd 0.3). An output that leaks 0.05 into the first dark column of half tiles
@@ -332,12 +343,7 @@ def test_an_all_dark_half_tile_the_output_lit_goes_back_to_its_black_input(monke
     interpolated with the lit tiles', keep part of the leak; the lit side does not change."""
     from service.stages import dark_tiles
 
-    rng = np.random.default_rng(3)
-    truth = np.zeros((64, 64, 3), np.float32)
-    truth[:, :40] = 1.0
-    a, b, color = _halves(rng, truth, 0.3 * truth)
-    out = truth.copy()
-    out[:, 40:48] = 0.05
+    out, color, a, b = _light_left(0.05)
     blended = noise_blend(out, color, a, b)
     np.testing.assert_array_equal(blended[:, 40:], 0.0)
     np.testing.assert_allclose(blended, noise_blend_reference(out, color, a, b), rtol=1e-5, atol=1e-6)
@@ -350,12 +356,7 @@ def test_an_all_dark_half_tile_the_output_lit_goes_back_to_its_black_input(monke
 def test_an_all_dark_half_tile_keeps_a_lift_its_samples_could_have_missed():
     """The same frame with a leak of 0.002: 0.128 over each half tile, under 7 one-hit values (0.3), which all
     of its samples could have missed by chance: the rule does not apply and the tiles' weights decide."""
-    rng = np.random.default_rng(3)
-    truth = np.zeros((64, 64, 3), np.float32)
-    truth[:, :40] = 1.0
-    a, b, color = _halves(rng, truth, 0.3 * truth)
-    out = truth.copy()
-    out[:, 40:48] = 0.002
+    out, color, a, b = _light_left(0.002)
     blended = noise_blend(out, color, a, b)
     assert float(blended[:, 40:48].min()) > 0.0
     np.testing.assert_allclose(blended, noise_blend_reference(out, color, a, b), rtol=1e-5, atol=1e-6)
