@@ -67,6 +67,10 @@ from service.stages.input_history import InputHistory
 # the default `budget` lets kpn take one of flr and bmfr beside it, not both, and svgf none (1.26x with flr).
 COSTS = {"flr": 54.0, "bmfr": 61.0, "svgf": 206.0, "kpn": 404.0}
 CANDIDATES = tuple(COSTS)
+# Options of a candidate other than its defaults. flr keeps its ao guide here: without it (flr's default since
+# 2026-11-28) flr alone is better on all four `make bench` sequences, but this blend was worse on shadows (relL2
+# 0.0221 -> 0.0232) and fireflies (0.0206 -> 0.0212), its estimate choosing other tiles (out/bench/report-s48e).
+CANDIDATE_OPTIONS = {"flr": {"ao": True}}
 HALVES = ("colorA", "colorB")
 FIREFLY_CAP = 4.0  # the estimate clips the halves at 4x the candidates' level (error_estimate `cap`)
 MOVED = 3.0  # pixels a tile's content may have moved since the last evaluation for its estimate to be averaged in
@@ -205,7 +209,7 @@ class AutoPipeline(Pipeline):
             state.fallback = pipelines.get(pipelines.auto(layers))
             state.fallback_state = state.fallback.start(frame.height, frame.width)
             return
-        state.candidates = {n: pipelines.get(n) for n in names}
+        state.candidates = {n: pipelines.get(n, **CANDIDATE_OPTIONS.get(n, {})) for n in names}
 
     def _evaluate(self, frame: Frame, state: AutoState) -> dict[str, np.ndarray]:
         """Estimate the candidates' per-tile error covariance on the halves (`run_half`) and blend per tile; then

@@ -36,6 +36,9 @@ import numpy as np
 
 EVIDENCE = 7.0  # refuted where the output's light leaves the dark pixels a chance below exp(-7) ~ 1e-3
 DARK_FRACTION = 1e-3  # a pixel is dark where both halves (less emission) are within this share of one hit of 0
+# A neighbour whose noisy pixels average this little radiance is no measure of a hit: a renderer's shadow holds
+# specks of 1e-15 whose halves differ, and their ratio (~5e-16) would make every dark pixel around refute
+SPECK = 1e-9
 
 
 def one_hit_values(noisy: np.ndarray, lit: np.ndarray, variance: np.ndarray, pixels: np.ndarray,
@@ -44,10 +47,10 @@ def one_hit_values(noisy: np.ndarray, lit: np.ndarray, variance: np.ndarray, pix
     tiles around that qualify, or the half tile's own where it has noisy pixels and that is larger; inf where
     no neighbour qualifies. noisy: count of pixels whose halves differ; lit, variance: sums over those pixels
     of the channel means of the input (at least 0) and of v; pixels: the half tiles' pixel counts; all (th',
-    tw') float64 (pixels int64); share: the least share of noisy pixels a neighbour needs. Returns (th', tw')
-    float64, radiance."""
+    tw') float64 (pixels int64); share: the least share of noisy pixels a neighbour needs, whose input must
+    also average more than SPECK. Returns (th', tw') float64, radiance."""
     ratio = variance / np.where(lit > 0, lit, 1.0)
-    qualifies = (noisy >= share * np.maximum(pixels, 1)) & (lit > 0)
+    qualifies = (noisy >= share * np.maximum(pixels, 1)) & (lit > SPECK * np.maximum(noisy, 1))
     padded = np.pad(np.where(qualifies, ratio, np.inf), 1, constant_values=np.inf)
     th, tw = ratio.shape
     around = np.min([padded[dy:dy + th, dx:dx + tw] for dy in range(3) for dx in range(3)], axis=0)

@@ -53,7 +53,8 @@ class InputHistory:
     accumulated input less emission (radiance) and, last, the frames in it; depth: (H, W, 1) float32 or None,
     normal: (H, W, 3) float32 or None, the last frame's (the next reprojection checks its taps against them).
     half_tile_sums, tile_sums: the noise blend's sums averaged over the frames (`noise_blend.remembered_sums`),
-    (4, th', tw') float64 over half tiles and (4, th, tw) over tiles, or None. Empty: no frame yet."""
+    (noise_blend.SUM_ROWS, th', tw') float64 over half tiles and (SUM_ROWS, th, tw) over tiles, or None. Empty: no
+    frame yet."""
 
     buffer: np.ndarray | None = None
     depth: np.ndarray | None = None

@@ -40,20 +40,20 @@ about 0) refute the output (service/stages/dark_tiles.py: far more of them than 
 chance for, judged by the one-hit value of the noisy half tiles around): then it overrides all the same, and
 its dark pixels take their input (weight 0, no ramp inward, and not the accumulated input). A light that
 left a region, or a filter that smeared light into a hard shadow, is caught so (`make bench`: relL2 on
-`fireflies` up to 3.1% lower, nothing else moved; docs/benchmarks.md). The test also runs on half tiles
-whose weight is below WORSE. The result is c' + t (o - c'), with c' the
-input with its fireflies clipped (`outliers.clamp_fireflies`, where the halves differ: a firefly is in
-one half only, while a light seen directly is in both): the part of the input the blend takes back should
-not bring them with it. Lights (pixels with emission) are left out of their neighbours' ranges: beside a
-light whose emission pass took other samples than its colour (emission 666, colour 1335 on the 64-frame
-`fireflies` benchmark sequence), its remainder widened the range enough to let a one-half sample of 750
-through where the truth was 25, in one pixel, which alone made up a quarter of the sequence's temporal error
-(crossreg 0.879 -> 0.668, svgf 0.906 -> 0.695, kpn 0.875 -> 0.664 with them left out; relL2 and the
-8-frame benchmark unchanged to 4 digits; `make bench-long`). A temporal pipeline gives its sequence's
-accumulated input (`service.stages.input_history`: c' averaged over the frames before, reprojected, with a
-per-pixel estimate of its error): per tile, where the weighted mean of the per-pixel differences d between
-that estimate and v, plus CONFIDENCE standard errors of it, is below 0, c' is the accumulated input and Ec
-the sum of its estimated error in that tile and its half tiles, at least the sum of a^2 v (the share of
+`fireflies` up to 3.1% lower, its other numbers unchanged; docs/benchmarks.md). The test also runs on half
+tiles whose weight is below WORSE, and judges by this frame's sums, not the temporal average below.
+The result is c' + t (o - c'), with c' the input with its fireflies clipped (`outliers.clamp_fireflies`, where
+the halves differ: a firefly is in one half only, while a light seen directly is in both): the part of the
+input the blend takes back should not bring them with it. Lights (pixels with emission) are left out of their
+neighbours' ranges: beside a light whose emission pass took other samples than its colour (emission 666,
+colour 1335 on the 64-frame `fireflies` benchmark sequence), its remainder widened the range enough to let a
+one-half sample of 750 through where the truth was 25, in one pixel, which alone made up a quarter of the
+sequence's temporal error (crossreg 0.879 -> 0.668, svgf 0.906 -> 0.695, kpn 0.875 -> 0.664 with them left
+out; relL2 and the 8-frame benchmark unchanged to 4 digits; `make bench-long`). A temporal pipeline gives its
+sequence's accumulated input (`service.stages.input_history`: c' averaged over the frames before, reprojected,
+with a per-pixel estimate of its error): per tile, where the weighted mean of the per-pixel differences d
+between that estimate and v, plus CONFIDENCE standard errors of it, is below 0, c' is the accumulated input
+and Ec the sum of its estimated error in that tile and its half tiles, at least the sum of a^2 v (the share of
 this frame's noise in it; the estimate is of the unclamped average, see input_history's docstring). A temporal
 pipeline's tile sums (of e, of the input's error and its floor, and the count of pixels whose halves differ,
 over tiles and half tiles) are also averaged over its frames, TILE_MEMORY of the previous average and the rest
@@ -62,10 +62,10 @@ at, but where none of a tile's pixels has halves that differ in this frame (its 
 as given): a tile's weight then moves less with this frame's noise, and the output flickers less (`make
 bench`, the five temporal pipelines of the day: temporal error lower for each on all four sequences, by up to
 6%; relL2 lower on 19 of 20 pairs, 0.5% higher on svgf's fireflies; docs/benchmarks.md). A pipeline that is
-not temporal keeps its frame's sums alone, so that its output depends on its frame only. A value the
-denoiser left as it came (an exact pixel, a background passed through) stays so; a frame whose halves agree
-everywhere comes back as its input. Interpolation lets a tile's neighbours lend it their t at its border,
-so a region the tiles reject keeps some of the output within ~half a tile of its edge.
+not temporal keeps its frame's sums alone, so that its output depends on its frame only. A value the denoiser
+left as it came (an exact pixel, a background passed through) stays so; a frame whose halves agree everywhere
+comes back as its input. Interpolation lets a tile's neighbours lend it their t at its border, so a region the
+tiles reject keeps some of the output within ~half a tile of its edge.
 
 What it costs and gains on ordinary frames (`make bench`, 128x128, 4 spp; docs/benchmarks.md, "Noise
 blend"): the blend itself lowered every pipeline's relL2 overall; the 3x3 level and the half tiles,
@@ -172,7 +172,7 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
                      REL_L2_EPS, PROXY_FLOOR, out)
         return out
 
-    fine = sums(half)
+    fine = this_frame = sums(half)  # the dark pixels are judged by this frame's one-hit values and shares
     if tile == 2 * half:  # an even tile: its sums are those of its 2x2 half tiles
         padded = np.pad(fine, ((0, 0), (0, fine.shape[1] % 2), (0, fine.shape[2] % 2)))
         coarse = padded.reshape(SUM_ROWS, padded.shape[1] // 2, 2, padded.shape[2] // 2, 2).sum(axis=(2, 4))
@@ -182,8 +182,8 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3])).astype(np.float32)
     pixels = tile_counts(height, width, half)
     weights = blend_weights(fine[0], np.maximum(fine[1], fine[3]))
-    one_hit = one_hit_values(fine[2], fine[4], fine[5], pixels, NOISY_SHARE)
-    candidates = (fine[2] < NOISY_SHARE * pixels) | (weights < WORSE)
+    one_hit = one_hit_values(this_frame[2], this_frame[4], this_frame[5], pixels, NOISY_SHARE)
+    candidates = (this_frame[2] < NOISY_SHARE * pixels) | (weights < WORSE)
     refute = refuted(arrays[0], arrays[2], arrays[3], arrays[4] if has_emission else None, one_hit, candidates, half)
     t_half = half_tile_weights(weights, fine[2], pixels, refute).astype(np.float32)
     result = np.empty_like(arrays[0])
@@ -206,7 +206,8 @@ def _accumulated(history: InputHistory | None, clipped: np.ndarray, arrays: list
 
 def remembered_sums(history: InputHistory | None, fine: np.ndarray, coarse: np.ndarray,
                     continued: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The blend's sums over half tiles (`fine`, (4, th', tw') float64) and tiles (`coarse`, (4, th, tw)) averaged
+    """The blend's sums over half tiles (`fine`, (SUM_ROWS, th', tw') float64) and tiles (`coarse`, (SUM_ROWS, th,
+    tw)) averaged
     with the previous frame's as kept in `history` (TILE_MEMORY of the previous average; module docstring), and
     kept there for the next frame. `continued`: the frame joined the accumulated input (it has motion and follows
     the frame before); otherwise the average starts again from this frame. Without a history (a pipeline that is
@@ -296,12 +297,13 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     def sums(side: int) -> np.ndarray:  # (SUM_ROWS, th, tw), as `_tile_kernel`'s
         return np.stack([tile_sums(x, side)[0] for x in rows])
 
-    fine, coarse = remembered_sums(history, sums(half), sums(tile), choice is not None)
+    this_frame = sums(half)
+    fine, coarse = remembered_sums(history, this_frame, sums(tile), choice is not None)
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3]))
     pixels = tile_sums(noisy_pixels, half)[1]
     weights = blend_weights(fine[0], np.maximum(fine[1], fine[3]))
-    one_hit = one_hit_values(fine[2], fine[4], fine[5], pixels, NOISY_SHARE)
-    candidates = (fine[2] < NOISY_SHARE * pixels) | (weights < WORSE)
+    one_hit = one_hit_values(this_frame[2], this_frame[4], this_frame[5], pixels, NOISY_SHARE)
+    candidates = (this_frame[2] < NOISY_SHARE * pixels) | (weights < WORSE)
     refute = refuted_reference(out, color_a, color_b, emission, one_hit, candidates, half)
     t_half = half_tile_weights(weights, fine[2], pixels, refute)
     own = np.repeat(np.repeat(t_half, half, axis=0), half, axis=1)[:height, :width, None].astype(np.float32)

@@ -37,6 +37,21 @@ def test_crossregression_needs_both_half_buffers():
     assert info["options"]["window"] == 17 and info["options"]["sparsity"] == 4
 
 
+def test_flr_reads_ao_only_with_its_option():
+    """The `ao` layer is one more FLR guide with `ao=True`, and ignored by default (flr's docstring)."""
+    from bench.synthetic import synthetic_frame
+
+    layers = synthetic_frame(48, 64, 1, rng=np.random.default_rng(2))
+    other = dict(layers, ao=np.random.default_rng(3).random(layers["ao"].shape, np.float32))  # the frame's is 1
+
+    def out(options, buffers):
+        pipeline = pipelines.get("flr", **options)
+        return pipeline.step(Frame.from_buffers(buffers), pipeline.start(48, 64))[0]["color"]
+
+    np.testing.assert_array_equal(out({}, layers), out({}, other))
+    assert not np.array_equal(out({"ao": True}, layers), out({"ao": True}, other))
+
+
 @pytest.mark.parametrize("name", REGRESSIONS)
 def test_command_line_denoise(name, tiny_sequence_dir, tmp_path):
     out = tmp_path / "out"

@@ -87,3 +87,13 @@ def test_halves_within_a_thousandth_of_one_hit_of_zero_are_dark():
     assert refuted(out, tiny, zero, None, *args)[0, 0]
     tiny[::2] = 1.001e-3 * h  # half of them: the output's light explains them
     assert not refuted(out, tiny, zero, None, *args)[0, 0]
+
+
+def test_a_neighbour_of_specks_is_no_measure_of_a_hit():
+    """A shadow whose 64 pixels hold 1e-15 in one half (ratio 5e-16) beside a lit half tile of ratio 0.05: the
+    specks do not qualify, so neither their own nor their neighbours' one-hit value falls to 5e-16."""
+    noisy = np.array([[64.0, 64.0]])
+    lit = np.array([[64 * 1e-15, 64.0]])
+    variance = np.array([[64 * 5e-31, 3.2]])
+    got = one_hit_values(noisy, lit, variance, np.full((1, 2), 64), 0.25)
+    np.testing.assert_allclose(got, [[0.05, 0.05]])

@@ -405,3 +405,30 @@ def test_a_dim_room_of_rare_bright_samples_beside_a_lit_floor_is_not_refuted(mon
     np.testing.assert_allclose(blended, noise_blend_reference(truth, color, a, b), rtol=1e-5, atol=1e-6)
     monkeypatch.setattr(dark_tiles, "EVIDENCE", np.inf)
     np.testing.assert_array_equal(blended, noise_blend(truth, color, a, b))
+
+
+def test_a_temporal_blend_judges_dark_pixels_by_this_frames_one_hit_value(monkeypatch):
+    """The dim room of the test above, lit at 100 (halves with sd 5) for four frames before its light goes: the
+    temporal tile sums still remember the bright room, whose variance-to-mean ratio (~0.1) is far below the
+    dim room's 25. Judged by this frame's sums, the dark pixels refute nothing, as in the plain blend."""
+    from service.stages import dark_tiles
+    from service.stages.input_history import InputHistory
+
+    def run():
+        rng = np.random.default_rng(9)
+        history = InputHistory()
+        for k in range(5):
+            truth = np.full((32, 32, 3), 10.0, np.float32)
+            truth[:16, :16] = 3.75 if k == 4 else 100.0
+            a, b, color = _halves(rng, truth, np.where(truth == 10.0, 2.0, 0.0 if k == 4 else 5.0))
+            if k == 4:
+                a[:16, :16] = b[:16, :16] = 0.0
+                for i, (y, x) in enumerate((y, x) for y in range(16) for x in range(16) if rng.random() < 0.15):
+                    (a if i % 2 else b)[y, x] = 50.0
+                color = ((a + b) / 2).astype(np.float32)
+            blended = noise_blend(truth, color, a, b, history=history, motion=np.zeros((32, 32, 2), np.float32))
+        return blended
+
+    with_test = run()
+    monkeypatch.setattr(dark_tiles, "EVIDENCE", np.inf)
+    np.testing.assert_array_equal(with_test, run())
