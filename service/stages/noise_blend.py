@@ -182,8 +182,7 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3])).astype(np.float32)
     pixels = tile_counts(height, width, half)
     weights = blend_weights(fine[0], np.maximum(fine[1], fine[3]))
-    one_hit = one_hit_values(this_frame[2], this_frame[4], this_frame[5], pixels, NOISY_SHARE)
-    candidates = (this_frame[2] < NOISY_SHARE * pixels) | (weights < WORSE)
+    one_hit, candidates = dark_questions(this_frame, weights, pixels)
     refute = refuted(arrays[0], arrays[2], arrays[3], arrays[4] if has_emission else None, one_hit, candidates, half)
     t_half = half_tile_weights(weights, fine[2], pixels, refute).astype(np.float32)
     result = np.empty_like(arrays[0])
@@ -240,6 +239,15 @@ def half_tile_weights(weights: np.ndarray, noisy: np.ndarray, pixels: np.ndarray
     its dark pixels `refute` the output (`dark_tiles`), else 1. All (th', tw') float64 (`pixels` int64,
     `refute` bool); returns float64 in [0, 1]."""
     return np.where((weights < WORSE) & ((noisy >= NOISY_SHARE * pixels) | refute), weights, 1.0)
+
+
+def dark_questions(this_frame: np.ndarray, weights: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What the dark pixels' test (`dark_tiles`) needs: per half tile its one-hit value, from this frame's sums
+    (`this_frame`, (SUM_ROWS, th', tw') float64: not the temporal average, which may remember a brighter past),
+    and whether to ask at all: where NOISY_SHARE blocks the override or the `weights` are below WORSE. weights,
+    pixels: (th', tw') float64 and int64. Returns ((th', tw') float64, (th', tw') bool)."""
+    one_hit = one_hit_values(this_frame[2], this_frame[4], this_frame[5], pixels, NOISY_SHARE)
+    return one_hit, (this_frame[2] < NOISY_SHARE * pixels) | (weights < WORSE)
 
 
 def half_tile(tile: int) -> int:
@@ -302,8 +310,7 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     t = blend_weights(coarse[0], np.maximum(coarse[1], coarse[3]))
     pixels = tile_sums(noisy_pixels, half)[1]
     weights = blend_weights(fine[0], np.maximum(fine[1], fine[3]))
-    one_hit = one_hit_values(this_frame[2], this_frame[4], this_frame[5], pixels, NOISY_SHARE)
-    candidates = (this_frame[2] < NOISY_SHARE * pixels) | (weights < WORSE)
+    one_hit, candidates = dark_questions(this_frame, weights, pixels)
     refute = refuted_reference(out, color_a, color_b, emission, one_hit, candidates, half)
     t_half = half_tile_weights(weights, fine[2], pixels, refute)
     own = np.repeat(np.repeat(t_half, half, axis=0), half, axis=1)[:height, :width, None].astype(np.float32)
@@ -357,16 +364,17 @@ def _pixel_weight(out, e, has_emission, level, y, x, eps, floor):  # pragma: no 
 
 
 @numba.njit(inline="always", cache=True, error_model="numpy")
-def _pixel_errors(out, color, a, b, y, x):  # pragma: no cover - jitted
-    """(e, v) of pixel (y, x), summed over its channels (module docstring), float64."""
-    err = 0.0
-    var = 0.0
+def _pixel_errors(out, color, a, b, e, has_emission, y, x):  # pragma: no cover - jitted
+    """(e, v, the colour less emission e with `has_emission`) of pixel (y, x), each summed over its channels
+    (module docstring), float64."""
+    err, var, lit = 0.0, 0.0, 0.0
     for c in range(out.shape[2]):
         o, col = np.float64(out[y, x, c]), np.float64(color[y, x, c])
         h = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
         err += (o - col) * (o - col) - h * h
         var += h * h
-    return err, var
+        lit += col - e[y, x, c] if has_emission else col
+    return err, var, lit
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -387,13 +395,7 @@ def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_fl
             for x in range(width):
                 tx = x // tile
                 w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor) / channels
-                err, var, lit = 0.0, 0.0, 0.0
-                for c in range(channels):
-                    o, col = np.float64(out[y, x, c]), np.float64(color[y, x, c])
-                    h = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
-                    err += (o - col) * (o - col) - h * h
-                    var += h * h
-                    lit += col - e[y, x, c] if has_emission else col
+                err, var, lit = _pixel_errors(out, color, a, b, e, has_emission, y, x)
                 taken, least = var, var
                 if has_choice and use[y // use_tile, x // use_tile]:
                     taken, least = input_error[y, x] * channels, input_floor[y, x] * channels
@@ -418,7 +420,7 @@ def _choice_kernel(out, color, a, b, e, has_emission, level, input_error, tile, 
         for y in range(ty * tile, min((ty + 1) * tile, height)):
             for x in range(width):
                 w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor)
-                var = _pixel_errors(out, color, a, b, y, x)[1]
+                var = _pixel_errors(out, color, a, b, e, has_emission, y, x)[1]
                 d = w * (input_error[y, x] - var / channels)
                 stats[0, ty, x // tile] += d
                 stats[1, ty, x // tile] += d * d
@@ -494,8 +496,7 @@ def _blend_kernel(out, color, a, b, e, has_emission, clipped, accumulated, use, 
     weights of the tiles and of the half tiles (side `half` pixels); row0, row1, row_w (H,) and col0, col1,
     col_w (W,): `_interpolation`'s tables for t. A pixel dark within its half tile's `dark` level ((th', tw')
     float64, -1: none; `dark_tiles.is_dark`) takes c' without the accumulated input, at weight 0 (no ramp
-    inward). A task per row (float64, within
-    float32's range)."""
+    inward). A task per row (float64, within float32's range)."""
     height, width, channels = out.shape
     n = width * channels
     for y in numba.prange(height):
