@@ -10,7 +10,7 @@ from service import pipelines
 from service.frame import Frame
 from service.layout import CROSSREG_INPUTS, channel_slices
 from service.pipelines.crossreg import REPROJECTION, prepare_frame
-from service.stages.averaged_halves import PLANES, average_halves, averaged_pilots
+from service.stages.averaged_halves import CHANGE, PLANES, average_halves, averaged_pilots, light_changed
 from service.stages.cross_regression import cross_regression, pilots_to_radiance
 from service.stages.input_history import ALPHA_MIN
 
@@ -81,7 +81,7 @@ def test_a_shadow_no_g_buffer_shows_stays_sharper():
     rng = np.random.default_rng(2)
     planes = None
     for _ in range(8):
-        a, b = ((truth * rng.exponential(1.0, truth.shape[:2])[..., None]).astype(np.float32) for _ in range(2))
+        a, b = _noisy_halves(truth, rng)
         planes = average_halves(a, b, planes, motion, depth=depth, prev_depth=depth, normal=normal,
                                 prev_normal=normal)
     averaged = pilots_to_radiance(*averaged_pilots(a, b, planes, albedo, normal))
@@ -92,6 +92,52 @@ def test_a_shadow_no_g_buffer_shows_stays_sharper():
 
     assert error(averaged) < 0.5 * error(plain), (error(averaged), error(plain))
     assert error(averaged, slice(12, 20)) < 0.5 * error(plain, slice(12, 20))
+
+
+def _noisy_halves(truth, rng):
+    """Two (H, W, 3) float32 halves of one exponentially distributed sample a pixel around `truth`."""
+    return tuple((truth * rng.exponential(1.0, truth.shape[:2])[..., None]).astype(np.float32) for _ in range(2))
+
+
+def test_the_average_starts_again_where_a_shadow_moved_in_and_not_at_a_firefly():
+    """A floor lit 1.0 for 6 frames; then a shadow (0.05) covers columns 8-23, and half A of a lit pixel
+    holds a firefly of 1000. The shadow's pixels start again from the frame (the history's lit floor would make
+    features of 1 where the light is 0.05), so the pilots there are near the shadow's value; the firefly's pixel
+    and the lit floor keep averaging."""
+    motion, depth, normal, albedo = _static()
+    lit = np.ones((24, 32, 3), np.float32)
+    rng = np.random.default_rng(4)
+    planes = None
+    for _ in range(6):
+        planes = average_halves(*_noisy_halves(lit, rng), planes, motion, depth=depth, prev_depth=depth,
+                                normal=normal, prev_normal=normal)
+    before = planes[6].copy()
+    shadowed = lit.copy()
+    shadowed[:, 8:24] = 0.05
+    a, b = _noisy_halves(shadowed, rng)
+    a[12, 4] = 1000.0
+    planes = average_halves(a, b, planes, motion, depth=depth, prev_depth=depth, normal=normal, prev_normal=normal)
+    inside = planes[6, 2:-2, 10:22]  # the shadow less the 3x3 window's reach over its edge (and the eroded border)
+    assert (inside == 1.0).mean() > 0.95, (inside == 1.0).mean()
+    assert planes[6, 12, 4] == before[12, 4] + 1.0
+    kept = planes[6, 2:-2, 2:6] == before[2:-2, 2:6] + 1.0
+    assert kept.mean() > 0.9, kept.mean()
+    pilots = pilots_to_radiance(*averaged_pilots(a, b, planes, albedo, normal))
+    assert np.median(pilots[2:-2, 10:22]) < 0.1, np.median(pilots[2:-2, 10:22])
+
+
+def test_light_changed_only_where_both_halves_agree_on_a_change_and_at_any_scale():
+    rng = np.random.default_rng(5)
+    history = rng.uniform(0.5, 1.5, (6, 16, 16)).astype(np.float32)
+    assert not light_changed(history, history).any()
+    halves = history.copy()
+    halves[0:3, 4:9, 4:9] *= 1.2 * CHANGE  # half A alone brighter: a firefly's pattern, not a change
+    assert not light_changed(halves, history).any()
+    halves[3:6, 4:9, 4:9] *= 1.2 * CHANGE  # both brighter
+    changed = light_changed(halves, history)
+    assert changed[5:8, 5:8].all() and not changed[12:, 12:].any()
+    for scale in (1e-6, 1e6):
+        np.testing.assert_array_equal(light_changed(halves * scale, history * scale), changed)
 
 
 @pytest.mark.parametrize("average", [True, False])
