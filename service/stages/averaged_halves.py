@@ -14,8 +14,8 @@ only A's). Where the reprojection fails the average starts again from the frame'
 The average is not clamped to the frame's range: clamped to each half's 5x5 range at 2 spp, the pilots' error
 on `fireflies` went from 0.0318 to 0.1066 (prototype, docs/benchmarks.md). It starts again where the light
 changed: where both halves of this frame, each on its own, stand beyond CHANGE times the history's (above, or
-below its 1 / CHANGE) in their 3x3 means, or beyond PIXEL_CHANGE times in the pixel itself (sums over the
-channels, EPS_SHARE of the frame's mean added to both sides). A firefly is in one half, not both, so it does not
+below its 1 / CHANGE) in their 3x3 means, or beyond PIXEL_CHANGE times in the pixel itself
+(service/stages/light_change.py). A firefly is in one half, not both, so it does not
 restart the average; a shadow that moved in does, where the history would have kept the lit floor (a moving
 ball's shadow on `make bench-long`'s `shadows`: features of 1.2 where the reference is 0.13, and pilots fitted
 to them). Without the test the features lag wherever the light moves.
@@ -33,8 +33,8 @@ import numpy as np
 
 from service.stages.cross_regression import CrossRegressionParams, cross_regression
 from service.stages.input_history import ALPHA_MIN
+from service.stages.light_change import light_changed
 from service.stages.reprojection import ReprojectionParams, reproject
-from service.stages.svgf import box_mean
 
 PLANES = 7  # half A (3), half B (3), the frames in the average (1)
 # The light changed where both halves' 3x3 means differ from the history's by more than this factor, or both
@@ -42,7 +42,6 @@ PLANES = 7  # half A (3), half B (3), the frames in the average (1)
 # against 5x5 windows) and 4 and 8: docs/benchmarks.md, "Long sequences"
 CHANGE = 1.5
 PIXEL_CHANGE = 8.0
-EPS_SHARE = 1e-3  # of the frame's mean radiance (both halves, summed over channels), added before the ratios
 
 
 def average_halves(color_a: np.ndarray, color_b: np.ndarray, previous: np.ndarray | None, motion: np.ndarray,
@@ -67,28 +66,12 @@ def average_halves(color_a: np.ndarray, color_b: np.ndarray, previous: np.ndarra
     warped, valid = reproject(previous.transpose(1, 2, 0), motion, depth=depth, prev_depth=prev_depth,
                               normal=normal, prev_normal=prev_normal, params=params)
     warped = warped.transpose(2, 0, 1)  # (PLANES, H, W), zero where not valid
-    valid &= ~light_changed(current[:6], warped[:6])
+    valid &= ~light_changed(current[:6], warped[:6], CHANGE, PIXEL_CHANGE)
     frames = np.where(valid, warped[6] + 1.0, 1.0).astype(np.float32)
     weight = np.maximum(1.0 / frames, np.float32(ALPHA_MIN))  # the newest frame's, 1 where not valid
     current[:6] = (1.0 - weight) * warped[:6] + weight * current[:6]
     current[6] = frames
     return current
-
-
-def light_changed(halves: np.ndarray, history: np.ndarray) -> np.ndarray:
-    """(H, W) bool: where both halves of this frame disagree with the history in the same direction (module
-    docstring). halves, history: (6, H, W) float32 linear radiance planes, half A (3) then half B (3): this
-    frame's and the reprojected average (its values where the reprojection failed do not matter)."""
-    current = np.stack([halves[0:3].sum(0), halves[3:6].sum(0)], axis=-1)  # (H, W, 2): A, B
-    previous = np.stack([history[0:3].sum(0), history[3:6].sum(0)], axis=-1)
-    eps = np.float32(max(EPS_SHARE * float(current.mean(dtype=np.float64)), 1e-30))
-    changed = np.zeros(current.shape[:2], bool)
-    for radius, factor in ((1, CHANGE), (0, PIXEL_CHANGE)):
-        now, before = (box_mean(v, radius) if radius else v for v in (current, previous))
-        ratio = (now + eps) / (before + eps)
-        brighter, darker = ratio > factor, ratio < 1.0 / factor
-        changed |= (brighter[..., 0] & brighter[..., 1]) | (darker[..., 0] & darker[..., 1])
-    return changed
 
 
 def averaged_pilots(color_a: np.ndarray, color_b: np.ndarray, averaged: np.ndarray, albedo: np.ndarray,

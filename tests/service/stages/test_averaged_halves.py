@@ -10,7 +10,7 @@ from service import pipelines
 from service.frame import Frame
 from service.layout import CROSSREG_INPUTS, channel_slices
 from service.pipelines.crossreg import REPROJECTION, prepare_frame
-from service.stages.averaged_halves import CHANGE, PLANES, average_halves, averaged_pilots, light_changed
+from service.stages.averaged_halves import PLANES, average_halves, averaged_pilots
 from service.stages.cross_regression import cross_regression, pilots_to_radiance
 from service.stages.input_history import ALPHA_MIN
 
@@ -124,20 +124,6 @@ def test_the_average_starts_again_where_a_shadow_moved_in_and_not_at_a_firefly()
     assert kept.mean() > 0.9, kept.mean()
     pilots = pilots_to_radiance(*averaged_pilots(a, b, planes, albedo, normal))
     assert np.median(pilots[2:-2, 10:22]) < 0.1, np.median(pilots[2:-2, 10:22])
-
-
-def test_light_changed_only_where_both_halves_agree_on_a_change_and_at_any_scale():
-    rng = np.random.default_rng(5)
-    history = rng.uniform(0.5, 1.5, (6, 16, 16)).astype(np.float32)
-    assert not light_changed(history, history).any()
-    halves = history.copy()
-    halves[0:3, 4:9, 4:9] *= 1.2 * CHANGE  # half A alone brighter: a firefly's pattern, not a change
-    assert not light_changed(halves, history).any()
-    halves[3:6, 4:9, 4:9] *= 1.2 * CHANGE  # both brighter
-    changed = light_changed(halves, history)
-    assert changed[5:8, 5:8].all() and not changed[12:, 12:].any()
-    for scale in (1e-6, 1e6):
-        np.testing.assert_array_equal(light_changed(halves * scale, history * scale), changed)
 
 
 @pytest.mark.parametrize("average", [True, False])

@@ -1,0 +1,43 @@
+"""Where the light changed since the frames a history averages, as both halves of this frame say.
+
+A history of radiance averaged over frames (reprojected by `motion`, its depth and normal checked) keeps what
+the light was: where a shadow moved in, the average still holds the lit floor, and no G-buffer test sees it.
+This frame's two halves are independent estimates of its light. Where both stand beyond a factor of the
+history's, on the same side, the light changed; a firefly is in one half, not both, so it does not count.
+Compared are the sums over the channels, as 3x3 means (and, optionally, per pixel), with EPS_SHARE of the
+frame's mean radiance added to both sides, so that the test does not depend on the radiance's scale and dark
+pixels do not restart on nothing. Used by crossreg's averaged halves (service/stages/averaged_halves.py).
+
+Where samples are rare (a dim region hit by one sample in 20), a 3x3 window of one half holds one or two hits
+or none, and both halves can stand beyond any factor by chance: the test then restarts an average that was
+right. The noise blend's accumulated input (service/stages/input_history.py) does not use it for that reason:
+there, at a factor of 2, it lowered `make bench` relL2 by up to 3% but left an average of a 0/1 signal at a
+chance of 0.05 a sample no better than half the frame's own error (docs/benchmarks.md, "Accumulated input").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.stages.svgf import box_mean
+
+EPS_SHARE = 1e-3  # of the frame's mean radiance (a half, summed over channels), added before the ratios
+
+
+def light_changed(halves: np.ndarray, history: np.ndarray, change: float,
+                  pixel_change: float | None = None) -> np.ndarray:
+    """(H, W) bool: where both halves of this frame disagree with the history in the same direction: both halves'
+    3x3 means beyond `change` times the history's, above or below, or both pixels beyond `pixel_change` times
+    (None: no pixel test). halves, history: (6, H, W) float32 linear radiance planes, half A (3) then half B (3):
+    this frame's and the reprojected average (its values where the reprojection failed do not matter; an
+    average of both halves may stand twice)."""
+    current = np.stack([halves[0:3].sum(0), halves[3:6].sum(0)], axis=-1)  # (H, W, 2): A, B
+    previous = np.stack([history[0:3].sum(0), history[3:6].sum(0)], axis=-1)
+    eps = np.float32(max(EPS_SHARE * float(current.mean(dtype=np.float64)), 1e-30))
+    changed = np.zeros(current.shape[:2], bool)
+    for radius, factor in ((1, change), (0, pixel_change)) if pixel_change is not None else ((1, change),):
+        now, before = (box_mean(v, radius) if radius else v for v in (current, previous))
+        ratio = (now + eps) / (before + eps)
+        brighter, darker = ratio > factor, ratio < 1.0 / factor
+        changed |= (brighter[..., 0] & brighter[..., 1]) | (darker[..., 0] & darker[..., 1])
+    return changed

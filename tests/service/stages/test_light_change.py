@@ -1,0 +1,32 @@
+"""Where both halves say the light changed against a history (service/stages/light_change.py)."""
+
+import numpy as np
+
+from service.stages.light_change import light_changed
+
+CHANGE = 1.5
+
+
+def test_light_changed_only_where_both_halves_agree_on_a_change_and_at_any_scale():
+    rng = np.random.default_rng(5)
+    history = rng.uniform(0.5, 1.5, (6, 16, 16)).astype(np.float32)
+    assert not light_changed(history, history, CHANGE, 8.0).any()
+    halves = history.copy()
+    halves[0:3, 4:9, 4:9] *= 1.2 * CHANGE  # half A alone brighter: a firefly's pattern, not a change
+    assert not light_changed(halves, history, CHANGE, 8.0).any()
+    halves[3:6, 4:9, 4:9] *= 1.2 * CHANGE  # both brighter
+    changed = light_changed(halves, history, CHANGE, 8.0)
+    assert changed[5:8, 5:8].all() and not changed[12:, 12:].any()
+    for scale in (1e-6, 1e6):
+        np.testing.assert_array_equal(light_changed(halves * scale, history * scale, CHANGE, 8.0), changed)
+
+
+def test_a_pixel_that_went_dark_alone_changes_only_with_the_pixel_test():
+    """One pixel of both halves 10x darker than the history, its neighbours as before (a thin shadow): its 3x3
+    means move by 10%, less than CHANGE, so only the pixel test (at 8x) sees it."""
+    history = np.ones((6, 9, 9), np.float32)
+    halves = history.copy()
+    halves[:, 4, 4] = 0.1
+    assert not light_changed(halves, history, CHANGE).any()
+    changed = light_changed(halves, history, CHANGE, 8.0)
+    assert changed[4, 4] and changed.sum() == 1
