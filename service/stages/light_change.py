@@ -31,13 +31,17 @@ def light_changed(halves: np.ndarray, history: np.ndarray, change: float,
     (None: no pixel test). halves, history: (6, H, W) float32 linear radiance planes, half A (3) then half B (3):
     this frame's and the reprojected average (its values where the reprojection failed do not matter; an
     average of both halves may stand twice)."""
-    current = np.stack([halves[0:3].sum(0), halves[3:6].sum(0)], axis=-1)  # (H, W, 2): A, B
-    previous = np.stack([history[0:3].sum(0), history[3:6].sum(0)], axis=-1)
-    eps = np.float32(max(EPS_SHARE * float(current.mean(dtype=np.float64)), 1e-30))
-    changed = np.zeros(current.shape[:2], bool)
-    for radius, factor in ((1, change), (0, pixel_change)) if pixel_change is not None else ((1, change),):
-        now, before = (box_mean(v, radius) if radius else v for v in (current, previous))
-        ratio = (now + eps) / (before + eps)
-        brighter, darker = ratio > factor, ratio < 1.0 / factor
-        changed |= (brighter[..., 0] & brighter[..., 1]) | (darker[..., 0] & darker[..., 1])
+    changed = np.zeros(halves.shape[1:], bool)
+    # radiance near float32's largest sums to inf, and inf / inf is nan, which compares false: no change is seen
+    # there (the reprojection's own tests still apply)
+    with np.errstate(over="ignore", invalid="ignore"):
+        current = np.stack([halves[0:3].sum(0), halves[3:6].sum(0)], axis=-1)  # (H, W, 2): A, B
+        previous = np.stack([history[0:3].sum(0), history[3:6].sum(0)], axis=-1)
+        mean = float(current.mean(dtype=np.float64))
+        eps = np.float32(min(max(EPS_SHARE * mean, 1e-30), 1e30)) if np.isfinite(mean) else np.float32(1e30)
+        for radius, factor in ((1, change), (0, pixel_change)) if pixel_change is not None else ((1, change),):
+            now, before = (box_mean(v, radius) if radius else v for v in (current, previous))
+            ratio = (now + eps) / (before + eps)
+            brighter, darker = ratio > factor, ratio < 1.0 / factor
+            changed |= (brighter[..., 0] & brighter[..., 1]) | (darker[..., 0] & darker[..., 1])
     return changed

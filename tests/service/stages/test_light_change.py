@@ -1,5 +1,7 @@
 """Where both halves say the light changed against a history (service/stages/light_change.py)."""
 
+import warnings
+
 import numpy as np
 
 from service.stages.light_change import light_changed
@@ -30,3 +32,16 @@ def test_a_pixel_that_went_dark_alone_changes_only_with_the_pixel_test():
     assert not light_changed(halves, history, CHANGE).any()
     changed = light_changed(halves, history, CHANGE, 8.0)
     assert changed[4, 4] and changed.sum() == 1
+
+
+def test_radiance_near_float32s_largest_warns_nothing():
+    """Sums of 3e38 overflow to inf: the test still answers, without a warning, and sees no change where both the
+    frame and the history are that large; a history of 3e38 under a frame of 1 is a change (darker)."""
+    history = np.ones((6, 8, 8), np.float32)
+    halves = history.copy()
+    halves[:, :, 4:] = 3e38
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not light_changed(halves, halves, CHANGE, 8.0).any()
+        assert light_changed(history, history * np.float32(3e38), CHANGE, 8.0).all()
+        light_changed(halves, history, CHANGE, 8.0)
