@@ -24,7 +24,10 @@ What it gains (`make bench` and `make bench-long`, crossreg with and without `av
 docs/benchmarks.md, "Long sequences": crossreg's relL2 on the 64-frame `shadows` 0.0348 -> 0.0308, `textures`
 0.0141 -> 0.0131, `fireflies` 0.0281 -> 0.0284. Cost: two cross-regressions a frame instead of one (each call
 gives both pilots; one of each is kept) and this stage's numpy passes: crossreg 508 -> 623 ms a 1280x720 frame
-(`python -m bench.classical_speed`, one run, OIDN-high 2732).
+(`python -m bench.classical_speed`, one run, OIDN-high 2732). The restart where the light changed, measured
+alone (docs/benchmarks.md, "Long sequences"): 64-frame `shadows` 0.0304 -> 0.0280 (temporal error 0.0588 ->
+0.0545), `fireflies` 0.0284 -> 0.0257, `textures` 0.0116 -> 0.0116; its test takes about 60-75 ms of a
+1280x720 frame.
 """
 
 from __future__ import annotations
@@ -66,7 +69,9 @@ def average_halves(color_a: np.ndarray, color_b: np.ndarray, previous: np.ndarra
     warped, valid = reproject(previous.transpose(1, 2, 0), motion, depth=depth, prev_depth=prev_depth,
                               normal=normal, prev_normal=prev_normal, params=params)
     warped = warped.transpose(2, 0, 1)  # (PLANES, H, W), zero where not valid
-    valid &= ~light_changed(current[:6], warped[:6], CHANGE, PIXEL_CHANGE)
+    # where the reprojection failed the history is this frame's own (no change), so that its zeros do not enter
+    # the 3x3 means of the valid pixels beside it
+    valid &= ~light_changed(current[:6], np.where(valid, warped[:6], current[:6]), CHANGE, PIXEL_CHANGE)
     frames = np.where(valid, warped[6] + 1.0, 1.0).astype(np.float32)
     weight = np.maximum(1.0 / frames, np.float32(ALPHA_MIN))  # the newest frame's, 1 where not valid
     current[:6] = (1.0 - weight) * warped[:6] + weight * current[:6]

@@ -8,6 +8,11 @@ Compared are the sums over the channels, as 3x3 means (and, optionally, per pixe
 frame's mean radiance added to both sides, so that the test does not depend on the radiance's scale and dark
 pixels do not restart on nothing. Used by crossreg's averaged halves (service/stages/averaged_halves.py).
 
+Known limits: a pixel whose halves are both 0 is "darker" than any history above a few eps, so the pixel test
+restarts it (a 0/1 signal hitting light half the time restarts often); and eps follows the frame's mean, so
+one huge finite value (about 1e10 in a 1280x720 frame) makes every ratio about 1 and the test sees nothing in
+that frame.
+
 Where samples are rare (a dim region hit by one sample in 20), a 3x3 window of one half holds one or two hits
 or none, and both halves can stand beyond any factor by chance: the test then restarts an average that was
 right. The noise blend's accumulated input (service/stages/input_history.py) does not use it for that reason:
@@ -29,17 +34,20 @@ def light_changed(halves: np.ndarray, history: np.ndarray, change: float,
     """(H, W) bool: where both halves of this frame disagree with the history in the same direction: both halves'
     3x3 means beyond `change` times the history's, above or below, or both pixels beyond `pixel_change` times
     (None: no pixel test). halves, history: (6, H, W) float32 linear radiance planes, half A (3) then half B (3):
-    this frame's and the reprojected average (its values where the reprojection failed do not matter; an
-    average of both halves may stand twice)."""
+    this frame's and the reprojected average, whose pixels all count (where the reprojection failed, pass this
+    frame's halves: a 3x3 mean reads its neighbours); an average of both halves may stand twice. Radiance may be
+    negative (a light's edge less its emission): a sum below 0 counts as 0. change, pixel_change: factors > 1.
+    """
     changed = np.zeros(halves.shape[1:], bool)
+    tests = [(1, change)] + ([(0, pixel_change)] if pixel_change is not None else [])
     # radiance near float32's largest sums to inf, and inf / inf is nan, which compares false: no change is seen
     # there (the reprojection's own tests still apply)
     with np.errstate(over="ignore", invalid="ignore"):
-        current = np.stack([halves[0:3].sum(0), halves[3:6].sum(0)], axis=-1)  # (H, W, 2): A, B
-        previous = np.stack([history[0:3].sum(0), history[3:6].sum(0)], axis=-1)
+        current = np.maximum(np.stack([halves[0:3].sum(0), halves[3:6].sum(0)], axis=-1), 0)  # (H, W, 2): A, B
+        previous = np.maximum(np.stack([history[0:3].sum(0), history[3:6].sum(0)], axis=-1), 0)
         mean = float(current.mean(dtype=np.float64))
         eps = np.float32(min(max(EPS_SHARE * mean, 1e-30), 1e30)) if np.isfinite(mean) else np.float32(1e30)
-        for radius, factor in ((1, change), (0, pixel_change)) if pixel_change is not None else ((1, change),):
+        for radius, factor in tests:  # both sides of each ratio at least eps > 0
             now, before = (box_mean(v, radius) if radius else v for v in (current, previous))
             ratio = (now + eps) / (before + eps)
             brighter, darker = ratio > factor, ratio < 1.0 / factor

@@ -13,6 +13,7 @@ from service.pipelines.crossreg import REPROJECTION, prepare_frame
 from service.stages.averaged_halves import PLANES, average_halves, averaged_pilots
 from service.stages.cross_regression import cross_regression, pilots_to_radiance
 from service.stages.input_history import ALPHA_MIN
+from service.stages.reprojection import reproject
 
 
 def _static(height=24, width=32):
@@ -124,6 +125,26 @@ def test_the_average_starts_again_where_a_shadow_moved_in_and_not_at_a_firefly()
     assert kept.mean() > 0.9, kept.mean()
     pilots = pilots_to_radiance(*averaged_pilots(a, b, planes, albedo, normal))
     assert np.median(pilots[2:-2, 10:22]) < 0.1, np.median(pilots[2:-2, 10:22])
+
+
+def test_a_pixel_beside_a_failed_reprojection_keeps_averaging():
+    """A noise-free lit floor whose depth jumps in a cross: the cross starts again, and the valid pixels around
+    it keep averaging, those in its inner corners too (5 of their 9 neighbours failed: had the failed history's
+    zeros entered their 3x3 means, those would have fallen to 4/9 of the frame's, a change)."""
+    motion, depth, normal, _ = _static(16, 16)
+    lit = np.ones((16, 16, 3), np.float32)
+    planes = None
+    for _ in range(3):
+        planes = average_halves(lit, lit, planes, motion, depth=depth, prev_depth=depth, normal=normal,
+                                prev_normal=normal, params=REPROJECTION)
+    moved = depth.copy()
+    moved[8:10, 2:14] = moved[2:14, 8:10] = 5.0
+    planes = average_halves(lit, lit, planes, motion, depth=moved, prev_depth=depth, normal=normal,
+                            prev_normal=normal, params=REPROJECTION)
+    _, valid = reproject(planes.transpose(1, 2, 0), motion, depth=moved, prev_depth=depth, normal=normal,
+                         prev_normal=normal, params=REPROJECTION)
+    assert (planes[6][~valid] == 1.0).all() and (~valid).any()
+    np.testing.assert_array_equal(planes[6][valid], 4.0)
 
 
 @pytest.mark.parametrize("average", [True, False])

@@ -44,4 +44,18 @@ def test_radiance_near_float32s_largest_warns_nothing():
         warnings.simplefilter("error")
         assert not light_changed(halves, halves, CHANGE, 8.0).any()
         assert light_changed(history, history * np.float32(3e38), CHANGE, 8.0).all()
-        light_changed(halves, history, CHANGE, 8.0)
+        assert not light_changed(halves, history, CHANGE, 8.0)[:, :3].any()  # a frame mean of inf: eps 1e30
+
+
+def test_negative_radiance_counts_as_zero_without_sign_flips_or_division_by_zero():
+    """Halves and history a little below 0 (a light's edge less its emission) are as dark as 0: no change and no
+    warning, also where a sum plus eps would have been exactly 0; a lit history above them is a change."""
+    history = np.full((6, 8, 8), -1e-3, np.float32)
+    halves = np.full((6, 8, 8), -2e-3, np.float32)
+    halves[:, 0, 0] = 1.0  # a frame mean above 0: eps = 1e-3 of it
+    eps = 1e-3 * float(np.maximum(np.stack([halves[0:3].sum(0), halves[3:6].sum(0)], -1), 0).mean())
+    history[:, 4, 4] = -eps / 3  # its sum plus eps: 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not light_changed(halves, history, CHANGE, 8.0)[2:, 2:].any()
+        assert light_changed(halves, np.ones_like(history), CHANGE, 8.0)[2:, 2:].all()
