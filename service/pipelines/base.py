@@ -88,11 +88,11 @@ class Pipeline(ABC):
     @classmethod
     def reads(cls) -> tuple[str, ...]:
         """Every layer the pipeline's step may read: `color` (the frame contract fills it in), required,
-        optional, and with `guards` the halves, `emission` (exact pixels, noise clamp) and `normal` (the
-        background), and for a temporal pipeline `motion` and `depth` (the blend's accumulated input). Readers
-        decode only these (service/api/codec.py)."""
-        guarded = ("colorA", "colorB", "emission", "normal") if cls.guards else ()
-        guarded += ("motion", "depth") if cls.guards and cls.temporal else ()
+        optional, and with `guards` the halves, `emission` (exact pixels, noise clamp), `normal` and `depth`
+        (the background, the noise clamp's surfaces), and for a temporal pipeline `motion` (the blend's
+        accumulated input). Readers decode only these (service/api/codec.py)."""
+        guarded = ("colorA", "colorB", "emission", "normal", "depth") if cls.guards else ()
+        guarded += ("motion",) if cls.guards and cls.temporal else ()
         return tuple(dict.fromkeys((*cls.declared(), *guarded)))
 
     def start(self, height: int, width: int) -> SequenceState:
@@ -141,7 +141,8 @@ class Pipeline(ABC):
         if self.guards and "colorA" in given and "colorB" in given:  # within the noise the halves show
             halves = given["colorA"], given["colorB"]  # (finite in, finite out: the band is finite or +inf)
             exact = "emission" in frame  # the renderer's, or the exact pixels `with_exact_emission` found
-            clamped = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"), exact=exact)
+            clamped = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"), exact=exact,
+                                  normal=given.get("normal"), depth=given.get("depth"))
             history = state.input_history if self.temporal else None  # the accumulated input it may take back
             buffers["color"] = noise_blend(clamped, given["color"], *halves, frame.buffers.get("emission"),
                                            history=history, motion=given.get("motion"), depth=given.get("depth"),

@@ -15,6 +15,19 @@ denoiser is free. A region where every sample of both halves was black keeps
 black: that is what the samples say. Exact pixels (`service.stages.exact`) come out exactly as `color`;
 other pixels with emission in the renderer's `emission` layer are not clipped.
 
+With the G-buffer (`normal`, and `depth` where the frame has it) the same holds per surface: a pixel whose
+halves agree, and whose 3x3 neighbours on its own surface (both background, or both surface hits with
+normals within SURFACE_COS and depths within SURFACE_DEPTH relative: the reprojection's consistency test)
+all have halves that agree too, comes out as `color`. The other surface's noise says nothing about this
+pixel's: on `make bench`'s `fireflies`, frame 7, a column one pixel wide of a box's side that no light
+reaches (every sample black) stands beside the lit floor, whose noise widened the 3x3 band enough to let
+svgf's bleed through (0.1 where the input and the reference are 0: 51x the input's error over the 16x16
+tile, kpn 16x, flr 6x). Where the samples of a surface's pixels are this few and all agree (a dim region
+at 1-2 spp), the output is the input, as in a black region. What it costs (`make bench`, every pipeline,
+against the clamp without it): relL2 at most 0.25% higher (crossreg on shadows), lower on fireflies (svgf
+-5.6%, rae -4.0%, kpn -1.2%), disocclusion and textures unchanged; the hard cases all pass as before, `window`
+up to 4% higher (rae; docs/benchmarks.md, "Noise clamp per surface").
+
 What it costs on ordinary frames, together with the other guards of `Pipeline.step` (the benchmark's
 trimmed relL2, mean over frames, `make bench`, against the commit before the guards): NOISE_K = 5 is the
 tightest of 3, 4 and 5 that kept every pipeline within 3% of its relL2 before. On the shadows sample flr
@@ -28,11 +41,17 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from service.kernels.window import overlap, window_offsets
 from service.stages.exact import EXACT_MIN, EXACT_RTOL, agree, exact_mask, pixel_exact
+from service.stages.reprojection import DEPTH_FLOOR, NORMAL_HIT, ReprojectionParams, surface_hit
 from service.stages.svgf import box_mean
 
 NOISE_K = 5.0  # half-width of the allowed band, in standard deviations of the pixel estimate
 NOISE_RADIUS = 1  # window half-size of the variance estimate, pixels (3x3)
+# Two pixels are on one surface (module docstring) as the reprojection's taps are consistent: normals' dot at
+# least SURFACE_COS, depths within SURFACE_DEPTH of the pixel's (relative)
+SURFACE_COS = ReprojectionParams.normal_cos_min
+SURFACE_DEPTH = ReprojectionParams.depth_tolerance
 
 
 def noise_clamp(
@@ -43,6 +62,9 @@ def noise_clamp(
     emission: np.ndarray | None = None,
     k: float = NOISE_K,
     exact: bool = True,
+    *,
+    normal: np.ndarray | None = None,
+    depth: np.ndarray | None = None,
 ) -> np.ndarray:
     """`out` clipped to `color` +- k sd per pixel and channel (module docstring).
 
@@ -53,7 +75,9 @@ def noise_clamp(
     the halves agree by chance, and the emission split already tells the denoiser what is exact). Returns
     a new (H, W, 3) float32 array. One parallel numba pass; `noise_clamp_reference` is the numpy twin.
     exact=False: the caller knows that no pixel is exact (`exact.exact_emission` found none in a frame
-    without an emission layer), and the per-pixel test is skipped.
+    without an emission layer), and the per-pixel test is skipped. normal: (H, W, 3) float32 (zero where
+    nothing was hit) and depth: (H, W, 1) float32 or None: pixels whose own surface's 3x3 samples all agree
+    come out as `color` (module docstring); without normal, depth is not read.
     """
     if not 0 <= k < np.inf:
         raise ValueError(f"noise clamp k must be finite and >= 0, got {k}")
@@ -65,9 +89,52 @@ def noise_clamp(
         raise ValueError(f"noise clamp: out, color, the halves and emission must share one (H, W, C) shape: {shapes}")
     result = np.empty_like(arrays[0])
     e = arrays[4] if emission is not None else arrays[1]
+    use_normal, use_depth = normal is not None, normal is not None and depth is not None
+    normal, depth = _gbuffer(normal, depth, arrays[0].shape)
     _clamp_kernel(*arrays[:4], e, emission is not None, exact or emission is not None, np.float32(k),
-                  np.float32(EXACT_RTOL), np.float32(EXACT_MIN), result)
+                  np.float32(EXACT_RTOL), np.float32(EXACT_MIN), normal, depth, use_normal, use_depth, result)
     return result
+
+
+def _gbuffer(normal: np.ndarray | None, depth: np.ndarray | None,
+             shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """normal (H, W, 3) and depth (H, W, 1) as contiguous float32 for the kernel (placeholders of one pixel
+    where not given); ValueError where their shape does not match the frame's (H, W)."""
+    pair = []
+    for name, layer, channels in (("normal", normal, 3), ("depth", depth, 1)):
+        if layer is None:
+            pair.append(np.zeros((1, 1, channels), np.float32))
+            continue
+        if layer.shape != (*shape[:2], channels):
+            raise ValueError(f"noise clamp: {name} {layer.shape} does not match the frame {shape[:2]}")
+        pair.append(np.ascontiguousarray(layer, np.float32))
+    return pair[0], pair[1]
+
+
+def quiet_mask_reference(color_a: np.ndarray, color_b: np.ndarray, normal: np.ndarray,
+                         depth: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) bool: pixels whose halves agree, as do those of every 3x3 neighbour on their surface (module
+    docstring); numpy twin of the kernel's `_quiet`. color_a, color_b, normal (H, W, 3) and depth (H, W, 1) or
+    None, float32."""
+    height, width = color_a.shape[:2]
+    same_halves = (color_a == color_b).all(axis=-1)
+    hit = surface_hit(normal)
+    z = None if depth is None else depth[..., 0].astype(np.float32)
+    quiet = same_halves.copy()
+    for dy, dx in window_offsets(1):
+        pair = overlap(height, width, dy, dx)
+        if pair is None or (dy, dx) == (0, 0):
+            continue
+        centre, neighbour = pair
+        both = hit[centre] & hit[neighbour]
+        aligned = (normal[centre] * normal[neighbour]).sum(axis=-1) >= np.float32(SURFACE_COS)
+        same = (hit[centre] == hit[neighbour]) & (~both | aligned)
+        if z is not None:
+            near = np.abs(z[neighbour] - z[centre]) <= np.float32(SURFACE_DEPTH) * np.maximum(
+                np.abs(z[centre]), np.float32(DEPTH_FLOOR))
+            same &= ~both | near
+        quiet[centre] &= ~same | same_halves[neighbour]
+    return quiet
 
 
 def noise_sd_reference(color_a: np.ndarray, color_b: np.ndarray) -> np.ndarray:
@@ -83,21 +150,60 @@ def noise_clamp_reference(
     color_b: np.ndarray,
     emission: np.ndarray | None = None,
     k: float = NOISE_K,
+    *,
+    normal: np.ndarray | None = None,
+    depth: np.ndarray | None = None,
 ) -> np.ndarray:
     """Plain-numpy twin of `noise_clamp`."""
     band = k * noise_sd_reference(color_a, color_b)
     clipped = np.clip(out, color - band, color + band)
+    if normal is not None:
+        clipped = np.where(quiet_mask_reference(color_a, color_b, normal, depth)[..., None], color, clipped)
     if emission is not None:
         clipped = np.where((emission != 0).any(axis=-1, keepdims=True), out, clipped)
     exact = exact_mask(color_a, color_b, color, emission)
     return np.where(exact[..., None], color, clipped).astype(np.float32)
 
 
+@numba.njit(inline="always", cache=True)
+def _same_halves(a, b, y, x):  # pragma: no cover - jitted
+    """Whether pixel (y, x) of the halves a, b ((H, W, C) float32) has the same value in both, every channel."""
+    for c in range(a.shape[2]):
+        if a[y, x, c] != b[y, x, c]:
+            return False
+    return True
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _quiet(a, b, normal, depth, use_depth, y, x):  # pragma: no cover - jitted
+    """Whether every 3x3 neighbour of pixel (y, x) on its surface (module docstring) has halves that agree
+    (the pixel's own are checked by the caller). a, b (H, W, C), normal (H, W, 3), depth (H, W, 1) float32."""
+    height, width = a.shape[0], a.shape[1]
+    n0, n1, n2 = normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]
+    hit = n0 * n0 + n1 * n1 + n2 * n2 > np.float32(NORMAL_HIT)
+    z = depth[y, x, 0] if use_depth else np.float32(0)
+    reach = np.float32(SURFACE_DEPTH) * max(abs(z), np.float32(DEPTH_FLOOR))
+    for yy in range(max(y - 1, 0), min(y + 2, height)):
+        for xx in range(max(x - 1, 0), min(x + 2, width)):
+            m0, m1, m2 = normal[yy, xx, 0], normal[yy, xx, 1], normal[yy, xx, 2]
+            if (m0 * m0 + m1 * m1 + m2 * m2 > np.float32(NORMAL_HIT)) != hit:
+                continue  # background beside a surface hit: another surface
+            if hit and not n0 * m0 + n1 * m1 + n2 * m2 >= np.float32(SURFACE_COS):
+                continue
+            if hit and use_depth and not abs(depth[yy, xx, 0] - z) <= reach:
+                continue
+            if not _same_halves(a, b, yy, xx):
+                return False
+    return True
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, result):  # pragma: no cover - jitted
+def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, normal, depth, use_normal, use_depth,
+                  result):  # pragma: no cover - jitted
     """A task per row: the 3-row column sums of (a - b)^2 along the interleaved (W * C) row, then the
-    3-column sums as shifts by C, then the clip; unless `exact` is False (and so `has_emission`), exact
-    pixels take `color`, other pixels with emission take `out` unclipped."""
+    3-column sums as shifts by C, then the clip; with `use_normal`, pixels whose surface's 3x3 halves agree
+    (`_quiet`) take `color`; unless `exact` is False (and so `has_emission`), exact pixels take `color`,
+    other pixels with emission take `out` unclipped."""
     height, width, channels = out.shape
     n = width * channels
     for y in numba.prange(height):
@@ -125,6 +231,11 @@ def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, resu
                     total += column[i + channels]
                 band = k * np.sqrt(total * edge)
                 rr[i] = min(max(ro[i], rc[i] - band), rc[i] + band)
+        if use_normal:
+            for x in range(width):  # the pixel's own halves first: in most frames few pixels have equal ones
+                if _same_halves(a, b, y, x) and _quiet(a, b, normal, depth, use_depth, y, x):
+                    for c in range(channels):
+                        rr[x * channels + c] = rc[x * channels + c]
         if not exact:
             continue
         re = e[y].reshape(n)

@@ -103,3 +103,77 @@ def test_matches_the_twin_on_exact_pixels_emitters_and_repaired_colours(with_emi
     np.testing.assert_allclose(result, expected, rtol=1e-6, atol=1e-6)  # the band's sum order: an ulp
     if exact:
         np.testing.assert_array_equal(result[4, 5], 0.0)  # exact: the input, a repaired black
+
+
+def _box_beside_floor(rng, size=12):
+    """A lit, noisy floor (normal +z, depth 4) with a column one pixel wide of a box's unlit side (normal -x,
+    depth 3) at x = 6, every sample of it black, and the background (no hit) from x = 7 on."""
+    shape = (size, size, 3)
+    truth, a, b, color = _frame(rng, shape, sd=0.5)
+    normal = np.zeros(shape, np.float32)
+    normal[:, :6, 2] = 1.0
+    normal[:, 6, 0] = -1.0
+    depth = np.full((size, size, 1), 1e4, np.float32)
+    depth[:, :6] = 4.0
+    depth[:, 6] = 3.0
+    for x in (a, b, color):
+        x[:, 6:] = 0.0
+    return a, b, color, normal, depth
+
+
+@pytest.mark.parametrize("with_depth", [False, True])
+def test_a_black_surface_beside_a_noisy_one_keeps_black(with_depth):
+    a, b, color, normal, depth = _box_beside_floor(np.random.default_rng(2))
+    depth = depth if with_depth else None
+    bleed = color.copy()
+    bleed[:, 6] = 0.1  # a filter's bleed from the lit floor onto the unlit side
+    plain = noise_clamp(bleed, color, a, b)
+    assert (plain[1:-1, 6] == 0.1).all()  # the floor's noise in the 3x3 window lets it through
+    per_surface = noise_clamp(bleed, color, a, b, normal=normal, depth=depth)
+    assert (per_surface[:, 6] == 0.0).all()
+    np.testing.assert_array_equal(per_surface[:, :6], plain[:, :6])  # the noisy floor: as before
+    np.testing.assert_array_equal(per_surface, noise_clamp_reference(bleed, color, a, b, normal=normal, depth=depth))
+
+
+def test_a_black_pixel_on_a_surface_whose_samples_differ_is_not_frozen():
+    a, b, color, normal, depth = _box_beside_floor(np.random.default_rng(3))
+    a[4, 2] = b[4, 2] = color[4, 2] = 0.0  # a floor pixel whose few samples all missed: its neighbours saw light
+    out = np.full_like(color, 0.8)
+    np.testing.assert_array_equal(noise_clamp(out, color, a, b, normal=normal, depth=depth)[4, 2],
+                                  noise_clamp(out, color, a, b)[4, 2])
+    assert (noise_clamp(out, color, a, b, normal=normal, depth=depth)[4, 2] > 0).all()
+
+
+def test_depth_tells_surfaces_apart_that_normals_do_not():
+    a, b, color, normal, depth = _box_beside_floor(np.random.default_rng(4))
+    normal[:, 6] = normal[:, 5]  # the column faces up like the floor, but stands 1 unit nearer
+    bleed = color.copy()
+    bleed[:, 6] = 0.1
+    assert (noise_clamp(bleed, color, a, b, normal=normal)[1:-1, 6] == 0.1).all()  # one surface by its normal
+    assert (noise_clamp(bleed, color, a, b, normal=normal, depth=depth)[:, 6] == 0.0).all()
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 3), (1, 5, 3), (3, 2, 3), (41, 29, 3)])
+def test_matches_the_numpy_twin_with_surfaces(shape):
+    rng = np.random.default_rng(5)
+    _, a, b, color = _frame(rng, shape)
+    black = rng.random(shape[:2]) < 0.6  # regions of agreeing halves, across surfaces
+    a[black] = b[black] = color[black] = 0.0
+    normal = np.zeros(shape, np.float32)
+    normal[..., 2] = 1.0
+    normal[rng.random(shape[:2]) < 0.3] = (1.0, 0.0, 0.0)
+    normal[rng.random(shape[:2]) < 0.2] = 0.0  # background
+    depth = rng.choice(np.array([2.0, 2.1, 3.0], np.float32), shape[:2])[..., None]
+    out = rng.uniform(-5, 5, shape).astype(np.float32)
+    for d in (None, depth):
+        np.testing.assert_allclose(noise_clamp(out, color, a, b, normal=normal, depth=d),
+                                   noise_clamp_reference(out, color, a, b, normal=normal, depth=d),
+                                   rtol=1e-6, atol=1e-6)
+
+
+def test_refuses_a_gbuffer_of_another_size():
+    x = np.ones((4, 4, 3), np.float32)
+    with pytest.raises(ValueError, match="normal"):
+        noise_clamp(x, x, x, x, normal=x[:3])
+    with pytest.raises(ValueError, match="depth"):
+        noise_clamp(x, x, x, x, normal=x, depth=x)
