@@ -91,8 +91,12 @@ def noise_clamp(
     e = arrays[4] if emission is not None else arrays[1]
     use_normal, use_depth = normal is not None, normal is not None and depth is not None
     normal, depth = _gbuffer(normal, depth, arrays[0].shape)
+    agreeing = np.empty(arrays[0].shape[:2] if use_normal else (1, 1), np.uint8)
+    if use_normal:
+        _agreeing_kernel(arrays[2], arrays[3], agreeing)
     _clamp_kernel(*arrays[:4], e, emission is not None, exact or emission is not None, np.float32(k),
-                  np.float32(EXACT_RTOL), np.float32(EXACT_MIN), normal, depth, use_normal, use_depth, result)
+                  np.float32(EXACT_RTOL), np.float32(EXACT_MIN), agreeing, normal, depth, use_normal, use_depth,
+                  result)
     return result
 
 
@@ -165,26 +169,34 @@ def noise_clamp_reference(
     return np.where(exact[..., None], color, clipped).astype(np.float32)
 
 
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _agreeing_kernel(a, b, agreeing):  # pragma: no cover - jitted
+    """agreeing (H, W) uint8: 1 where the halves a, b ((H, W, C) float32) have the same value, every channel.
+    A task per row."""
+    height, width, channels = a.shape
+    n = width * channels
+    for y in numba.prange(height):
+        ra, rb, flags = a[y].reshape(n), b[y].reshape(n), agreeing[y]
+        for x in range(width):
+            same = True
+            for c in range(channels):
+                same = same and ra[x * channels + c] == rb[x * channels + c]
+            flags[x] = same
+
+
 @numba.njit(inline="always", cache=True)
-def _same_halves(a, b, y, x):  # pragma: no cover - jitted
-    """Whether pixel (y, x) of the halves a, b ((H, W, C) float32) has the same value in both, every channel."""
-    for c in range(a.shape[2]):
-        if a[y, x, c] != b[y, x, c]:
-            return False
-    return True
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _quiet(a, b, normal, depth, use_depth, y, x):  # pragma: no cover - jitted
-    """Whether every 3x3 neighbour of pixel (y, x) on its surface (module docstring) has halves that agree
-    (the pixel's own are checked by the caller). a, b (H, W, C), normal (H, W, 3), depth (H, W, 1) float32."""
-    height, width = a.shape[0], a.shape[1]
+def _quiet(agreeing, normal, depth, use_depth, y, x):  # pragma: no cover - jitted
+    """Whether every 3x3 neighbour of pixel (y, x) on its surface (module docstring) has halves that agree.
+    agreeing: (H, W) uint8 (`_agreeing_kernel`); normal (H, W, 3), depth (H, W, 1) float32."""
+    height, width = agreeing.shape
     n0, n1, n2 = normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]
     hit = n0 * n0 + n1 * n1 + n2 * n2 > np.float32(NORMAL_HIT)
     z = depth[y, x, 0] if use_depth else np.float32(0)
     reach = np.float32(SURFACE_DEPTH) * max(abs(z), np.float32(DEPTH_FLOOR))
     for yy in range(max(y - 1, 0), min(y + 2, height)):
         for xx in range(max(x - 1, 0), min(x + 2, width)):
+            if agreeing[yy, xx]:
+                continue  # whatever its surface
             m0, m1, m2 = normal[yy, xx, 0], normal[yy, xx, 1], normal[yy, xx, 2]
             if (m0 * m0 + m1 * m1 + m2 * m2 > np.float32(NORMAL_HIT)) != hit:
                 continue  # background beside a surface hit: another surface
@@ -192,18 +204,17 @@ def _quiet(a, b, normal, depth, use_depth, y, x):  # pragma: no cover - jitted
                 continue
             if hit and use_depth and not abs(depth[yy, xx, 0] - z) <= reach:
                 continue
-            if not _same_halves(a, b, yy, xx):
-                return False
+            return False  # a neighbour on this surface whose halves differ
     return True
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, normal, depth, use_normal, use_depth,
-                  result):  # pragma: no cover - jitted
+def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, agreeing, normal, depth, use_normal,
+                  use_depth, result):  # pragma: no cover - jitted
     """A task per row: the 3-row column sums of (a - b)^2 along the interleaved (W * C) row, then the
     3-column sums as shifts by C, then the clip; with `use_normal`, pixels whose surface's 3x3 halves agree
-    (`_quiet`) take `color`; unless `exact` is False (and so `has_emission`), exact pixels take `color`,
-    other pixels with emission take `out` unclipped."""
+    (`_quiet` on `agreeing`, (H, W) uint8) take `color`; unless `exact` is False (and so `has_emission`),
+    exact pixels take `color`, other pixels with emission take `out` unclipped."""
     height, width, channels = out.shape
     n = width * channels
     for y in numba.prange(height):
@@ -233,7 +244,7 @@ def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, norm
                 rr[i] = min(max(ro[i], rc[i] - band), rc[i] + band)
         if use_normal:
             for x in range(width):  # the pixel's own halves first: in most frames few pixels have equal ones
-                if _same_halves(a, b, y, x) and _quiet(a, b, normal, depth, use_depth, y, x):
+                if agreeing[y, x] and _quiet(agreeing, normal, depth, use_depth, y, x):
                     for c in range(channels):
                         rr[x * channels + c] = rc[x * channels + c]
         if not exact:
