@@ -6,12 +6,13 @@ This frame's two halves are independent estimates of its light. Where both stand
 history's, on the same side, the light changed; a firefly is in one half, not both, so it does not count.
 Compared are the sums over the channels, as 3x3 means (and, optionally, per pixel), with EPS_SHARE of the
 frame's mean radiance added to both sides, so that the test does not depend on the radiance's scale and dark
-pixels do not restart on nothing. Used by crossreg's averaged halves (service/stages/averaged_halves.py).
+pixels do not restart on nothing. The mean caps every value at the frame's SCALE_QUANTILE quantile (of a
+strided sample of at most SCALE_SAMPLES values): one firefly of 1e10 in a 1280x720 frame would otherwise have
+made eps about 10, every ratio about 1 where the radiance is about 1, and the test blind for that frame. Used
+by crossreg's averaged halves (service/stages/averaged_halves.py).
 
-Known limits: a pixel whose halves are both 0 is "darker" than any history above a few eps, so the pixel test
-restarts it (a 0/1 signal hitting light half the time restarts often); and eps follows the frame's mean, so
-one huge finite value (about 1e10 in a 1280x720 frame) makes every ratio about 1 and the test sees nothing in
-that frame.
+Known limit: a pixel whose halves are both 0 is "darker" than any history above a few eps, so the pixel test
+restarts it (a 0/1 signal hitting light half the time restarts often).
 
 Where samples are rare (a dim region hit by one sample in 20), a 3x3 window of one half holds one or two hits
 or none, and both halves can stand beyond any factor by chance: the test then restarts an average that was
@@ -27,6 +28,8 @@ import numpy as np
 from service.stages.svgf import box_mean
 
 EPS_SHARE = 1e-3  # of the frame's mean radiance (a half, summed over channels), added before the ratios
+SCALE_QUANTILE = 0.999  # ... the mean taken with every value capped at this quantile of the frame's
+SCALE_SAMPLES = 65536  # ... estimated from a strided sample of about this many values
 
 
 def light_changed(halves: np.ndarray, history: np.ndarray, change: float,
@@ -45,7 +48,7 @@ def light_changed(halves: np.ndarray, history: np.ndarray, change: float,
     with np.errstate(over="ignore", invalid="ignore"):
         current = np.maximum(np.stack([halves[0:3].sum(0), halves[3:6].sum(0)], axis=-1), 0)  # (H, W, 2): A, B
         previous = np.maximum(np.stack([history[0:3].sum(0), history[3:6].sum(0)], axis=-1), 0)
-        mean = float(current.mean(dtype=np.float64))
+        mean = robust_mean(current)
         eps = np.float32(min(max(EPS_SHARE * mean, 1e-30), 1e30)) if np.isfinite(mean) else np.float32(1e30)
         for radius, factor in tests:  # both sides of each ratio at least eps > 0
             now, before = (box_mean(v, radius) if radius else v for v in (current, previous))
@@ -53,3 +56,14 @@ def light_changed(halves: np.ndarray, history: np.ndarray, change: float,
             brighter, darker = ratio > factor, ratio < 1.0 / factor
             changed |= (brighter[..., 0] & brighter[..., 1]) | (darker[..., 0] & darker[..., 1])
     return changed
+
+
+def robust_mean(values: np.ndarray) -> float:
+    """The mean of `values` (any shape, float32 >= 0, possibly inf) with every value capped at their
+    SCALE_QUANTILE quantile, estimated from a strided sample of about SCALE_SAMPLES of them (module docstring).
+    inf where more than the quantile's share are inf; float64."""
+    flat = values.reshape(-1)
+    sample = flat[:: max(1, flat.size // SCALE_SAMPLES)]
+    k = int(SCALE_QUANTILE * (sample.size - 1))
+    cap = np.partition(sample, k)[k]
+    return float(np.minimum(flat, cap).mean(dtype=np.float64))

@@ -59,3 +59,18 @@ def test_negative_radiance_counts_as_zero_without_sign_flips_or_division_by_zero
         warnings.simplefilter("error")
         assert not light_changed(halves, history, CHANGE, 8.0)[2:, 2:].any()
         assert light_changed(halves, np.ones_like(history), CHANGE, 8.0)[2:, 2:].all()
+
+
+def test_one_huge_firefly_does_not_blind_the_test():
+    """A shadow moved in (both halves 10x darker over a 5x5 patch) in a frame that also holds one pixel of 1e10 in
+    half A: the eps from the frame's plain mean (about 1e6 here) would make every ratio about 1."""
+    rng = np.random.default_rng(7)
+    history = rng.uniform(0.5, 1.5, (6, 64, 64)).astype(np.float32)
+    halves = history.copy()
+    halves[:, 10:15, 10:15] *= 0.1
+    expected = light_changed(halves, history, CHANGE, 8.0)
+    assert expected[11:14, 11:14].all()
+    halves[0:3, 40, 40] = 1e10
+    history_too = history.copy()
+    history_too[0:3, 40, 40] = 1e10  # the firefly stays where it was: no change there either
+    np.testing.assert_array_equal(light_changed(halves, history_too, CHANGE, 8.0), expected)
