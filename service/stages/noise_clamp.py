@@ -25,8 +25,8 @@ svgf's bleed through (0.1 where the input and the reference are 0: 51x the input
 tile, kpn 16x, flr 6x). Where the samples of a surface's pixels are this few and all agree (a dim region
 at 1-2 spp), the output is the input, as in a black region. What it costs (`make bench`, every pipeline,
 against the clamp without it): relL2 at most 0.25% higher (auto on shadows), lower on fireflies (svgf
--5.6%, rae -4.0%, kpn -1.2%), disocclusion and textures unchanged; the hard cases all pass as before, `window`
-up to 4.3% higher (rae; docs/benchmarks.md, "Noise clamp per surface").
+-5.6%, rae -4.0%, kpn -1.2%), disocclusion and textures unchanged; the hard cases all pass as before, relL2
+from -2.0% (crossreg on `caustics`) to +4.3% (rae on `window`; docs/benchmarks.md, "Noise clamp per surface").
 
 What it costs on ordinary frames, together with the other guards of `Pipeline.step` (the benchmark's
 trimmed relL2, mean over frames, `make bench`, against the commit before the guards): NOISE_K = 5 is the
