@@ -7,12 +7,14 @@ history's, on the same side, the light changed; a firefly is in one half, not bo
 Compared are the sums over the channels, as 3x3 means (and, optionally, per pixel), with EPS_SHARE of the
 frame's mean radiance added to both sides, so that the test does not depend on the radiance's scale and dark
 pixels do not restart on nothing. The mean caps every value at the frame's SCALE_QUANTILE quantile (of a
-strided sample of at most SCALE_SAMPLES values): one firefly of 1e10 in a 1280x720 frame would otherwise have
-made eps about 10, every ratio about 1 where the radiance is about 1, and the test blind for that frame. Used
-by crossreg's averaged halves (service/stages/averaged_halves.py).
+sample at an odd stride, so that it holds both halves, of 2/3 to 2 times SCALE_SAMPLES values): one firefly
+of 1e10 in a 1280x720 frame would otherwise have made eps about 10, every ratio about 1 where the radiance is
+about 1, and the test blind for that frame. Used by crossreg's averaged halves
+(service/stages/averaged_halves.py).
 
-Known limit: a pixel whose halves are both 0 is "darker" than any history above a few eps, so the pixel test
-restarts it (a 0/1 signal hitting light half the time restarts often).
+Known limits: a pixel whose halves are both 0 is "darker" than any history above a few eps, so the pixel test
+restarts it (a 0/1 signal hitting light half the time restarts often); more than 1 - SCALE_QUANTILE of the
+frame's values huge still makes eps large, and a NaN (frames repair them on input) makes it 1e30.
 
 Where samples are rare (a dim region hit by one sample in 20), a 3x3 window of one half holds one or two hits
 or none, and both halves can stand beyond any factor by chance: the test then restarts an average that was
@@ -29,7 +31,7 @@ from service.stages.svgf import box_mean
 
 EPS_SHARE = 1e-3  # of the frame's mean radiance (a half, summed over channels), added before the ratios
 SCALE_QUANTILE = 0.999  # ... the mean taken with every value capped at this quantile of the frame's
-SCALE_SAMPLES = 65536  # ... estimated from a strided sample of about this many values
+SCALE_SAMPLES = 65536  # ... estimated from a strided sample of 2/3 to 2 times this many values
 
 
 def light_changed(halves: np.ndarray, history: np.ndarray, change: float,
@@ -59,11 +61,12 @@ def light_changed(halves: np.ndarray, history: np.ndarray, change: float,
 
 
 def robust_mean(values: np.ndarray) -> float:
-    """The mean of `values` (any shape, float32 >= 0, possibly inf) with every value capped at their
-    SCALE_QUANTILE quantile, estimated from a strided sample of about SCALE_SAMPLES of them (module docstring).
-    inf where more than the quantile's share are inf; float64."""
+    """The mean of `values` (any shape, at least one value, float32 >= 0, possibly inf) with every value capped
+    at their SCALE_QUANTILE quantile, estimated from a sample at an odd stride of 2/3 to 2 times SCALE_SAMPLES
+    of them (all of them below 2 SCALE_SAMPLES; module docstring). inf where more than the quantile's share are
+    inf; float64."""
     flat = values.reshape(-1)
-    sample = flat[:: max(1, flat.size // SCALE_SAMPLES)]
+    sample = flat[:: max(1, flat.size // SCALE_SAMPLES) | 1]  # odd: interleaved halves both in the sample
     k = int(SCALE_QUANTILE * (sample.size - 1))
     cap = np.partition(sample, k)[k]
     return float(np.minimum(flat, cap).mean(dtype=np.float64))

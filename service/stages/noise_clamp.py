@@ -16,9 +16,11 @@ black: that is what the samples say. Exact pixels (`service.stages.exact`) come 
 other pixels with emission in the renderer's `emission` layer are not clipped.
 
 With the G-buffer (`normal`, and `depth` where the frame has it) the same holds per surface: a pixel whose
-halves agree, and whose 3x3 neighbours on its own surface (both background, or both surface hits with
-normals within SURFACE_COS and depths within SURFACE_DEPTH relative: the reprojection's consistency test)
-all have halves that agree too, comes out as `color`. The other surface's noise says nothing about this
+halves are equal (every channel, exactly), and whose 3x3 neighbours on its own surface (both background, or
+both surface hits whose normals' directions are within SURFACE_COS, whatever their lengths: a normal averaged
+over a pixel's samples is short, and depths within SURFACE_DEPTH of the pixel's, relative: the reprojection's
+consistency test) all have equal halves too, comes out as `color`; exact pixels and pixels with emission
+are then treated as above. The other surface's noise says nothing about this
 pixel's: on `make bench`'s `fireflies`, frame 7, a column one pixel wide of a box's side that no light
 reaches (every sample black) stands beside the lit floor, whose noise widened the 3x3 band enough to let
 svgf's bleed through (0.1 where the input and the reference are 0: 51x the input's error over the 16x16
@@ -48,10 +50,11 @@ from service.stages.svgf import box_mean
 
 NOISE_K = 5.0  # half-width of the allowed band, in standard deviations of the pixel estimate
 NOISE_RADIUS = 1  # window half-size of the variance estimate, pixels (3x3)
-# Two pixels are on one surface (module docstring) as the reprojection's taps are consistent: normals' dot at
-# least SURFACE_COS, depths within SURFACE_DEPTH of the pixel's (relative)
+# Two pixels are on one surface (module docstring) as the reprojection's taps are consistent: the cosine between
+# their normals at least SURFACE_COS, depths within SURFACE_DEPTH of the pixel's (relative)
 SURFACE_COS = ReprojectionParams.normal_cos_min
 SURFACE_DEPTH = ReprojectionParams.depth_tolerance
+_COS2 = np.float32(SURFACE_COS**2)  # the kernel compares dot^2 with cos^2 |n|^2 |m|^2 (dot > 0): no square root
 
 
 def noise_clamp(
@@ -77,7 +80,7 @@ def noise_clamp(
     exact=False: the caller knows that no pixel is exact (`exact.exact_emission` found none in a frame
     without an emission layer), and the per-pixel test is skipped. normal: (H, W, 3) float32 (zero where
     nothing was hit) and depth: (H, W, 1) float32 or None: pixels whose own surface's 3x3 samples all agree
-    come out as `color` (module docstring); without normal, depth is not read.
+    come out as `color` (module docstring); depth is used only with normal (its shape is checked either way).
     """
     if not 0 <= k < np.inf:
         raise ValueError(f"noise clamp k must be finite and >= 0, got {k}")
@@ -117,8 +120,8 @@ def _gbuffer(normal: np.ndarray | None, depth: np.ndarray | None,
 
 def quiet_mask_reference(color_a: np.ndarray, color_b: np.ndarray, normal: np.ndarray,
                          depth: np.ndarray | None = None) -> np.ndarray:
-    """(H, W) bool: pixels whose halves agree, as do those of every 3x3 neighbour on their surface (module
-    docstring); numpy twin of the kernel's `_quiet`. color_a, color_b, normal (H, W, 3) and depth (H, W, 1) or
+    """(H, W) bool: pixels whose halves are equal, as are those of every 3x3 neighbour on their surface (module
+    docstring); numpy twin of `_agreeing_kernel` and `_quiet`. color_a, color_b, normal (H, W, 3) and depth (H, W, 1) or
     None, float32."""
     height, width = color_a.shape[:2]
     same_halves = (color_a == color_b).all(axis=-1)
@@ -131,7 +134,9 @@ def quiet_mask_reference(color_a: np.ndarray, color_b: np.ndarray, normal: np.nd
             continue
         centre, neighbour = pair
         both = hit[centre] & hit[neighbour]
-        aligned = (normal[centre] * normal[neighbour]).sum(axis=-1) >= np.float32(SURFACE_COS)
+        dot = (normal[centre] * normal[neighbour]).sum(axis=-1)
+        lengths = (normal[centre] * normal[centre]).sum(axis=-1) * (normal[neighbour] * normal[neighbour]).sum(axis=-1)
+        aligned = (dot > 0) & (dot * dot >= _COS2 * lengths)
         same = (hit[centre] == hit[neighbour]) & (~both | aligned)
         if z is not None:
             near = np.abs(z[neighbour] - z[centre]) <= np.float32(SURFACE_DEPTH) * np.maximum(
@@ -190,7 +195,8 @@ def _quiet(agreeing, normal, depth, use_depth, y, x):  # pragma: no cover - jitt
     agreeing: (H, W) uint8 (`_agreeing_kernel`); normal (H, W, 3), depth (H, W, 1) float32."""
     height, width = agreeing.shape
     n0, n1, n2 = normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]
-    hit = n0 * n0 + n1 * n1 + n2 * n2 > np.float32(NORMAL_HIT)
+    own = n0 * n0 + n1 * n1 + n2 * n2
+    hit = own > np.float32(NORMAL_HIT)
     z = depth[y, x, 0] if use_depth else np.float32(0)
     reach = np.float32(SURFACE_DEPTH) * max(abs(z), np.float32(DEPTH_FLOOR))
     for yy in range(max(y - 1, 0), min(y + 2, height)):
@@ -198,9 +204,11 @@ def _quiet(agreeing, normal, depth, use_depth, y, x):  # pragma: no cover - jitt
             if agreeing[yy, xx]:
                 continue  # whatever its surface
             m0, m1, m2 = normal[yy, xx, 0], normal[yy, xx, 1], normal[yy, xx, 2]
-            if (m0 * m0 + m1 * m1 + m2 * m2 > np.float32(NORMAL_HIT)) != hit:
+            other = m0 * m0 + m1 * m1 + m2 * m2
+            if (other > np.float32(NORMAL_HIT)) != hit:
                 continue  # background beside a surface hit: another surface
-            if hit and not n0 * m0 + n1 * m1 + n2 * m2 >= np.float32(SURFACE_COS):
+            dot = n0 * m0 + n1 * m1 + n2 * m2
+            if hit and not (dot > 0 and dot * dot >= _COS2 * (own * other)):
                 continue
             if hit and use_depth and not abs(depth[yy, xx, 0] - z) <= reach:
                 continue

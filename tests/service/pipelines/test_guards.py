@@ -151,3 +151,32 @@ def test_a_temporal_pipeline_blends_with_the_accumulated_input(tiny_layers):
     with pytest.raises(FrameError):  # a refused frame: the next one's motion points to it
         pipeline.step(Frame.from_buffers({k: v[:12] for k, v in tiny_layers[1].items()}), state)
     assert state.input_history.buffer is None
+
+
+def test_the_step_clamps_per_surface_with_the_frames_normal_and_depth():
+    """A box's unlit side, one pixel wide, beside a noisy lit floor (service/stages/noise_clamp.py): the step
+    gives the clamp the frame's normal and depth, so a filter's bleed onto it comes out black, and every guarded
+    pipeline reads depth."""
+    class Bleed(Pipeline):
+        name, summary, requires = "bleed", "test double", ("color",)
+
+        def denoise(self, frame, state):
+            out = frame["color"].copy()
+            out[:, 6] = 0.1
+            return {"color": out}, state
+
+    rng = np.random.default_rng(0)
+    shape = (12, 12, 3)
+    a = rng.uniform(0.5, 2.0, shape).astype(np.float32)
+    b = rng.uniform(0.5, 2.0, shape).astype(np.float32)
+    a[:, 6:] = b[:, 6:] = 0.0
+    normal = np.zeros(shape, np.float32)
+    normal[:, :6, 2] = 1.0
+    normal[:, 6, 0] = -1.0
+    depth = np.full((12, 12, 1), 1e4, np.float32)
+    depth[:, :6], depth[:, 6] = 4.0, 3.0
+    frame = Frame.from_buffers({"color": (a + b) / 2, "colorA": a, "colorB": b, "normal": normal, "depth": depth})
+    pipeline = Bleed()
+    out, _ = pipeline.step(frame, pipeline.start(12, 12))
+    assert (out["color"][:, 6] == 0.0).all()
+    assert "depth" in pipeline.reads() and "depth" in pipelines.pipeline_class("bilateral").reads()

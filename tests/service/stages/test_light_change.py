@@ -4,7 +4,7 @@ import warnings
 
 import numpy as np
 
-from service.stages.light_change import light_changed
+from service.stages.light_change import light_changed, robust_mean
 
 CHANGE = 1.5
 
@@ -74,3 +74,14 @@ def test_one_huge_firefly_does_not_blind_the_test():
     history_too = history.copy()
     history_too[0:3, 40, 40] = 1e10  # the firefly stays where it was: no change there either
     np.testing.assert_array_equal(light_changed(halves, history_too, CHANGE, 8.0), expected)
+
+
+def test_the_robust_mean_caps_only_the_top_of_the_frame():
+    rng = np.random.default_rng(8)
+    values = rng.uniform(0.0, 2.0, (720, 1280, 2)).astype(np.float32)
+    np.testing.assert_allclose(robust_mean(values), values.mean(dtype=np.float64), rtol=2e-3)  # the cap: top 0.1%
+    spiked = values.copy()
+    spiked[::25, ::25, 0] = 1e10  # 0.08% of the values, all in half A: 0.16% of a sample that held half A alone
+    assert robust_mean(spiked) < 1.01 * robust_mean(values)
+    assert robust_mean(np.zeros((3, 3, 2), np.float32)) == 0.0
+    assert robust_mean(np.full((1, 1, 2), 5.0, np.float32)) == 5.0

@@ -177,3 +177,56 @@ def test_refuses_a_gbuffer_of_another_size():
         noise_clamp(x, x, x, x, normal=x[:3])
     with pytest.raises(ValueError, match="depth"):
         noise_clamp(x, x, x, x, normal=x, depth=x)
+
+
+def test_halves_equal_in_some_channels_only_do_not_count_as_agreeing():
+    a, b, color, normal, depth = _box_beside_floor(np.random.default_rng(6))
+    b[3, 6, 1] = a[3, 6, 1] = 0.0
+    b[3, 6, 2] = 0.5  # one sample of the unlit column found some blue: its halves differ in one channel
+    color[3, 6] = (a[3, 6] + b[3, 6]) / 2
+    bleed = color.copy()
+    bleed[:, 6] = 0.1
+    out = noise_clamp(bleed, color, a, b, normal=normal, depth=depth)
+    assert (out[2:5, 6] == bleed[2:5, 6]).all()  # the column's pixels beside it are no longer quiet
+    assert (out[6:, 6] == 0.0).all()
+    np.testing.assert_array_equal(out, noise_clamp_reference(bleed, color, a, b, normal=normal, depth=depth))
+
+
+def test_emission_and_exact_pixels_keep_their_rules_on_a_quiet_surface():
+    """A quiet pixel with emission keeps the output unclipped, an exact one its input; without exact pixels
+    (exact=False: none in a frame without an emission layer) the quiet pixels still take their input."""
+    a, b, color, normal, depth = _box_beside_floor(np.random.default_rng(8))
+    bleed = color.copy()
+    bleed[:, 6] = 0.1
+    emission = np.zeros_like(color)
+    emission[4, 6] = 0.05  # a dim emitter on the unlit side, its halves equal
+    a[4, 6] = b[4, 6] = color[4, 6] = 0.05
+    out = noise_clamp(bleed, color, a, b, emission, normal=normal, depth=depth)
+    assert (out[4, 6] == 0.05).all()  # exact (all emission): as it came in
+    emission[4, 6] = 0.02  # only part of it emitted: not exact, kept unclipped
+    out = noise_clamp(bleed, color, a, b, emission, normal=normal, depth=depth)
+    assert (out[4, 6] == 0.1).all() and (out[8:, 6] == 0.0).all()
+    np.testing.assert_array_equal(out, noise_clamp_reference(bleed, color, a, b, emission, normal=normal, depth=depth))
+    a[4, 6] = b[4, 6] = color[4, 6] = 0.0
+    assert (noise_clamp(bleed, color, a, b, exact=False, normal=normal, depth=depth)[:, 6] == 0.0).all()
+
+
+def test_short_normals_of_one_direction_are_one_surface():
+    """Normals averaged over a pixel's samples are shorter than 1: the test takes their directions."""
+    a, b, color, normal, depth = _box_beside_floor(np.random.default_rng(9))
+    a[4, 2] = b[4, 2] = color[4, 2] = 0.0  # a floor pixel whose samples all missed, its neighbours lit
+    normal[:, :6] *= 0.9  # |n| = 0.9: a raw dot of 0.81 against its neighbours
+    out = np.full_like(color, 0.8)
+    assert (noise_clamp(out, color, a, b, normal=normal, depth=depth)[4, 2] > 0).all()  # not frozen
+    np.testing.assert_array_equal(noise_clamp(out, color, a, b, normal=normal, depth=depth),
+                                  noise_clamp_reference(out, color, a, b, normal=normal, depth=depth))
+
+
+def test_depth_is_compared_relative_to_the_pixels_own():
+    """Neighbours 10.5% deeper than the pixel are another surface (relative to the neighbour they would be 9.5%)."""
+    a, b, color, normal, depth = _box_beside_floor(np.random.default_rng(10))
+    normal[:, 6] = normal[:, 5]
+    depth[:, 6] = 4.0 / 1.105  # the column; the floor beside it 10.5% deeper than it
+    bleed = color.copy()
+    bleed[:, 6] = 0.1
+    assert (noise_clamp(bleed, color, a, b, normal=normal, depth=depth)[:, 6] == 0.0).all()
