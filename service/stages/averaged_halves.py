@@ -26,8 +26,8 @@ docs/benchmarks.md, "Long sequences": crossreg's relL2 on the 64-frame `shadows`
 gives both pilots; one of each is kept) and this stage's numpy passes: crossreg 508 -> 623 ms a 1280x720 frame
 (`python -m bench.classical_speed`, one run, OIDN-high 2732). The restart where the light changed, measured
 alone (docs/benchmarks.md, "Long sequences"): 64-frame `shadows` 0.0304 -> 0.0280 (temporal error 0.0588 ->
-0.0545), `fireflies` 0.0284 -> 0.0257, `textures` 0.0116 -> 0.0116; its test takes about 60-75 ms of a
-1280x720 frame.
+0.0545), `fireflies` 0.0284 -> 0.0257, `textures` 0.0116 -> 0.0116; its test takes about 54 ms of a
+1280x720 frame (`out/exp/s50/lc_time.py`, 2026-11-28).
 """
 
 from __future__ import annotations

@@ -205,13 +205,13 @@ def _accumulated(history: InputHistory | None, clipped: np.ndarray, arrays: list
 
 def remembered_sums(history: InputHistory | None, fine: np.ndarray, coarse: np.ndarray,
                     continued: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The blend's sums over half tiles (`fine`, (SUM_ROWS, th', tw') float64) and tiles (`coarse`, (SUM_ROWS, th,
-    tw)) averaged with the previous frame's as kept in `history` (TILE_MEMORY of the previous average; module
-    docstring), and
-    kept there for the next frame. `continued`: the frame joined the accumulated input (it has motion and follows
-    the frame before); otherwise the average starts again from this frame. Without a history (a pipeline that is
-    not temporal) returns the sums as given. A (half) tile none of whose pixels has halves that differ in this frame
-    (row 2 of the sums is 0) takes this frame's sums alone: its input is exact, and it comes back as given."""
+    """The blend's sums over half tiles (`fine`, (SUM_ROWS, th', tw') float64) and tiles (`coarse`, (SUM_ROWS, th, tw))
+    averaged with the previous frame's as kept in `history` (TILE_MEMORY of the previous average; module
+    docstring), and kept there for the next frame. `continued`: the frame joined the accumulated input (it has
+    motion and follows the frame before); otherwise the average starts again from this frame. Without a history (a
+    pipeline that is not temporal) returns the sums as given. A (half) tile none of whose pixels has halves that
+    differ in this frame (row 2 of the sums is 0) takes this frame's sums alone: its input is exact, and it comes
+    back as given."""
     if history is None:
         return fine, coarse
     before_fine, before = history.half_tile_sums, history.tile_sums

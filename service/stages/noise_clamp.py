@@ -19,16 +19,17 @@ With the G-buffer (`normal`, and `depth` where the frame has it) the same holds 
 halves are equal (every channel, exactly), and whose 3x3 neighbours on its own surface (both background, or
 both surface hits whose normals' directions are within SURFACE_COS, whatever their lengths: a normal averaged
 over a pixel's samples is short, and depths within SURFACE_DEPTH of the pixel's, relative: the reprojection's
-consistency test) all have equal halves too, comes out as `color`; exact pixels and pixels with emission are
-then treated as above. The other surface's noise says nothing about this pixel's: on `make bench`'s
-`fireflies`, frame 7, a column one pixel wide of a box's side that no light reaches (every sample black) stands
-beside the lit floor, whose noise widened the 3x3 band enough to let svgf's bleed through (0.1 where the input
-and the reference are 0: 51x the input's error over the 16x16 tile, kpn 16x, flr 6x). Where the samples of a
-surface's pixels are this few and all agree (a dim region at 1-2 spp), the output is the input, as in a black
-region. What it costs (`make bench`, every pipeline, against the clamp without it): relL2 at most 0.25% higher
-(auto on shadows), lower on fireflies (svgf -5.6%, rae -4.0%, kpn -1.2%), disocclusion and textures unchanged;
-the hard cases all pass as before, relL2 from -2.0% (crossreg on `caustics`) to +4.3% (rae on `window`;
-docs/benchmarks.md, "Noise clamp per surface"). It takes 1.5 ms more of a 1280x720 frame.
+consistency test and thresholds, but by the normals' directions where it takes their dot product as it is) all
+have equal halves too, comes out as `color`; exact pixels and pixels with emission are then treated as above.
+The other surface's noise says nothing about this pixel's: on `make bench`'s `fireflies`, frame 7, a column one
+pixel wide of a box's side that no light reaches (every sample black) stands beside the lit floor, whose noise
+widened the 3x3 band enough to let svgf's bleed through (0.1 where the input and the reference are 0: 51x the
+input's error over the 16x16 tile, kpn 16x, flr 6x). Where the samples of a surface's pixels are this few and
+all agree (a dim region at 1-2 spp), the output is the input, as in a black region. What it costs (`make
+bench`, every pipeline, against the clamp without it): relL2 at most 0.25% higher (auto on shadows), lower on
+fireflies (svgf -5.6%, rae -4.0%, kpn -1.2%), disocclusion and textures unchanged; the hard cases all pass as
+before, relL2 from -2.0% (crossreg on `caustics`) to +4.3% (rae on `window`; docs/benchmarks.md, "Noise clamp
+per surface"). It takes 1.5 ms more of a 1280x720 frame.
 
 What it costs on ordinary frames, together with the other guards of `Pipeline.step` (the benchmark's
 trimmed relL2, mean over frames, `make bench`, against the commit before the guards): NOISE_K = 5 is the
@@ -50,8 +51,8 @@ from service.stages.svgf import box_mean
 
 NOISE_K = 5.0  # half-width of the allowed band, in standard deviations of the pixel estimate
 NOISE_RADIUS = 1  # window half-size of the variance estimate, pixels (3x3)
-# Two pixels are on one surface (module docstring) as the reprojection's taps are consistent: the cosine between
-# their normals at least SURFACE_COS, depths within SURFACE_DEPTH of the pixel's (relative)
+# Two pixels are on one surface (module docstring) at the reprojection's thresholds for a consistent tap: the
+# cosine between their normals' directions at least SURFACE_COS, depths within SURFACE_DEPTH of the pixel's (relative)
 SURFACE_COS = ReprojectionParams.normal_cos_min
 SURFACE_DEPTH = ReprojectionParams.depth_tolerance
 _COS2 = np.float32(SURFACE_COS**2)  # the kernel compares dot^2 with cos^2 |n|^2 |m|^2 (dot > 0): no square root

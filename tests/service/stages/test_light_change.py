@@ -29,7 +29,7 @@ def test_a_pixel_that_went_dark_alone_changes_only_with_the_pixel_test():
     history = np.ones((6, 9, 9), np.float32)
     halves = history.copy()
     halves[:, 4, 4] = 0.1
-    assert not light_changed(halves, history, CHANGE).any()
+    assert not light_changed(halves, history, CHANGE, np.inf).any()
     changed = light_changed(halves, history, CHANGE, 8.0)
     assert changed[4, 4] and changed.sum() == 1
 
@@ -79,7 +79,7 @@ def test_one_huge_firefly_does_not_blind_the_test():
 def test_the_robust_mean_caps_only_the_top_of_the_frame():
     rng = np.random.default_rng(8)
     values = rng.uniform(0.0, 2.0, (720, 1280, 2)).astype(np.float32)
-    np.testing.assert_allclose(robust_mean(values), values.mean(dtype=np.float64), rtol=2e-3)  # the cap: top 0.1%
+    np.testing.assert_allclose(robust_mean(values), values.mean(dtype=np.float64), rtol=1e-2)  # a sample, capped
     spiked = values.copy()
     spiked[::25, ::25, 0] = 1e10  # 0.08% of the values, all in half A: 0.16% of a sample that held half A alone
     assert robust_mean(spiked) < 1.01 * robust_mean(values)
