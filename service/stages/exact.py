@@ -40,14 +40,17 @@ def exact_mask(color_a: np.ndarray, color_b: np.ndarray, color: np.ndarray | Non
     samples all happened to hit the emitter: the halves agree, the converged emission says otherwise.
     numpy reference of `exact_emission`'s test.
     """
-    def agree(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        u, v = u.astype(np.float32), v.astype(np.float32)
-        return (np.abs(u - v) <= np.float32(EXACT_RTOL) * np.maximum(np.abs(u), np.abs(v))).all(axis=-1)
-
-    mask = agree(color_a, color_b) & (np.abs(color_a.astype(np.float32)).max(axis=-1) > np.float32(EXACT_MIN))
+    mask = agrees(color_a, color_b) & (np.abs(color_a.astype(np.float32)).max(axis=-1) > np.float32(EXACT_MIN))
     if emission is not None:
-        mask &= agree(color, emission)
+        mask &= agrees(color, emission)
     return mask
+
+
+def agrees(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(H, W) bool: every channel of u and v ((H, W, C), any real dtype, compared in float32) agrees to
+    EXACT_RTOL relative (`agree`'s test); numpy."""
+    u, v = u.astype(np.float32), v.astype(np.float32)
+    return (np.abs(u - v) <= np.float32(EXACT_RTOL) * np.maximum(np.abs(u), np.abs(v))).all(axis=-1)
 
 
 def exact_emission(color_a: np.ndarray, color_b: np.ndarray, color: np.ndarray) -> np.ndarray | None:

@@ -49,7 +49,13 @@ neighbours' ranges: beside a light whose emission pass took other samples than i
 colour 1335 on the 64-frame `fireflies` benchmark sequence), its remainder widened the range enough to let a
 one-half sample of 750 through where the truth was 25, in one pixel, which alone made up a quarter of the
 sequence's temporal error (crossreg 0.879 -> 0.668, svgf 0.906 -> 0.695, kpn 0.875 -> 0.664 with them left
-out; relL2 and the 8-frame benchmark unchanged to 4 digits; `make bench-long`). A temporal pipeline gives its
+out; relL2 and the 8-frame benchmark unchanged to 4 digits; `make bench-long`). A light seen whole (its colour
+all emission, as an exact pixel of a frame without an emission layer is) enters the ranges at its colour: a
+pixel beside it may be partly covered by it. Left out too, it had the edge pixels of a dim room's window (a
+sky of 0.33 beside a wall of 0.002; hard case `dark` given without its emission layer) clipped to the wall's
+level where a filter darkened them: relL2 there, flr / kpn / svgf, 0.77x / 0.81x / 0.84x the noisy input's ->
+0.56x / 0.58x / 0.60x, worst tile 2.27x / 2.31x / 2.25x -> 1.24x / 1.66x / 1.26x; `make bench` relL2 within
+0.16% (docs/benchmarks.md). A temporal pipeline gives its
 sequence's accumulated input (`service.stages.input_history`: c' averaged over the frames before, reprojected,
 with a per-pixel estimate of its error): per tile, where the weighted mean of the per-pixel differences d
 between that estimate and v, plus CONFIDENCE standard errors of it, is below 0, c' is the accumulated input
@@ -100,6 +106,7 @@ from service.stages.dark_tiles import (
     refuted_reference,
 )
 from service.stages.error_estimate import interpolate_tiles, interpolation_matrix, tile_counts, tile_sums
+from service.stages.exact import EXACT_RTOL, agree, agrees
 from service.stages.input_history import CONFIDENCE, Accumulated, InputHistory, accumulate
 from service.stages.outliers import FIREFLY_K, clamp_fireflies_reference
 from service.stages.svgf import box_mean
@@ -138,8 +145,8 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
                 normal: np.ndarray | None = None) -> np.ndarray:
     """`out` blended per tile with `color` (module docstring). out: (H, W, C) float32 denoised radiance;
     color, color_a, color_b: (H, W, C) float32 noisy radiance and its two halves; emission: (H, W, C)
-    float32 or None, the emission in all four (a light's value is no level for its neighbours' weights
-    nor for their firefly clip: the blend runs on the radiance less it, and adds it back; a pixel with
+    float32 or None, the emission in all four (a light's value is no level for its neighbours' weights,
+    nor for their firefly clip unless seen whole: the blend runs on the radiance less it, and adds it back; a pixel with
     emission keeps `out`, as `noise_clamp` leaves it: there the halves' disagreement is the emitter's
     coverage, not noise the output should take back); all linear, finite. history: a temporal pipeline's
     accumulated input (`service.stages.input_history`), which this frame joins when it has `motion` ((H, W, 2)
@@ -155,7 +162,8 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     level = np.empty((height, width), np.float32)
     _level_kernel(arrays[1], e, has_emission, LEVEL_RADIUS, level)
     clipped = np.empty_like(arrays[1])
-    _clip_kernel(arrays[1], arrays[2], arrays[3], e, has_emission, np.float32(FIREFLY_K), clipped)
+    _clip_kernel(arrays[1], arrays[2], arrays[3], e, has_emission, np.float32(FIREFLY_K), np.float32(EXACT_RTOL),
+                 clipped)
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, False)
     if choice is None:
         accumulated, input_error, floor, use = clipped, np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1), np.bool_)
@@ -281,8 +289,11 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     weight = 1.0 / (proxy * proxy + REL_L2_EPS)
     variance = ((a - b) * 0.5) ** 2
     pixel_out, pixel_in = weight * ((o - c) ** 2 - variance).mean(axis=-1), weight * variance.mean(axis=-1)
+    whole = np.zeros(c.shape[:2], np.bool_) if emission is None else agrees(color, emission) & (e != 0).any(axis=-1)
     planes = np.ascontiguousarray(c.astype(np.float32).transpose(2, 0, 1))
-    clipped = clamp_fireflies_reference(planes, excluded=(e != 0).transpose(2, 0, 1)).transpose(1, 2, 0)
+    ranged = np.where(whole[..., None], color, c).astype(np.float32).transpose(2, 0, 1)
+    excluded = ((e != 0) & ~whole[..., None]).transpose(2, 0, 1)
+    clipped = clamp_fireflies_reference(planes, excluded=excluded, ranged=ranged).transpose(1, 2, 0)
     moved = (color_a != color_b) & (clipped != c.astype(np.float32))
     clipped = np.where(moved, clipped, c.astype(np.float32))
     arrays = [np.asarray(x, np.float32) for x in (out, color, color_a, color_b)]
@@ -435,12 +446,36 @@ def _radiance_row(color, e, has_emission, y):  # pragma: no cover - jitted
 
 
 @numba.njit(inline="always", cache=True, error_model="numpy")
-def _widen(lo, hi, src, lit, has_emission):  # pragma: no cover - jitted
-    """lo, hi (N,) float32: widened to take in the values of src (N,) float32, but for lights (`lit` (N,), the
-    emission, nonzero) with `has_emission`: a light is no level for its neighbours' firefly clip."""
+def _range_row(color, e, has_emission, y, rtol, left_out):  # pragma: no cover - jitted
+    """Row y's values for its neighbours' firefly ranges, as a new (W * C,) float32 array: the colour less e
+    (with `has_emission`), but a light seen whole (every channel of its colour agrees with e to rtol, some e
+    nonzero) at its colour, its full value: a neighbour may be partly covered by it. `left_out` ((W * C,) bool)
+    is set where a value takes no part: the other lights' (e nonzero; module docstring)."""
+    values = _radiance_row(color, e, has_emission, y)
+    if not has_emission:
+        return values
+    width, channels = color.shape[1], color.shape[2]
+    rc, re = color[y].reshape(width * channels), e[y].reshape(width * channels)
+    for x in range(width):
+        i = x * channels
+        lit, whole = False, True
+        for c in range(channels):
+            lit = lit or re[i + c] != 0
+            whole = whole and agree(rc[i + c], re[i + c], rtol)
+        for c in range(channels):
+            left_out[i + c] = lit and not whole and re[i + c] != 0
+            if lit and whole:
+                values[i + c] = rc[i + c]
+    return values
+
+
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _widen(lo, hi, src, left_out, has_emission):  # pragma: no cover - jitted
+    """lo, hi (N,) float32: widened to take in the values of src (N,) float32, but for those `left_out` ((N,)
+    bool, `_range_row`'s) with `has_emission`."""
     if has_emission:
         for i in range(src.shape[0]):
-            if lit[i] == 0:
+            if not left_out[i]:
                 lo[i] = min(lo[i], src[i])
                 hi[i] = max(hi[i], src[i])
     else:
@@ -450,24 +485,26 @@ def _widen(lo, hi, src, lit, has_emission):  # pragma: no cover - jitted
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _clip_kernel(color, a, b, e, has_emission, k, clipped):  # pragma: no cover - jitted
+def _clip_kernel(color, a, b, e, has_emission, k, rtol, clipped):  # pragma: no cover - jitted
     """clipped (H, W, C) float32: the colour less the emission e (with `has_emission`), clipped like
-    `outliers.clamp_fireflies` (k) where the halves a, b differ, the lights (e nonzero) left out of the ranges
-    (`_widen`; a value with no neighbour left keeps itself). A task per row: the 3x3 neighbour range of every
-    value of the interleaved (W * C) row. The range is `outliers.clamp_fireflies`' 3x3 range, taken here on
-    the (H, W, C) rows: through its (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
+    `outliers.clamp_fireflies` (k) where the halves a, b differ, over ranges that take a light seen whole at its
+    colour and leave the other lights (e nonzero) out (`_range_row`, rtol: EXACT_RTOL; a value with no
+    neighbour left keeps itself). A task per row: the 3x3 neighbour range of every value of the interleaved
+    (W * C) row. The range is `outliers.clamp_fireflies`' 3x3 range, taken here on the (H, W, C) rows: through
+    its (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
     height, width, channels = color.shape
     n = width * channels
     for y in numba.prange(height):
         own = _radiance_row(color, e, has_emission, y)
-        other_lo = filled(n, np.inf, np.float32)  # over the rows above and below, lights left out
+        left_out = np.zeros(n, np.bool_)
+        other_lo = filled(n, np.inf, np.float32)  # over the rows above and below
         other_hi = filled(n, -np.inf, np.float32)
         for yy in (y - 1, y + 1):
             if 0 <= yy < height:
-                src = _radiance_row(color, e, has_emission, yy)
-                _widen(other_lo, other_hi, src, e[yy].reshape(n), has_emission)
+                src = _range_row(color, e, has_emission, yy, rtol, left_out)
+                _widen(other_lo, other_hi, src, left_out, has_emission)
         all_lo, all_hi = other_lo.copy(), other_hi.copy()  # over the three rows
-        _widen(all_lo, all_hi, own, e[y].reshape(n), has_emission)
+        _widen(all_lo, all_hi, _range_row(color, e, has_emission, y, rtol, left_out), left_out, has_emission)
         lo, hi = other_lo.copy(), other_hi.copy()  # the 8 neighbours: the columns left and right too
         for i in range(channels, n):
             lo[i] = min(lo[i], all_lo[i - channels])

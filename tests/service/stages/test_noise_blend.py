@@ -41,6 +41,9 @@ def test_matches_the_numpy_twin(shape, tile):
         arrays = [x + shift for x in (out, color, a, b)]
         np.testing.assert_allclose(noise_blend(*arrays, given, tile), noise_blend_reference(*arrays, given, tile),
                                    rtol=1e-4, atol=1e-4)
+    seen_whole = [np.where(emission != 0, emission, x) for x in (out, color, a, b)]  # lights all emission
+    np.testing.assert_allclose(noise_blend(*seen_whole, emission, tile),
+                               noise_blend_reference(*seen_whole, emission, tile), rtol=1e-4, atol=1e-4)
 
 
 def test_radiance_up_to_float32s_largest_stays_finite():
@@ -322,6 +325,37 @@ def test_a_one_half_firefly_beside_a_light_is_clipped_to_its_unlit_neighbours():
         blended = blend(out, color, a, b, emission)
         assert blended[13, 11].max() < 10.0
         np.testing.assert_array_equal(blended[emission != 0], color[emission != 0])  # the light as it came
+
+
+def _window_edge():
+    """A 32x32 dim wall (0.002, halves with sd 0.001) with a sky seen whole left of column 6 (0.333 in both
+    halves, given as emission, as `exact.exact_emission` gives it), and every other pixel of column 6 partly
+    covered by the sky (half A 0.333, half B 0.167). Returns (color, colorA, colorB, emission)."""
+    rng = np.random.default_rng(4)
+    truth = np.full((32, 32, 3), 0.002, np.float32)
+    a = (truth + rng.normal(0, 0.001, truth.shape)).astype(np.float32)
+    b = (truth + rng.normal(0, 0.001, truth.shape)).astype(np.float32)
+    a[:, :6] = b[:, :6] = 0.333
+    a[::2, 6], b[::2, 6] = 0.333, 0.167
+    color = ((a + b) / 2).astype(np.float32)
+    emission = np.where(np.arange(32)[None, :, None] < 6, color, np.float32(0.0)).astype(np.float32)
+    return color, a, b, emission
+
+
+def test_a_light_seen_whole_enters_its_neighbours_range_at_its_full_value():
+    """A pixel partly covered by a light seen whole (all emission) may hold up to the light's value: the firefly
+    clip of what the blend takes back ranges over the light at its colour, so the edge pixels an output
+    darkened to the wall (a dim room's window without an emission layer, hard case `dark`) go back toward
+    their input (0.25) rather than to the wall's level (0.006 with the light left out of the range)."""
+    color, a, b, emission = _window_edge()
+    out = color.copy()
+    out[::2, 6] = 0.002
+    for blend in (noise_blend, noise_blend_reference):
+        blended = blend(out, color, a, b, emission)
+        assert blended[::2, 6].min() > 0.2
+        np.testing.assert_array_equal(blended[:, :6], color[:, :6])  # the sky as it came
+    np.testing.assert_allclose(noise_blend(out, color, a, b, emission),
+                               noise_blend_reference(out, color, a, b, emission), rtol=1e-5, atol=1e-7)
 
 
 def _light_left(leak):
