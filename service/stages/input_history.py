@@ -23,8 +23,8 @@ share of this frame's noise), and the blend's tile sums are held at least at tha
 it per tile with v, the plain input's, and takes the accumulated input only where it is better by
 CONFIDENCE standard errors of the per-pixel differences (noise_blend's module docstring): a tile of moving
 shadow, where the history lags, keeps the frame's own input. Lights (pixels with emission) are left out of
-the clamp's range, as out of the firefly clip's (noise_blend): a light's colour less its emission can be
-far from its neighbours' radiance.
+the clamp's range: a light's colour less its emission can be far from its neighbours' radiance (the firefly
+clip of noise_blend leaves them out too, but for a light seen whole, which enters at its colour).
 
 What it gains (`make bench`, 128x128, 8 frames, 4 spp; docs/benchmarks.md "Accumulated input"):
 measured there for each temporal pipeline, against the blend with the plain input.

@@ -54,10 +54,10 @@ all emission, as an exact pixel of a frame without an emission layer is) enters 
 pixel beside it may be partly covered by it. Left out too, it had the edge pixels of a dim room's window (a
 sky of 0.33 beside a wall of 0.002; hard case `dark` given without its emission layer) clipped to the wall's
 level where a filter darkened them: relL2 there, flr / kpn / svgf, 0.77x / 0.81x / 0.84x the noisy input's ->
-0.56x / 0.58x / 0.60x, worst tile 2.27x / 2.31x / 2.25x -> 1.24x / 1.66x / 1.26x; `make bench` relL2 within
-0.16% (docs/benchmarks.md). A temporal pipeline gives its
-sequence's accumulated input (`service.stages.input_history`: c' averaged over the frames before, reprojected,
-with a per-pixel estimate of its error): per tile, where the weighted mean of the per-pixel differences d
+0.56x / 0.58x / 0.60x, worst tile 2.27x / 2.31x / 2.25x -> 1.24x / 1.66x / 1.26x; `make bench` relL2 at most
+0.4% higher (docs/benchmarks.md). A temporal pipeline gives its sequence's accumulated input
+(`service.stages.input_history`: c' averaged over the frames before, reprojected, with a per-pixel estimate
+of its error): per tile, where the weighted mean of the per-pixel differences d
 between that estimate and v, plus CONFIDENCE standard errors of it, is below 0, c' is the accumulated input
 and Ec the sum of its estimated error in that tile and its half tiles, at least the sum of a^2 v (the share of
 this frame's noise in it; the estimate is of the unclamped average, see input_history's docstring). A temporal
@@ -146,9 +146,9 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     """`out` blended per tile with `color` (module docstring). out: (H, W, C) float32 denoised radiance;
     color, color_a, color_b: (H, W, C) float32 noisy radiance and its two halves; emission: (H, W, C)
     float32 or None, the emission in all four (a light's value is no level for its neighbours' weights,
-    nor for their firefly clip unless seen whole: the blend runs on the radiance less it, and adds it back; a pixel with
-    emission keeps `out`, as `noise_clamp` leaves it: there the halves' disagreement is the emitter's
-    coverage, not noise the output should take back); all linear, finite. history: a temporal pipeline's
+    nor, unless seen whole, for their firefly clip: the blend runs on the radiance less it, and adds it
+    back; a pixel with emission keeps `out`, as `noise_clamp` leaves it: there the halves' disagreement is
+    the emitter's coverage, not noise the output should take back); all linear, finite. history: a temporal pipeline's
     accumulated input (`service.stages.input_history`), which this frame joins when it has `motion` ((H, W, 2)
     float32, pixels; depth (H, W, 1) and normal (H, W, 3) float32 check the reprojection where given) and
     forgets otherwise. Returns a new (H, W, C) float32 array."""
@@ -448,9 +448,11 @@ def _radiance_row(color, e, has_emission, y):  # pragma: no cover - jitted
 @numba.njit(inline="always", cache=True, error_model="numpy")
 def _range_row(color, e, has_emission, y, rtol, left_out):  # pragma: no cover - jitted
     """Row y's values for its neighbours' firefly ranges, as a new (W * C,) float32 array: the colour less e
-    (with `has_emission`), but a light seen whole (every channel of its colour agrees with e to rtol, some e
-    nonzero) at its colour, its full value: a neighbour may be partly covered by it. `left_out` ((W * C,) bool)
-    is set where a value takes no part: the other lights' (e nonzero; module docstring)."""
+    (color, e: (H, W, C) float32; e only with `has_emission`), but a light seen whole (every channel of its
+    colour agrees with e to rtol, float32 relative; some e nonzero) at its colour, its full value: a neighbour
+    may be partly covered by it. With `has_emission`, every value of `left_out` ((W * C,) bool) is rewritten:
+    True where a value takes no part, the other lights' (e nonzero; module docstring); without, it is not
+    touched (no value is left out)."""
     values = _radiance_row(color, e, has_emission, y)
     if not has_emission:
         return values
@@ -486,12 +488,12 @@ def _widen(lo, hi, src, left_out, has_emission):  # pragma: no cover - jitted
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _clip_kernel(color, a, b, e, has_emission, k, rtol, clipped):  # pragma: no cover - jitted
-    """clipped (H, W, C) float32: the colour less the emission e (with `has_emission`), clipped like
-    `outliers.clamp_fireflies` (k) where the halves a, b differ, over ranges that take a light seen whole at its
-    colour and leave the other lights (e nonzero) out (`_range_row`, rtol: EXACT_RTOL; a value with no
-    neighbour left keeps itself). A task per row: the 3x3 neighbour range of every value of the interleaved
-    (W * C) row. The range is `outliers.clamp_fireflies`' 3x3 range, taken here on the (H, W, C) rows: through
-    its (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
+    """clipped (H, W, C) float32: the colour less the emission e (with `has_emission`; color, a, b, e (H, W, C)
+    float32), clipped like `outliers.clamp_fireflies` (k, float32) where the halves a, b differ, over ranges
+    that take a light seen whole at its colour and leave the other lights (e nonzero) out (`_range_row`, rtol:
+    EXACT_RTOL; a value with no neighbour left keeps itself). A task per row: the 3x3 neighbour range of every
+    value of the interleaved (W * C) row. The range is `outliers.clamp_fireflies`' 3x3 range, taken here on
+    the (H, W, C) rows: through its (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
     height, width, channels = color.shape
     n = width * channels
     for y in numba.prange(height):

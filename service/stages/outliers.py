@@ -61,10 +61,10 @@ def clamp_fireflies(planes: np.ndarray, k: float = FIREFLY_K) -> np.ndarray:
 
 def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K, excluded: np.ndarray | None = None,
                               ranged: np.ndarray | None = None) -> np.ndarray:
-    """Plain-numpy twin of `clamp_fireflies`. excluded: (C, H, W) bool or None, values left out of their
-    neighbours' ranges (the noise blend's lights); a value with no neighbour left keeps itself. ranged: (C, H,
-    W) float32 or None, the values the ranges are taken over (default `planes`; the noise blend's lights at
-    their full value)."""
+    """Plain-numpy twin of `clamp_fireflies`. planes: (C, H, W) float32. excluded: (C, H, W) bool or None, values
+    left out of their neighbours' ranges (the noise blend's lights but those seen whole); a value with no
+    neighbour left keeps itself. ranged: (C, H, W) float32 or None, the values the ranges are taken over (default
+    `planes`; the noise blend's lights seen whole at their full value)."""
     last = None if excluded is None else np.moveaxis(excluded, 0, -1)  # (H, W, C) views, as window_range takes them
     source = np.moveaxis(planes if ranged is None else ranged, 0, -1)
     lo, hi = (np.moveaxis(x, -1, 0) for x in window_range(source, centre=False, excluded=last))
