@@ -109,6 +109,12 @@ def test_a_frame_past_the_deadline_answers_504_and_frees_the_request(make_server
     assert time.monotonic() - start < 1.2
     metrics = call(url, "GET", "/metrics").body.decode()
     assert 'mcdenoise_frame_errors_total{pipeline="test_sleepy",code="timeout"} 2' in metrics
+    # Both frames run on in the background; let them end before the next test: its tracemalloc swaps the
+    # allocator that their numba kernels' threads allocate through (a segfault in CI when they overlapped)
+    deadline = time.monotonic() + 10
+    while "mcdenoise_inflight_frames 0\n" not in call(url, "GET", "/metrics").body.decode():
+        assert time.monotonic() < deadline, "the timed-out frames did not end"
+        time.sleep(0.05)
 
 
 def _junk_frame(size: int, junk: int) -> bytes:
