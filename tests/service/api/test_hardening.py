@@ -109,8 +109,9 @@ def test_a_frame_past_the_deadline_answers_504_and_frees_the_request(make_server
     assert time.monotonic() - start < 1.2
     metrics = call(url, "GET", "/metrics").body.decode()
     assert 'mcdenoise_frame_errors_total{pipeline="test_sleepy",code="timeout"} 2' in metrics
-    # Both frames run on in the background; let them end before the next test: its tracemalloc swaps the
-    # allocator that their numba kernels' threads allocate through (a segfault in CI when they overlapped)
+    # Both frames run on in the background; let them end before the next test. Its tracemalloc swaps the
+    # allocator that their numba kernels' threads allocate through: overlapping, the likely cause of a segfault
+    # in a leftover frame's blend kernel (fresh-clone CI, twice; none in the same tests run after this wait)
     deadline = time.monotonic() + 10
     while "mcdenoise_inflight_frames 0\n" not in call(url, "GET", "/metrics").body.decode():
         assert time.monotonic() < deadline, "the timed-out frames did not end"
