@@ -95,7 +95,6 @@ import functools
 import numba
 import numpy as np
 
-from service.kernels.fill import filled
 from service.metrics import REL_L2_EPS
 from service.stages.dark_tiles import (
     dark_levels,
@@ -118,6 +117,7 @@ PROXY_FLOOR = 0.25  # ... and the stand-in is at least this share of it (module 
 WORSE = 0.5  # a half tile whose weight is below this (its output estimated worse than its input) overrides
 NOISY_SHARE = 0.25  # ... where at least this share of its pixels have halves that differ (module docstring)
 HALF_RAMP = 1  # ... over its own pixels, eased over the (2 r + 1)^2 box of the pixels around (module docstring)
+CLIP_ROWS = 16  # rows per task of the firefly clip (`_clip_kernel`)
 TILE_MEMORY = 0.3  # a temporal pipeline's tile sums: this share of the previous frames' average (module docstring)
 # Rows of the tile sums: weighted e, the input's weighted error, pixels whose halves differ, the weighted floor
 # of the input's error, and over the pixels whose halves differ the input (at least 0) and v
@@ -163,7 +163,7 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     _level_kernel(arrays[1], e, has_emission, LEVEL_RADIUS, level)
     clipped = np.empty_like(arrays[1])
     _clip_kernel(arrays[1], arrays[2], arrays[3], e, has_emission, np.float32(FIREFLY_K), np.float32(EXACT_RTOL),
-                 clipped)
+                 CLIP_ROWS, clipped)
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, False)
     if choice is None:
         accumulated, input_error, floor, use = clipped, np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1), np.bool_)
@@ -439,89 +439,84 @@ def _choice_kernel(out, color, a, b, e, has_emission, level, input_error, tile, 
 
 
 @numba.njit(inline="always", cache=True, error_model="numpy")
-def _radiance_row(color, e, has_emission, y):  # pragma: no cover - jitted
-    """Row y of color, less e with `has_emission`, as a new (W * C,) float32 array."""
-    row = color[y].reshape(color.shape[1] * color.shape[2])
-    return row - e[y].reshape(row.size) if has_emission else row.copy()
-
-
-@numba.njit(inline="always", cache=True, error_model="numpy")
-def _range_row(color, e, has_emission, y, rtol, left_out):  # pragma: no cover - jitted
-    """Row y's values for its neighbours' firefly ranges, as a new (W * C,) float32 array: the colour less e
-    (color, e: (H, W, C) float32; e only with `has_emission`), but a light seen whole (every channel of its
-    colour agrees with e to rtol, float32 relative; some e nonzero) at its colour, its full value: a neighbour
-    may be partly covered by it. With `has_emission`, every value of `left_out` ((W * C,) bool) is rewritten:
-    True where a value takes no part, the other lights' (e nonzero; module docstring); without, it is not
-    touched (no value is left out)."""
-    values = _radiance_row(color, e, has_emission, y)
-    if not has_emission:
-        return values
-    width, channels = color.shape[1], color.shape[2]
-    rc, re = color[y].reshape(width * channels), e[y].reshape(width * channels)
-    for x in range(width):
-        i = x * channels
-        lit, whole = False, True
-        for c in range(channels):
-            lit = lit or re[i + c] != 0
-            whole = whole and agree(rc[i + c], re[i + c], rtol)
-        for c in range(channels):
-            left_out[i + c] = lit and not whole and re[i + c] != 0
-            if lit and whole:
-                values[i + c] = rc[i + c]
-    return values
-
-
-@numba.njit(inline="always", cache=True, error_model="numpy")
-def _widen(lo, hi, src, left_out, has_emission):  # pragma: no cover - jitted
-    """lo, hi (N,) float32: widened to take in the values of src (N,) float32, but for those `left_out` ((N,)
-    bool, `_range_row`'s) with `has_emission`."""
+def _range_sources(color, e, has_emission, y, rtol, src_lo, src_hi):  # pragma: no cover - jitted
+    """Row y's values for its neighbours' firefly ranges, written to src_lo and src_hi ((W * C,) float32): the
+    colour less e (color, e: (H, W, C) float32; e only with `has_emission`), but a light seen whole (every
+    channel of its colour agrees with e to rtol, float32 relative; some e nonzero) at its colour, its full
+    value: a neighbour may be partly covered by it. The other lights' values (e nonzero; module docstring) take
+    no part: +inf in src_lo, -inf in src_hi. A row outside the frame takes no part at all."""
+    height, width, channels = color.shape
+    n = width * channels
+    if y < 0 or y >= height:
+        src_lo[:] = np.inf
+        src_hi[:] = -np.inf
+        return
+    rc = color[y].reshape(n)
     if has_emission:
-        for i in range(src.shape[0]):
-            if not left_out[i]:
-                lo[i] = min(lo[i], src[i])
-                hi[i] = max(hi[i], src[i])
-    else:
-        for i in range(src.shape[0]):  # contiguous, vectorises
-            lo[i] = min(lo[i], src[i])
-            hi[i] = max(hi[i], src[i])
+        re = e[y].reshape(n)
+        lit_row = False
+        for i in range(n):
+            lit_row = lit_row or re[i] != 0
+        if lit_row:
+            for x in range(width):
+                i = x * channels
+                lit, whole = False, True
+                for c in range(channels):
+                    lit = lit or re[i + c] != 0
+                    whole = whole and agree(rc[i + c], re[i + c], rtol)
+                for c in range(channels):
+                    value = rc[i + c] if lit and whole else rc[i + c] - re[i + c]
+                    left_out = lit and not whole and re[i + c] != 0
+                    src_lo[i + c] = np.inf if left_out else value
+                    src_hi[i + c] = -np.inf if left_out else value
+            return
+    for i in range(n):  # no light in the row: its colour (less e, all 0); contiguous, vectorises
+        src_lo[i] = rc[i]
+        src_hi[i] = rc[i]
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _clip_kernel(color, a, b, e, has_emission, k, rtol, clipped):  # pragma: no cover - jitted
+def _clip_kernel(color, a, b, e, has_emission, k, rtol, rows_per_task, clipped):  # pragma: no cover - jitted
     """clipped (H, W, C) float32: the colour less the emission e (with `has_emission`; color, a, b, e (H, W, C)
     float32), clipped like `outliers.clamp_fireflies` (k, float32) where the halves a, b differ, over ranges
-    that take a light seen whole at its colour and leave the other lights (e nonzero) out (`_range_row`, rtol:
-    EXACT_RTOL; a value with no neighbour left keeps itself). A task per row: the 3x3 neighbour range of every
-    value of the interleaved (W * C) row. The range is `outliers.clamp_fireflies`' 3x3 range, taken here on
-    the (H, W, C) rows: through its (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
+    that take a light seen whole at its colour and leave the other lights (e nonzero) out (`_range_sources`,
+    rtol: EXACT_RTOL; a value with no neighbour left keeps itself). The range is `outliers.clamp_fireflies`'
+    3x3 range, taken here on the interleaved (W * C) rows: through its (C, H, W) planes it cost ~3 ms more a
+    1280x720 frame (the transposes). A task per band of rows_per_task rows, each row's range values made once,
+    in three rolling slots (row y in slot y % 3)."""
     height, width, channels = color.shape
     n = width * channels
-    for y in numba.prange(height):
-        own = _radiance_row(color, e, has_emission, y)
-        left_out = np.zeros(n, np.bool_)
-        other_lo = filled(n, np.inf, np.float32)  # over the rows above and below
-        other_hi = filled(n, -np.inf, np.float32)
-        for yy in (y - 1, y + 1):
-            if 0 <= yy < height:
-                src = _range_row(color, e, has_emission, yy, rtol, left_out)
-                _widen(other_lo, other_hi, src, left_out, has_emission)
-        all_lo, all_hi = other_lo.copy(), other_hi.copy()  # over the three rows
-        _widen(all_lo, all_hi, _range_row(color, e, has_emission, y, rtol, left_out), left_out, has_emission)
-        lo, hi = other_lo.copy(), other_hi.copy()  # the 8 neighbours: the columns left and right too
-        for i in range(channels, n):
-            lo[i] = min(lo[i], all_lo[i - channels])
-            hi[i] = max(hi[i], all_hi[i - channels])
-        for i in range(n - channels):
-            lo[i] = min(lo[i], all_lo[i + channels])
-            hi[i] = max(hi[i], all_hi[i + channels])
-        if height * width == 1:  # no neighbour: nothing to clip against
-            lo[:], hi[:] = own, own
-        ra, rb, rd = a[y].reshape(n), b[y].reshape(n), clipped[y].reshape(n)
-        for i in range(n):  # branch-free: vectorises
-            v = own[i]
-            spread = k * (hi[i] - lo[i])
-            clip = min(max(v, lo[i] - spread), hi[i] + spread) if lo[i] <= hi[i] else v  # no dark neighbour
-            rd[i] = clip if ra[i] != rb[i] else v
+    for band in numba.prange(-(-height // rows_per_task)):
+        y0, y1 = band * rows_per_task, min((band + 1) * rows_per_task, height)
+        src_lo, src_hi = np.empty((3, n), np.float32), np.empty((3, n), np.float32)
+        for yy in (y0 - 1, y0):
+            _range_sources(color, e, has_emission, yy, rtol, src_lo[yy % 3], src_hi[yy % 3])
+        other_lo, other_hi = np.empty(n, np.float32), np.empty(n, np.float32)
+        all_lo, all_hi = np.empty(n, np.float32), np.empty(n, np.float32)
+        for y in range(y0, y1):
+            _range_sources(color, e, has_emission, y + 1, rtol, src_lo[(y + 1) % 3], src_hi[(y + 1) % 3])
+            up_lo, up_hi = src_lo[(y - 1) % 3], src_hi[(y - 1) % 3]
+            mid_lo, mid_hi = src_lo[y % 3], src_hi[y % 3]
+            down_lo, down_hi = src_lo[(y + 1) % 3], src_hi[(y + 1) % 3]
+            for i in range(n):  # over the rows above and below, and over all three; vectorises
+                other_lo[i] = min(up_lo[i], down_lo[i])
+                other_hi[i] = max(up_hi[i], down_hi[i])
+                all_lo[i] = min(other_lo[i], mid_lo[i])
+                all_hi[i] = max(other_hi[i], mid_hi[i])
+            for i in range(channels, n):  # the 8 neighbours: the columns left and right too
+                other_lo[i] = min(other_lo[i], all_lo[i - channels])
+                other_hi[i] = max(other_hi[i], all_hi[i - channels])
+            for i in range(n - channels):
+                other_lo[i] = min(other_lo[i], all_lo[i + channels])
+                other_hi[i] = max(other_hi[i], all_hi[i + channels])
+            rc, ra, rb, rd = color[y].reshape(n), a[y].reshape(n), b[y].reshape(n), clipped[y].reshape(n)
+            re = e[y].reshape(n) if has_emission else rc  # not read without emission
+            for i in range(n):  # branch-free: vectorises
+                v = rc[i] - re[i] if has_emission else rc[i]
+                lo, hi = other_lo[i], other_hi[i]
+                spread = k * (hi - lo)
+                clip = min(max(v, lo - spread), hi + spread) if lo <= hi else v  # no neighbour left: itself
+                rd[i] = clip if ra[i] != rb[i] else v
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
