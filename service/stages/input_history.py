@@ -38,11 +38,12 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, three_row_ranges
 from service.kernels.window import window_range
 from service.stages.reprojection import reproject, reproject_numpy
 
 ALPHA_MIN = 0.2  # the newest frame's least weight in the average (Schied et al. 2017, sec. 4.1: 0.2)
-CLAMP_RADIUS = 1  # the history is clamped to the clipped input's range over (2 r + 1)^2 pixels: 3x3
+CLAMP_RADIUS = 1  # the history is clamped to the clipped input's range over (2 r + 1)^2 pixels: 3x3 (the kernel's only)
 CONFIDENCE = 2.0  # standard errors by which a tile's accumulated input must be estimated better (noise_blend)
 
 
@@ -111,42 +112,61 @@ def accumulate(history: InputHistory, clipped: np.ndarray, color: np.ndarray, em
     return result
 
 
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _clamp_sources(clipped, e, has_emission, y, src_lo, src_hi):  # pragma: no cover - jitted
+    """Row y of clipped ((H, W, C) float32) for the clamp's ranges, written to src_lo, src_hi ((W * C,) float32):
+    lights (e nonzero, with `has_emission`) take no part (`row_ranges`: +inf, -inf), nor a row outside the frame."""
+    height, width, channels = clipped.shape
+    n = width * channels
+    if y < 0 or y >= height:
+        no_sources(src_lo, src_hi)
+        return
+    rc = clipped[y].reshape(n)
+    re = e[y].reshape(n) if has_emission else rc  # not read without emission
+    for i in range(n):  # branch-free: vectorises
+        light = has_emission and re[i] != 0
+        src_lo[i] = np.inf if light else rc[i]
+        src_hi[i] = -np.inf if light else rc[i]
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _accumulate_kernel(clipped, color, e, has_emission, a, b, warped, valid, alpha_min,
                        buffer, error, floor):  # pragma: no cover - jitted
-    """Per pixel, a task per row: buffer (H, W, C + 1) float32 the accumulated input and its frame count,
-    error and floor (H, W) float64 its estimate and a^2 v (module docstring), from warped (H, W, C + 1) float32
-    the reprojected history, valid (H, W) bool, clipped, color, a, b (H, W, C) float32 and e (H, W, C) the
-    emission (read with `has_emission`; lights left out of the clamp's range); float64 arithmetic."""
+    """Per pixel, a task per band of rows (`service.kernels.row_ranges`): buffer (H, W, C + 1) float32 the
+    accumulated input and its frame count, error and floor (H, W) float64 its estimate and a^2 v (module
+    docstring), from warped (H, W, C + 1) float32 the reprojected history, valid (H, W) bool, clipped, color, a,
+    b (H, W, C) float32 and e (H, W, C) the emission (read with `has_emission`; lights left out of the clamp's
+    3x3 range); float64 arithmetic."""
     height, width, channels = clipped.shape
-    for y in numba.prange(height):
-        y0, y1 = max(y - CLAMP_RADIUS, 0), min(y + CLAMP_RADIUS + 1, height)
-        for x in range(width):
-            x0, x1 = max(x - CLAMP_RADIUS, 0), min(x + CLAMP_RADIUS + 1, width)
-            n = np.float64(warped[y, x, channels]) + 1.0 if valid[y, x] else 1.0
-            alpha = max(1.0 / n, alpha_min) if valid[y, x] else 1.0
-            total = 0.0
-            least = 0.0
-            for c in range(channels):
-                own = np.float64(clipped[y, x, c])
-                lo, hi = np.inf, -np.inf
-                for yy in range(y0, y1):
-                    for xx in range(x0, x1):
-                        if not (has_emission and e[yy, xx, c] != 0):
-                            lo = min(lo, np.float64(clipped[yy, xx, c]))
-                            hi = max(hi, np.float64(clipped[yy, xx, c]))
-                if lo > hi:  # lights all around: the frame's own value
-                    lo, hi = own, own
-                h = np.float64(warped[y, x, c])
-                half = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
-                variance = half * half
-                value = np.float64(color[y, x, c]) - e[y, x, c] if has_emission else np.float64(color[y, x, c])
-                buffer[y, x, c] = np.float32((1.0 - alpha) * min(max(h, lo), hi) + alpha * own)
-                total += (1.0 - alpha) ** 2 * ((h - value) ** 2 - variance) + alpha * alpha * variance
-                least += alpha * alpha * variance
-            buffer[y, x, channels] = np.float32(n)
-            error[y, x] = total / channels
-            floor[y, x] = least / channels
+    n = width * channels
+    for band in numba.prange(-(-height // BAND_ROWS)):
+        y0, y1 = band * BAND_ROWS, min((band + 1) * BAND_ROWS, height)
+        src_lo, src_hi, lo, hi, all_lo, all_hi = band_scratch(n)
+        for yy in (y0 - 1, y0):
+            _clamp_sources(clipped, e, has_emission, yy, src_lo[yy % 3], src_hi[yy % 3])
+        for y in range(y0, y1):
+            _clamp_sources(clipped, e, has_emission, y + 1, src_lo[(y + 1) % 3], src_hi[(y + 1) % 3])
+            three_row_ranges(src_lo, src_hi, y, channels, True, lo, hi, all_lo, all_hi)
+            for x in range(width):
+                n_frames = np.float64(warped[y, x, channels]) + 1.0 if valid[y, x] else 1.0
+                alpha = max(1.0 / n_frames, alpha_min) if valid[y, x] else 1.0
+                total = 0.0
+                least = 0.0
+                for c in range(channels):
+                    own = np.float64(clipped[y, x, c])
+                    low, high = np.float64(lo[x * channels + c]), np.float64(hi[x * channels + c])
+                    if low > high:  # lights all around: the frame's own value
+                        low, high = own, own
+                    h = np.float64(warped[y, x, c])
+                    half = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
+                    variance = half * half
+                    value = np.float64(color[y, x, c]) - e[y, x, c] if has_emission else np.float64(color[y, x, c])
+                    buffer[y, x, c] = np.float32((1.0 - alpha) * min(max(h, low), high) + alpha * own)
+                    total += (1.0 - alpha) ** 2 * ((h - value) ** 2 - variance) + alpha * alpha * variance
+                    least += alpha * alpha * variance
+                buffer[y, x, channels] = np.float32(n_frames)
+                error[y, x] = total / channels
+                floor[y, x] = least / channels
 
 
 def _accumulate_reference(clipped, color, e, has_emission, a, b, warped, valid, alpha_min, buffer, error,

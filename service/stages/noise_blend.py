@@ -95,6 +95,7 @@ import functools
 import numba
 import numpy as np
 
+from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, three_row_ranges
 from service.metrics import REL_L2_EPS
 from service.stages.dark_tiles import (
     dark_levels,
@@ -117,7 +118,6 @@ PROXY_FLOOR = 0.25  # ... and the stand-in is at least this share of it (module 
 WORSE = 0.5  # a half tile whose weight is below this (its output estimated worse than its input) overrides
 NOISY_SHARE = 0.25  # ... where at least this share of its pixels have halves that differ (module docstring)
 HALF_RAMP = 1  # ... over its own pixels, eased over the (2 r + 1)^2 box of the pixels around (module docstring)
-CLIP_ROWS = 16  # rows per task of the firefly clip (`_clip_kernel`)
 TILE_MEMORY = 0.3  # a temporal pipeline's tile sums: this share of the previous frames' average (module docstring)
 # Rows of the tile sums: weighted e, the input's weighted error, pixels whose halves differ, the weighted floor
 # of the input's error, and over the pixels whose halves differ the input (at least 0) and v
@@ -163,7 +163,7 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     _level_kernel(arrays[1], e, has_emission, LEVEL_RADIUS, level)
     clipped = np.empty_like(arrays[1])
     _clip_kernel(arrays[1], arrays[2], arrays[3], e, has_emission, np.float32(FIREFLY_K), np.float32(EXACT_RTOL),
-                 CLIP_ROWS, clipped)
+                 clipped)
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, False)
     if choice is None:
         accumulated, input_error, floor, use = clipped, np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1), np.bool_)
@@ -444,12 +444,11 @@ def _range_sources(color, e, has_emission, y, rtol, src_lo, src_hi):  # pragma: 
     colour less e (color, e: (H, W, C) float32; e only with `has_emission`), but a light seen whole (every
     channel of its colour agrees with e to rtol, float32 relative; some e nonzero) at its colour, its full
     value: a neighbour may be partly covered by it. The other lights' values (e nonzero; module docstring) take
-    no part: +inf in src_lo, -inf in src_hi. A row outside the frame takes no part at all."""
+    no part (`row_ranges`: +inf in src_lo, -inf in src_hi), nor does a row outside the frame."""
     height, width, channels = color.shape
     n = width * channels
     if y < 0 or y >= height:
-        src_lo[:] = np.inf
-        src_hi[:] = -np.inf
+        no_sources(src_lo, src_hi)
         return
     rc = color[y].reshape(n)
     if has_emission:
@@ -476,46 +475,29 @@ def _range_sources(color, e, has_emission, y, rtol, src_lo, src_hi):  # pragma: 
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _clip_kernel(color, a, b, e, has_emission, k, rtol, rows_per_task, clipped):  # pragma: no cover - jitted
+def _clip_kernel(color, a, b, e, has_emission, k, rtol, clipped):  # pragma: no cover - jitted
     """clipped (H, W, C) float32: the colour less the emission e (with `has_emission`; color, a, b, e (H, W, C)
     float32), clipped like `outliers.clamp_fireflies` (k, float32) where the halves a, b differ, over ranges
     that take a light seen whole at its colour and leave the other lights (e nonzero) out (`_range_sources`,
     rtol: EXACT_RTOL; a value with no neighbour left keeps itself). The range is `outliers.clamp_fireflies`'
-    3x3 range, taken here on the interleaved (W * C) rows: through its (C, H, W) planes it cost ~3 ms more a
-    1280x720 frame (the transposes). A task per band of rows_per_task rows, each row's range values made once,
-    in three rolling slots (row y in slot y % 3)."""
+    3x3 range, taken here on the interleaved (W * C) rows (`service.kernels.row_ranges`, a task per band of
+    rows): through its (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
     height, width, channels = color.shape
     n = width * channels
-    for band in numba.prange(-(-height // rows_per_task)):
-        y0, y1 = band * rows_per_task, min((band + 1) * rows_per_task, height)
-        src_lo, src_hi = np.empty((3, n), np.float32), np.empty((3, n), np.float32)
+    for band in numba.prange(-(-height // BAND_ROWS)):
+        y0, y1 = band * BAND_ROWS, min((band + 1) * BAND_ROWS, height)
+        src_lo, src_hi, lo, hi, all_lo, all_hi = band_scratch(n)
         for yy in (y0 - 1, y0):
             _range_sources(color, e, has_emission, yy, rtol, src_lo[yy % 3], src_hi[yy % 3])
-        other_lo, other_hi = np.empty(n, np.float32), np.empty(n, np.float32)
-        all_lo, all_hi = np.empty(n, np.float32), np.empty(n, np.float32)
         for y in range(y0, y1):
             _range_sources(color, e, has_emission, y + 1, rtol, src_lo[(y + 1) % 3], src_hi[(y + 1) % 3])
-            up_lo, up_hi = src_lo[(y - 1) % 3], src_hi[(y - 1) % 3]
-            mid_lo, mid_hi = src_lo[y % 3], src_hi[y % 3]
-            down_lo, down_hi = src_lo[(y + 1) % 3], src_hi[(y + 1) % 3]
-            for i in range(n):  # over the rows above and below, and over all three; vectorises
-                other_lo[i] = min(up_lo[i], down_lo[i])
-                other_hi[i] = max(up_hi[i], down_hi[i])
-                all_lo[i] = min(other_lo[i], mid_lo[i])
-                all_hi[i] = max(other_hi[i], mid_hi[i])
-            for i in range(channels, n):  # the 8 neighbours: the columns left and right too
-                other_lo[i] = min(other_lo[i], all_lo[i - channels])
-                other_hi[i] = max(other_hi[i], all_hi[i - channels])
-            for i in range(n - channels):
-                other_lo[i] = min(other_lo[i], all_lo[i + channels])
-                other_hi[i] = max(other_hi[i], all_hi[i + channels])
+            three_row_ranges(src_lo, src_hi, y, channels, False, lo, hi, all_lo, all_hi)
             rc, ra, rb, rd = color[y].reshape(n), a[y].reshape(n), b[y].reshape(n), clipped[y].reshape(n)
             re = e[y].reshape(n) if has_emission else rc  # not read without emission
             for i in range(n):  # branch-free: vectorises
                 v = rc[i] - re[i] if has_emission else rc[i]
-                lo, hi = other_lo[i], other_hi[i]
-                spread = k * (hi - lo)
-                clip = min(max(v, lo - spread), hi + spread) if lo <= hi else v  # no neighbour left: itself
+                spread = k * (hi[i] - lo[i])
+                clip = min(max(v, lo[i] - spread), hi[i] + spread) if lo[i] <= hi[i] else v  # no neighbour: itself
                 rd[i] = clip if ra[i] != rb[i] else v
 
 
