@@ -87,12 +87,24 @@ def pixel_exact(a, b, i, channels, rtol, floor):  # pragma: no cover - jitted
     return exact and bright
 
 
+@numba.njit(inline="always")
+def any_agree(ra, rb, rtol):  # pragma: no cover - jitted
+    """Whether some value of rows ra, rb ((N,) float32) agrees (`agree`), as every channel of an exact pixel
+    does. Counted branch-free: one vectorised pass, so that a row with none skips the per-pixel test."""
+    count = 0
+    for i in range(ra.shape[0]):
+        count += 1 if agree(ra[i], rb[i], rtol) else 0
+    return count > 0
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _any_exact(a, b, rtol, floor):  # pragma: no cover - jitted
     height, width, channels = a.shape
     found = np.zeros(height, np.bool_)
     for y in numba.prange(height):
         ra, rb = a[y].reshape(width * channels), b[y].reshape(width * channels)
+        if not any_agree(ra, rb, rtol):
+            continue
         for x in range(width):
             if pixel_exact(ra, rb, x * channels, channels, rtol, floor):
                 found[y] = True
@@ -106,6 +118,8 @@ def _fill_exact(a, b, c, rtol, floor, out):  # pragma: no cover - jitted
     for y in numba.prange(height):
         n = width * channels
         ra, rb, rc, ro = a[y].reshape(n), b[y].reshape(n), c[y].reshape(n), out[y].reshape(n)
+        if not any_agree(ra, rb, rtol):
+            continue
         for x in range(width):
             i = x * channels
             if pixel_exact(ra, rb, i, channels, rtol, floor):

@@ -45,7 +45,7 @@ import numba
 import numpy as np
 
 from service.kernels.window import overlap, window_offsets
-from service.stages.exact import EXACT_MIN, EXACT_RTOL, agree, exact_mask, pixel_exact
+from service.stages.exact import EXACT_MIN, EXACT_RTOL, agree, any_agree, exact_mask, pixel_exact
 from service.stages.reprojection import DEPTH_FLOOR, NORMAL_HIT, ReprojectionParams, surface_hit
 from service.stages.svgf import box_mean
 
@@ -226,10 +226,8 @@ def _may_be_exact(ra, rb, rc, re, has_emission, rtol):  # pragma: no cover - jit
     if has_emission:
         for i in range(rc.shape[0]):
             count += 1 if re[i] != 0 or rc[i] == 0 else 0
-    else:
-        for i in range(rc.shape[0]):
-            count += 1 if agree(ra[i], rb[i], rtol) else 0
-    return count > 0
+        return count > 0
+    return any_agree(ra, rb, rtol)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
