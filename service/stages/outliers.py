@@ -33,7 +33,7 @@ from service.kernels.simd import (
 )
 from service.kernels.window import window_range
 from service.regression.planes import from_planes, to_planes
-from service.stages.albedo import ALBEDO_EPS, demodulate, remodulate
+from service.stages.albedo import ALBEDO_EPS, albedo_factor
 from service.stages.svgf import box_mean
 
 FIREFLY_K = 2.0  # clamp_fireflies: neighbour ranges (max - min) a value may lie beyond its neighbours
@@ -345,11 +345,49 @@ def clamp_outlier_planes(planes: np.ndarray, firefly_k: float | None = FIREFLY_K
 
 def _sky(image: np.ndarray, albedo: np.ndarray) -> np.ndarray:
     """(H, W) bool: pixels whose albedo ((H, W, C) float32) is below ALBEDO_EPS in every channel and whose
-    radiance ((H, W, C) float32) is not 0 in some channel. Per channel: numpy's reductions over a last axis of
-    3 cost ten times as much."""
-    channels = range(image.shape[-1])
-    unlit = np.logical_and.reduce([albedo[..., c] < ALBEDO_EPS for c in channels])
-    return unlit & np.logical_or.reduce([image[..., c] != 0 for c in channels])
+    radiance ((H, W, C) float32) is not 0 in some channel. numba, a task per row."""
+    sky = np.empty(image.shape[:2], np.bool_)
+    _sky_kernel(image, albedo, sky)
+    return sky
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _sky_kernel(image, albedo, sky):  # pragma: no cover - jitted
+    height, width, channels = image.shape
+    for y in numba.prange(height):
+        for x in range(width):
+            unlit, shows = True, False
+            for c in range(channels):
+                unlit = unlit and albedo[y, x, c] < ALBEDO_EPS
+                shows = shows or image[y, x, c] != 0
+            sky[y, x] = unlit and shows
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _demodulated_planes(image, albedo, planes):  # pragma: no cover - jitted
+    """planes (C, H, W) float32: `albedo.demodulate` of image by albedo ((H, W, C) float32), planar."""
+    height, width, channels = image.shape
+    for y in numba.prange(height):
+        for c in range(channels):
+            row = planes[c, y]
+            for x in range(width):
+                row[x] = image[y, x, c] / albedo_factor(albedo[y, x, c])
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _lowered_kernel(image, albedo, kept, out):  # pragma: no cover - jitted
+    """out (H, W, C) float32: where the clamp moved a demodulated value (kept, (C, H, W) float32, against image's
+    demodulated by albedo, both (H, W, C) float32), its remodulation if that is closer to 0, and where image is
+    NaN; image elsewhere (`clamp_outliers`)."""
+    height, width, channels = image.shape
+    for y in numba.prange(height):
+        for x in range(width):
+            for c in range(channels):
+                value, factor = image[y, x, c], albedo_factor(albedo[y, x, c])
+                k = kept[c, y, x]
+                back = k * factor
+                lowered = (k != value / factor and abs(back) < abs(value)) or np.isnan(value)
+                out[y, x, c] = back if lowered else value
 
 
 def clamp_outliers(image: np.ndarray, firefly_k: float = FIREFLY_K,
@@ -378,8 +416,8 @@ def clamp_outliers(image: np.ndarray, firefly_k: float = FIREFLY_K,
     for name, other in (("halves", halves or ()), ("albedo", () if albedo is None else (albedo,))):
         if any(np.shape(x) != image.shape for x in other):
             raise ValueError(f"clamp_outliers: the {name} {[np.shape(x) for x in other]} must match {image.shape}")
-    image = np.asarray(image, dtype=np.float32)
-    albedo = None if albedo is None else np.asarray(albedo, dtype=np.float32)
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    albedo = None if albedo is None else np.ascontiguousarray(albedo, dtype=np.float32)
     sky = None if albedo is None else _sky(image, albedo)
     by_radiance = None
     if albedo is None or sky.any():
@@ -387,11 +425,10 @@ def clamp_outliers(image: np.ndarray, firefly_k: float = FIREFLY_K,
     if albedo is None:
         clamped = by_radiance
     else:
-        flat = demodulate(image, albedo)
-        kept = from_planes(clamp_outlier_planes(to_planes(flat), firefly_k))
-        back = remodulate(kept, albedo)
-        lowered = ((kept != flat) & (np.abs(back) < np.abs(image))) | np.isnan(image)
-        clamped = np.where(lowered, back, image).astype(np.float32)
+        flat = np.empty((image.shape[2], *image.shape[:2]), np.float32)
+        _demodulated_planes(image, albedo, flat)
+        clamped = np.empty_like(image)
+        _lowered_kernel(image, albedo, clamp_outlier_planes(flat, firefly_k), clamped)
         if by_radiance is not None:
             near = box_mean(sky[..., None].astype(np.float32), ROBUST_RADIUS) > 0
             clamped = np.where(near, by_radiance, clamped)

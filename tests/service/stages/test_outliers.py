@@ -4,8 +4,10 @@ a smooth gradient and an edge are not; with the halves, what both show is kept."
 import numpy as np
 import pytest
 
-from service.stages.albedo import ALBEDO_EPS
-from service.stages.outliers import clamp_outliers
+from service.regression.planes import from_planes, to_planes
+from service.stages.albedo import ALBEDO_EPS, demodulate, remodulate
+from service.stages.outliers import ROBUST_RADIUS, clamp_outlier_planes, clamp_outliers
+from service.stages.svgf import box_mean
 
 
 def test_firefly_and_small_cluster_are_clipped():
@@ -112,3 +114,27 @@ def test_with_the_albedo_no_value_is_raised_near_a_sky_the_radiance_judges_and_s
     np.testing.assert_array_equal(clamp_outliers(constant, albedo=surfaces), constant)
     with pytest.raises(ValueError, match="albedo"):
         clamp_outliers(constant, albedo=surfaces[:4])
+
+
+def test_with_the_albedo_matches_the_numpy_composition_bit_for_bit():
+    """The compiled demodulation, sky test and remodulation against the same steps in numpy (`albedo.demodulate`,
+    `remodulate`, the planes through `clamp_outlier_planes`), on a frame with fireflies, a sky of albedo 0, black
+    paint, negative albedo and a NaN."""
+    rng = np.random.default_rng(3)
+    image = rng.gamma(1.0, 1.0, (24, 31, 3)).astype(np.float32)
+    image[rng.random((24, 31)) < 0.03] *= 200.0  # fireflies
+    albedo = rng.uniform(0.0, 1.0, (24, 31, 3)).astype(np.float32)
+    albedo[:5, :9] = 0.0  # a sky: radiance without albedo
+    albedo[20:, 20:] = 0.0
+    image[20:, 20:] = 0.0  # black paint showing no light
+    albedo[10, 10] = -0.5
+    image[12, 3, 1] = np.nan
+    flat = demodulate(image, albedo)
+    kept = from_planes(clamp_outlier_planes(to_planes(flat)))
+    back = remodulate(kept, albedo)
+    lowered = ((kept != flat) & (np.abs(back) < np.abs(image))) | np.isnan(image)
+    want = np.where(lowered, back, image).astype(np.float32)
+    sky = (albedo < ALBEDO_EPS).all(axis=-1) & (image != 0).any(axis=-1)
+    near = box_mean(sky[..., None].astype(np.float32), ROBUST_RADIUS) > 0
+    want = np.where(near, from_planes(clamp_outlier_planes(to_planes(image))), want)
+    np.testing.assert_array_equal(clamp_outliers(image, albedo=albedo), want)
