@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from service.kernels.fill import filled
+from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, three_row_ranges
 from service.kernels.simd import (
     bits_to_float32,
     float32_to_bits,
@@ -74,29 +74,40 @@ def clamp_fireflies_reference(planes: np.ndarray, k: float = FIREFLY_K, excluded
     return np.where(ok, out, planes).astype(np.float32)
 
 
-@numba.njit(parallel=True, cache=True, fastmath=False, error_model="numpy")
-def _clamp_kernel(planes, k, out):
+@numba.njit(inline="always")
+def _plane_sources(planes, c, y, src_lo, src_hi):  # pragma: no cover - jitted
+    """Row y of channel c of planes ((C, H, W) float32) as its neighbours' range sources, written to src_lo and
+    src_hi ((W,) float32): a NaN takes no part (+inf, -inf), nor does a row outside the frame."""
+    if y < 0 or y >= planes.shape[1]:
+        no_sources(src_lo, src_hi)
+        return
+    row = planes[c, y]
+    for x in range(row.shape[0]):  # branch-free: vectorises
+        v = row[x]
+        src_lo[x] = v if v == v else np.inf
+        src_hi[x] = v if v == v else -np.inf
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _clamp_kernel(planes, k, out):  # pragma: no cover - jitted
+    """out (C, H, W) float32: `clamp_fireflies` of planes (C, H, W) float32, k float32. The 8-neighbour ranges
+    come from `service.kernels.row_ranges`, a task per band of rows of a channel."""
     channels, height, width = planes.shape
-    for row in numba.prange(channels * height):  # a task per row of a channel
-        c, y = row // height, row % height
-        lo = filled(width, np.inf, np.float32)
-        hi = filled(width, -np.inf, np.float32)
-        for yy in range(max(0, y - 1), min(height, y + 2)):
-            src = planes[c, yy]
-            for dx in range(-1, 2):
-                if yy == y and dx == 0:
-                    continue
-                for x in range(max(0, -dx), min(width, width - dx)):  # contiguous, vectorises
-                    v = src[x + dx]
-                    lo[x] = min(lo[x], v)
-                    hi[x] = max(hi[x], v)
-        src, dst = planes[c, y], out[c, y]
-        for x in range(width):
-            v = src[x]
-            if lo[x] <= hi[x]:  # has a neighbour (not a 1x1 frame)
+    bands = -(-height // BAND_ROWS)
+    for task in numba.prange(channels * bands):
+        c, y0 = task // bands, (task % bands) * BAND_ROWS
+        y1 = min(y0 + BAND_ROWS, height)
+        src_lo, src_hi, lo, hi, all_lo, all_hi = band_scratch(width)
+        for yy in (y0 - 1, y0):
+            _plane_sources(planes, c, yy, src_lo[yy % 3], src_hi[yy % 3])
+        for y in range(y0, y1):
+            _plane_sources(planes, c, y + 1, src_lo[(y + 1) % 3], src_hi[(y + 1) % 3])
+            three_row_ranges(src_lo, src_hi, y, 1, False, lo, hi, all_lo, all_hi)
+            src, dst = planes[c, y], out[c, y]
+            for x in range(width):  # branch-free: vectorises
+                v = src[x]
                 spread = k * (hi[x] - lo[x])
-                v = min(max(v, lo[x] - spread), hi[x] + spread)
-            dst[x] = v
+                dst[x] = min(max(v, lo[x] - spread), hi[x] + spread) if lo[x] <= hi[x] else v  # no neighbour: itself
 
 
 ROBUST_RADIUS = 3  # clamp_outlier_clusters: window half-size, pixels (7x7: a 3x3 cluster is 9/49 of it)

@@ -97,6 +97,22 @@ def test_clamp_fireflies_removes_an_isolated_outlier_and_keeps_constants():
     np.testing.assert_array_equal(clamp_fireflies(single), single)
 
 
+def test_clamp_fireflies_matches_its_twin_across_bands_with_nan_and_inf():
+    """Several bands of rows (BAND_ROWS), 1-pixel sides, infinities; a NaN takes no part in its neighbours'
+    ranges (the twin's `excluded`) and stays NaN."""
+    rng = np.random.default_rng(3)
+    for shape in ((2, 37, 21), (1, 33, 1), (3, 1, 40), (1, 2, 2)):
+        planes = (rng.lognormal(0, 2, shape) * rng.choice([-1, 1], shape)).astype(np.float32)
+        mask = rng.random(shape)
+        planes[mask < 0.03] = np.nan
+        planes[(mask > 0.03) & (mask < 0.05)] = np.inf
+        planes[(mask > 0.05) & (mask < 0.06)] = -np.inf
+        planes[..., shape[1] // 2, :] = np.nan  # a whole row at a band's edge or inside one
+        for k in (2.0, 0.5):
+            expected = clamp_fireflies_reference(planes, k, excluded=np.isnan(planes))
+            np.testing.assert_array_equal(clamp_fireflies(planes, k), expected)
+
+
 def test_standardise_puts_planes_on_unit_scale_and_zeroes_constant_ones():
     planes = np.stack([np.full((4, 5), 3.0), np.arange(20.0).reshape(4, 5) * 1e4]).astype(np.float32)
     out = standardise(planes)
