@@ -134,12 +134,24 @@ def tile_means(errors: np.ndarray, tile: int = TILE) -> np.ndarray:
     return stage_tile_means(errors, tile)
 
 
+def tile_ratios(out_map: np.ndarray, noisy_map: np.ndarray) -> np.ndarray:
+    """Criterion 2's ratio per TILE x TILE tile, (e(out) + TILE_FLOOR) / (e(noisy) + TILE_FLOOR), from the
+    output's and the noisy input's (H, W) relL2 maps (`rel_l2_map`); (th, tw) float64, ragged border tiles
+    included. The tile passes at 1 + TILE_SLACK or below."""
+    return (tile_means(out_map) + TILE_FLOOR) / (tile_means(noisy_map) + TILE_FLOOR)
+
+
+def worst_tile(ratios: np.ndarray) -> tuple[float, tuple[int, int]]:
+    """(the largest of `tile_ratios`' ratios, (row, column) of that tile's top-left pixel)."""
+    worst = np.unravel_index(int(np.argmax(ratios)), ratios.shape)
+    return float(ratios[worst]), (int(worst[0]) * TILE, int(worst[1]) * TILE)
+
+
 def score(out: np.ndarray, frame: Frame) -> FrameScore:
     """Score `out` ((H, W, 3) float32 denoised radiance) against `frame`'s noisy `color` and `reference`."""
     reference, noisy = frame["reference"], frame["color"]
     out_map, noisy_map = rel_l2_map(out, reference), rel_l2_map(noisy, reference)
-    ratio = (tile_means(out_map) + TILE_FLOOR) / (tile_means(noisy_map) + TILE_FLOOR)
-    worst = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+    ratio, at = worst_tile(tile_ratios(out_map, noisy_map))
     exact = None
     if "colorA" in frame and "colorB" in frame:
         exact = exact_mask(frame["colorA"], frame["colorB"], frame["color"], frame.get("emission"))
@@ -148,8 +160,7 @@ def score(out: np.ndarray, frame: Frame) -> FrameScore:
         given = noisy[exact].astype(np.float64)
         change = np.abs(out[exact] - given) / np.maximum(np.abs(given), 1e-30)
         exact_error = float(change.max())
-    return FrameScore(float(out_map.mean()), float(noisy_map.mean()), float(ratio.max()),
-                      (int(worst[0]) * TILE, int(worst[1]) * TILE), exact_error)
+    return FrameScore(float(out_map.mean()), float(noisy_map.mean()), ratio, at, exact_error)
 
 
 def run(pipeline: Pipeline, name: str) -> list[FrameScore]:

@@ -34,6 +34,8 @@ COLUMNS = (
     ("flip", "FLIP", "{:.4f}"),
     ("temporal", "temporal", "{:.4f}"),
     ("disoccluded_rel_l2", "relL2 disocc.", "{:.4f}"),
+    ("worst_tile", "worst tile", "{:.2f}x"),
+    ("failing_tiles", "tiles > 1.1x", "{:d}"),
 )
 CROP_DISPLAY_PX = 192  # on-screen size of each crop in report.html (nearest-neighbour upscaled)
 
@@ -73,8 +75,9 @@ def _subtitle(results: dict[str, Any]) -> str:
 
 def overall_table(overall: dict[str, dict[str, Any]]) -> str:
     """The overall table as markdown: one row per method, fastest first."""
-    head = "| method | kind | seqs | ms/MP | relL2 | 1-SSIM | FLIP | temporal | relL2 disocc. | relL2 / OIDN-high |"
-    lines = [head, "|" + "---|" * 10]
+    head = ("| method | kind | seqs | ms/MP | relL2 | 1-SSIM | FLIP | temporal | relL2 disocc. | worst tile | "
+            "tiles > 1.1x | relL2 / OIDN-high |")
+    lines = [head, "|" + "---|" * 12]
     rows = sorted(overall.items(), key=lambda kv: (kv[1]["ms_per_megapixel"] is None, kv[1]["ms_per_megapixel"]))
     for name, row in rows:
         kind = row["kind"] + (", temporal" if row["is_temporal"] else "")
@@ -82,6 +85,7 @@ def overall_table(overall: dict[str, dict[str, Any]]) -> str:
             f"| {name} | {kind} | {row['sequences']}/{row['of']} | {_fmt(row['ms_per_megapixel'], '{:.0f}')} | "
             f"{_fmt(row['rel_l2'], '{:.4f}')} | {_fmt(row['dssim'], '{:.4f}')} | {_fmt(row['flip'], '{:.4f}')} | "
             f"{_fmt(row['temporal'], '{:.4f}')} | {_fmt(row['disoccluded_rel_l2'], '{:.4f}')} | "
+            f"{_fmt(row.get('worst_tile'), '{:.2f}x')} | {_fmt(row.get('failing_tiles'), '{:d}')} | "
             f"{_fmt(row['rel_l2_vs_oidn_high'], '{:.2f}x')} |"
         )
     return "\n".join(lines)
@@ -96,7 +100,10 @@ def sequence_table(seq: dict[str, Any]) -> str:
             notes.append(f"- `{name}` {record['status']}: {record['note']}")
             continue
         summary = record["summary"]
-        lines.append(f"| {name} | " + " | ".join(_fmt(summary[k], f) for k, _, f in COLUMNS) + " |")
+        lines.append(f"| {name} | " + " | ".join(_fmt(summary.get(k), f) for k, _, f in COLUMNS) + " |")
+        if summary.get("failing_tiles"):
+            notes.append(f"- `{name}`: {summary['failing_tiles']} tiles worse than the noisy input's by more than "
+                         f"10%; the worst {summary['worst_tile']:.3g}x at {summary['worst_tile_at']}")
         if "shares" in record:
             notes.append(shares_note(name, record, seq["results"]))
     return "\n".join(lines + ([""] + notes if notes else []))
@@ -134,7 +141,9 @@ def markdown(results: dict[str, Any]) -> str:
         "- relL2: mean over frames, 0.1% of worst pixels trimmed; 1-SSIM and FLIP: mean over frames; temporal: "
         "relL2 of the frame-to-frame change against the reference's change; relL2 disocc.: untrimmed relL2 over "
         "disoccluded pixels (the reprojection marks them invalid, or motionDual differs from motion by more than "
-        "0.5 px), every frame but the first.",
+        "0.5 px), every frame but the first; worst tile: over frames and 16x16 tiles, the largest ratio of the "
+        "tile's untrimmed relL2 to the noisy input's (each plus 1e-3), the hard cases' criterion; tiles > 1.1x: "
+        "(frame, tile) pairs above 1.1x, which that criterion fails.",
         "",
         "## Overall",
         "",

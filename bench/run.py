@@ -167,7 +167,7 @@ def run_method(
                 for name, share in state.shares().items():
                     shares[name] = shares.get(name, 0.0) + share / len(seq.frames)
             image, reference = out["color"], frame["reference"]
-            score.frames.append(score_frame(image, reference, prev, masks[index], flip=flip))
+            score.frames.append(score_frame(image, reference, prev, masks[index], flip=flip, noisy=frame["color"]))
             prev = (image, reference)
             if index == crop_frame:
                 out_crop = image[y0 : y0 + ch, x0 : x0 + cw].copy()
@@ -213,8 +213,9 @@ def run_sequence(seq: Sequence, methods: list[Method], *, flip: bool = True, pro
 
 
 def overall(runs: list[SequenceRun], methods: list[Method]) -> dict[str, dict[str, Any]]:
-    """Per method, across the sequences it ran on: mean of each error, median of ms per megapixel,
-    and the geometric mean over sequences of relL2 / relL2 of `REFERENCE_METHOD` (OIDN high)."""
+    """Per method, across the sequences it ran on: mean of each error, median of ms per megapixel, the largest
+    worst tile and the failing tiles summed, and the geometric mean over sequences of relL2 / relL2 of
+    `REFERENCE_METHOD` (OIDN high)."""
     table: dict[str, dict[str, Any]] = {}
     for method in methods:
         ok = [r for r in runs if r.results.get(method.name, {}).get("status") == "ok"]
@@ -224,6 +225,9 @@ def overall(runs: list[SequenceRun], methods: list[Method]) -> dict[str, dict[st
         for key in ("rel_l2", "dssim", "flip", "temporal", "disoccluded_rel_l2"):
             values = [s[key] for s in summaries if s[key] is not None]
             row[key] = float(np.mean(values)) if values else None
+        tiles = [s["worst_tile"] for s in summaries if s.get("worst_tile") is not None]
+        row["worst_tile"] = max(tiles) if tiles else None
+        row["failing_tiles"] = sum(s["failing_tiles"] for s in summaries if s.get("failing_tiles") is not None)
         ms = [s["ms_per_megapixel"] for s in summaries]
         row["ms_per_megapixel"] = float(np.median(ms)) if ms else None
         ratios = []
@@ -262,6 +266,7 @@ def benchmark(
             "rel_l2_trim": TRIM_FRACTION,
             "flip": flip,
             "overall": "errors: mean over the sequences a method ran on; ms_per_megapixel: median over them; "
+                       "worst_tile: the largest over them, failing_tiles: summed; "
                        "rel_l2_vs_oidn_high: geometric mean over sequences of relL2 / relL2(oidn-high)",
         },
         "methods": [m.describe() for m in methods],

@@ -7,6 +7,10 @@ benchmark); this module only decides which frames and pixels each one sees and h
 - 1-SSIM (`dssim`) and FLIP (`flip_error`): mean over frames.
 - temporal: `temporal_rel_l2` of consecutive outputs against consecutive references, mean over frames
   1..N-1 (it needs a previous frame).
+- worst tile: the hard cases' criterion 2 (`bench.hard_cases.tile_ratios`), per frame the largest ratio over
+  16x16 tiles of the output's mean untrimmed relL2 to the noisy input's (each plus a floor of 1e-3), the
+  largest over frames; above 1 + TILE_SLACK (1.1) a tile came out worse than the input. Also the number of
+  (frame, tile) pairs above it.
 - disoccluded relL2: untrimmed relL2 over the disoccluded pixels (surfaces not visible in the previous
   frame), pooled over frames 1..N-1: where the reprojection stage marks a pixel invalid (`~valid` of
   service.stages.reprojection.reproject), or, in a frame with `motionDual`, where it differs from `motion`
@@ -22,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from bench.hard_cases import TILE_SLACK, tile_ratios, worst_tile
 from service.frame import Frame
 from service.metrics import TRIM_FRACTION, dssim, flip_error, rel_l2_map, temporal_rel_l2, trimmed_mean
 from service.stages.reprojection import dual_occluded, reproject
@@ -59,6 +64,9 @@ class FrameScore:
     temporal: float | None  # None on the first frame
     disoccluded_sum: float | None  # sum of per-pixel relL2 over disoccluded pixels
     disoccluded_pixels: int  # how many pixels were disoccluded
+    worst_tile_ratio: float | None = None  # largest tile ratio to the noisy input's (None: no noisy input given)
+    worst_tile: tuple[int, int] | None = None  # (row, column) of that tile's top-left pixel
+    failing_tiles: int = 0  # tiles above 1 + TILE_SLACK times the noisy input's error
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -71,6 +79,9 @@ class FrameScore:
                 else self.disoccluded_sum / self.disoccluded_pixels
             ),
             "disoccluded_pixels": self.disoccluded_pixels,
+            "worst_tile_ratio": self.worst_tile_ratio,
+            "worst_tile": None if self.worst_tile is None else list(self.worst_tile),
+            "failing_tiles": self.failing_tiles,
         }
 
 
@@ -81,12 +92,13 @@ def score_frame(
     mask: np.ndarray | None,
     *,
     flip: bool = True,
+    noisy: np.ndarray | None = None,
 ) -> FrameScore:
     """Scores of `image` against `reference`.
 
     image, reference: (H, W, 3) float32 linear radiance. prev: (previous output, previous reference)
     or None on the first frame. mask: (H, W) bool disoccluded pixels or None. flip: whether to compute
-    FLIP (the slowest metric).
+    FLIP (the slowest metric). noisy: the frame's (H, W, 3) float32 noisy input, for the worst tile, or None.
     """
     temporal = None if prev is None else float(temporal_rel_l2(prev[0], image, prev[1], reference))
     errors = rel_l2_map(image, reference)
@@ -94,6 +106,11 @@ def score_frame(
     if mask is not None:
         dis_count = int(mask.sum())
         dis_sum = float(errors[mask].sum()) if dis_count else 0.0
+    ratio, at, failing = None, None, 0
+    if noisy is not None:
+        ratios = tile_ratios(errors, rel_l2_map(noisy, reference))
+        ratio, at = worst_tile(ratios)
+        failing = int(np.count_nonzero(ratios > 1.0 + TILE_SLACK))
     return FrameScore(
         rel_l2=trimmed_mean(errors, TRIM_FRACTION),
         dssim=float(dssim(image, reference)),
@@ -101,6 +118,9 @@ def score_frame(
         temporal=temporal,
         disoccluded_sum=dis_sum,
         disoccluded_pixels=dis_count,
+        worst_tile_ratio=ratio,
+        worst_tile=at,
+        failing_tiles=failing,
     )
 
 
@@ -134,4 +154,16 @@ class SequenceScore:
             "disoccluded_fraction": (
                 dis_pixels / (len(dis_frames) * megapixels * 1e6) if dis_frames else None
             ),
+            **self.tiles(),
         }
+
+    def tiles(self) -> dict[str, Any]:
+        """worst_tile: the largest frame's worst tile ratio (None without them), worst_tile_at: "frame i (row,
+        column)" of it, failing_tiles: (frame, tile) pairs above 1 + TILE_SLACK, summed over frames."""
+        scored = [(f.worst_tile_ratio, i, f.worst_tile) for i, f in enumerate(self.frames)
+                  if f.worst_tile_ratio is not None]
+        if not scored:
+            return {"worst_tile": None, "worst_tile_at": None, "failing_tiles": None}
+        ratio, index, (row, column) = max(scored, key=lambda s: s[0])
+        return {"worst_tile": ratio, "worst_tile_at": f"frame {index} ({row}, {column})",
+                "failing_tiles": sum(f.failing_tiles for f in self.frames)}

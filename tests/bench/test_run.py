@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bench.methods import ANCHORS, Method, anchor_method, pipeline_method, select
-from bench.report import pareto_front, shares_note, write_all
+from bench.report import COLUMNS, pareto_front, sequence_table, shares_note, write_all
 from bench.run import benchmark, choose_crop, unique_names
 from bench.scaling import measure
 from service import pipelines
@@ -40,12 +40,17 @@ def test_benchmark_writes_all_four_outputs(tiny_sequence_dir: Path, tmp_path: Pa
         assert record["summary"]["ms_per_frame"] > 0 and record["summary"]["rel_l2"] > 0
     noisy, oidn = seq["results"]["noisy"]["summary"], seq["results"]["oidn-high"]["summary"]
     assert oidn["rel_l2"] < noisy["rel_l2"]
+    assert noisy["worst_tile"] == pytest.approx(1.0) and noisy["failing_tiles"] == 0  # the input against itself
+    assert oidn["worst_tile_at"].startswith("frame ")
     overall = stored["overall"]
     assert overall["oidn-high"]["rel_l2_vs_oidn_high"] == pytest.approx(1.0)
     assert overall["needs-sampleCount"]["sequences"] == 0
     assert overall["bilateral"]["is_temporal"] is False and overall["bilateral"]["kind"] == "pipeline"
 
+    assert overall["noisy"]["worst_tile"] == pytest.approx(1.0)
+
     md = paths["report.md"].read_text()
+    assert "| worst tile | tiles > 1.1x |" in md
     assert "## Overall" in md and f"## {tiny_sequence_dir.name}" in md and "| bilateral |" in md
     page = paths["report.html"].read_text()
     assert page.count("<figure>") == 2 + 1 + 2  # input, bilateral, oidn-high, oidn-fast, reference
@@ -130,3 +135,15 @@ def test_autos_blend_is_recorded_and_its_time_set_against_the_candidate_it_weigh
         "- `auto` blended (weight, mean over tiles and frames): kpn 75%, flr 25%; "
         "its median frame takes 1.20x kpn's, its mean 2.00x")
     assert shares_note("auto", record, {}).endswith("flr 25%")
+
+
+def test_a_sequence_table_names_where_a_method_came_out_worse_than_its_input() -> None:
+    summary = {key: None for key, _, _ in COLUMNS}
+    passing = {**summary, "rel_l2": 0.02, "worst_tile": 0.9, "worst_tile_at": "frame 0 (0, 0)", "failing_tiles": 0}
+    failing = {**summary, "rel_l2": 0.03, "worst_tile": 1.5, "worst_tile_at": "frame 2 (16, 32)", "failing_tiles": 3}
+    table = sequence_table({"results": {"bmfr": {"status": "ok", "summary": passing},
+                                        "flr": {"status": "ok", "summary": failing}}})
+    assert "| 0.0300 |" in table and "| 1.50x | 3 |" in table and "| 0.90x | 0 |" in table
+    notes = [line for line in table.splitlines() if line.startswith("- ")]
+    assert notes == ["- `flr`: 3 tiles worse than the noisy input's by more than 10%; the worst 1.5x at "
+                     "frame 2 (16, 32)"]

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from bench import scoring
+from bench.hard_cases import TILE_FLOOR, TILE_SLACK
 from bench.scoring import SequenceScore, disoccluded_mask, score_frame
 from service.frame import Frame
 from service.metrics import rel_l2_map
@@ -33,6 +34,27 @@ def test_sequence_summary_pools_disoccluded_pixels_and_takes_median_time() -> No
     assert summary["rel_l2"] == pytest.approx(0.2) and summary["temporal"] == pytest.approx(0.6)
     assert summary["disoccluded_rel_l2"] == pytest.approx(0.5)  # 2.0 over 4 pixels, pooled
     assert summary["flip"] is None
+
+
+def test_worst_tile_is_the_hard_cases_criterion_and_the_summary_names_where() -> None:
+    rng = np.random.default_rng(1)
+    reference = rng.uniform(0.5, 1.0, (40, 33, 3)).astype(np.float32)
+    noisy = (reference * rng.lognormal(0.0, 0.3, reference.shape)).astype(np.float32)
+    image = reference.copy()
+    image[34:38, 20:24] = 0.0  # a black patch in the ragged tile (32, 16)
+    score = score_frame(image, reference, None, None, flip=False, noisy=noisy)
+    out_map, noisy_map = rel_l2_map(image, reference), rel_l2_map(noisy, reference)
+    expected = (out_map[32:, 16:32].mean() + TILE_FLOOR) / (noisy_map[32:, 16:32].mean() + TILE_FLOOR)
+    assert score.worst_tile == (32, 16) and score.worst_tile_ratio == pytest.approx(expected)
+    assert score.worst_tile_ratio > 1.0 + TILE_SLACK and score.failing_tiles == 1
+    assert score.as_dict()["worst_tile"] == [32, 16]
+    clean = score_frame(reference, reference, None, None, flip=False, noisy=noisy)
+    assert clean.failing_tiles == 0 and clean.worst_tile_ratio < 1.0
+    assert score_frame(image, reference, None, None, flip=False).worst_tile_ratio is None  # no noisy input
+    summary = SequenceScore([clean, score, clean], [1.0, 1.0, 1.0]).summary(megapixels=1.0)
+    assert summary["worst_tile"] == score.worst_tile_ratio and summary["worst_tile_at"] == "frame 1 (32, 16)"
+    assert summary["failing_tiles"] == 1
+    assert SequenceScore([score_frame(image, reference, None, None, flip=False)], [1.0]).tiles()["worst_tile"] is None
 
 
 def test_static_camera_has_no_disocclusion(tiny_layers) -> None:
