@@ -34,7 +34,7 @@ def test_denoises_the_synthetic_sequence_well_below_the_noise(name):
 def test_crossregression_needs_both_half_buffers():
     info = pipelines.pipeline_class("crossregression").describe()
     assert {"colorA", "colorB", "albedo", "normal"} <= set(info["requires"])
-    assert info["options"]["window"] == 17 and info["options"]["sparsity"] == 4
+    assert info["options"]["window"] == 15 and info["options"]["sparsity"] == 4
 
 
 def test_flr_reads_ao_only_with_its_option():
