@@ -85,7 +85,7 @@ def overall_table(overall: dict[str, dict[str, Any]]) -> str:
             f"| {name} | {kind} | {row['sequences']}/{row['of']} | {_fmt(row['ms_per_megapixel'], '{:.0f}')} | "
             f"{_fmt(row['rel_l2'], '{:.4f}')} | {_fmt(row['dssim'], '{:.4f}')} | {_fmt(row['flip'], '{:.4f}')} | "
             f"{_fmt(row['temporal'], '{:.4f}')} | {_fmt(row['disoccluded_rel_l2'], '{:.4f}')} | "
-            f"{_fmt(row.get('worst_tile'), '{:.2f}x')} | {_fmt(row.get('failing_tiles'), '{:d}')} | "
+            f"{_fmt(row['worst_tile'], '{:.2f}x')} | {_fmt(row['failing_tiles'], '{:d}')} | "
             f"{_fmt(row['rel_l2_vs_oidn_high'], '{:.2f}x')} |"
         )
     return "\n".join(lines)
@@ -100,8 +100,8 @@ def sequence_table(seq: dict[str, Any]) -> str:
             notes.append(f"- `{name}` {record['status']}: {record['note']}")
             continue
         summary = record["summary"]
-        lines.append(f"| {name} | " + " | ".join(_fmt(summary.get(k), f) for k, _, f in COLUMNS) + " |")
-        if summary.get("failing_tiles"):
+        lines.append(f"| {name} | " + " | ".join(_fmt(summary[k], f) for k, _, f in COLUMNS) + " |")
+        if summary["failing_tiles"]:
             notes.append(f"- `{name}`: {summary['failing_tiles']} tiles worse than the noisy input's by more than "
                          f"10%; the worst {summary['worst_tile']:.3g}x at {summary['worst_tile_at']}")
         if "shares" in record:

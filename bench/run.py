@@ -225,9 +225,9 @@ def overall(runs: list[SequenceRun], methods: list[Method]) -> dict[str, dict[st
         for key in ("rel_l2", "dssim", "flip", "temporal", "disoccluded_rel_l2"):
             values = [s[key] for s in summaries if s[key] is not None]
             row[key] = float(np.mean(values)) if values else None
-        tiles = [s["worst_tile"] for s in summaries if s.get("worst_tile") is not None]
+        tiles = [s["worst_tile"] for s in summaries if s["worst_tile"] is not None]
         row["worst_tile"] = max(tiles) if tiles else None
-        row["failing_tiles"] = sum(s["failing_tiles"] for s in summaries if s.get("failing_tiles") is not None)
+        row["failing_tiles"] = sum(s["failing_tiles"] for s in summaries if s["failing_tiles"] is not None)
         ms = [s["ms_per_megapixel"] for s in summaries]
         row["ms_per_megapixel"] = float(np.median(ms)) if ms else None
         ratios = []

@@ -4,7 +4,8 @@ A kernel that needs, for every value of an (H, W, C) frame, the min and max of i
 window around it takes the frame's rows in bands of `BAND_ROWS`, one task per band, and keeps each row's
 source values once, in three rolling slots (row y in slot y % 3): a row's sources are made once per band
 instead of three times, and every loop over a row is branch-free. A value that takes no part in its
-neighbours' ranges (a light, a row outside the frame) has source +inf in `lo` and -inf in `hi`.
+neighbours' ranges (a light, a NaN, a row outside the frame) has source +inf in `lo` and -inf in `hi`
+(`put_source`): the ranges' min and max take no NaN.
 """
 
 from __future__ import annotations
@@ -13,6 +14,15 @@ import numba
 import numpy as np
 
 BAND_ROWS = 16  # rows per task
+
+
+@numba.njit(inline="always")
+def put_source(src_lo, src_hi, i, value, left_out):  # pragma: no cover - jitted
+    """Source i of a row (src_lo, src_hi: (n,) float32): value (float32), or no part (+inf, -inf) where
+    `left_out` or value is NaN, so that a NaN neighbour is ignored as a running min from +inf ignores it."""
+    out = left_out or value != value
+    src_lo[i] = np.inf if out else value
+    src_hi[i] = -np.inf if out else value
 
 
 @numba.njit(inline="always")

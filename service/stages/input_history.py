@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, three_row_ranges
+from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, put_source, three_row_ranges
 from service.kernels.window import window_range
 from service.stages.reprojection import reproject, reproject_numpy
 
@@ -115,7 +115,8 @@ def accumulate(history: InputHistory, clipped: np.ndarray, color: np.ndarray, em
 @numba.njit(inline="always", cache=True, error_model="numpy")
 def _clamp_sources(clipped, e, has_emission, y, src_lo, src_hi):  # pragma: no cover - jitted
     """Row y of clipped ((H, W, C) float32) for the clamp's ranges, written to src_lo, src_hi ((W * C,) float32):
-    lights (e nonzero, with `has_emission`) take no part (`row_ranges`: +inf, -inf), nor a row outside the frame."""
+    lights (e nonzero, with `has_emission`) take no part (`row_ranges`: +inf, -inf), nor a NaN or a row outside the
+    frame."""
     height, width, channels = clipped.shape
     n = width * channels
     if y < 0 or y >= height:
@@ -124,9 +125,7 @@ def _clamp_sources(clipped, e, has_emission, y, src_lo, src_hi):  # pragma: no c
     rc = clipped[y].reshape(n)
     re = e[y].reshape(n) if has_emission else rc  # not read without emission
     for i in range(n):  # branch-free: vectorises
-        light = has_emission and re[i] != 0
-        src_lo[i] = np.inf if light else rc[i]
-        src_hi[i] = -np.inf if light else rc[i]
+        put_source(src_lo, src_hi, i, rc[i], has_emission and re[i] != 0)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")

@@ -95,7 +95,7 @@ import functools
 import numba
 import numpy as np
 
-from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, three_row_ranges
+from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, put_source, three_row_ranges
 from service.metrics import REL_L2_EPS
 from service.stages.dark_tiles import (
     dark_levels,
@@ -444,7 +444,7 @@ def _range_sources(color, e, has_emission, y, rtol, src_lo, src_hi):  # pragma: 
     colour less e (color, e: (H, W, C) float32; e only with `has_emission`), but a light seen whole (every
     channel of its colour agrees with e to rtol, float32 relative; some e nonzero) at its colour, its full
     value: a neighbour may be partly covered by it. The other lights' values (e nonzero; module docstring) take
-    no part (`row_ranges`: +inf in src_lo, -inf in src_hi), nor does a row outside the frame."""
+    no part (`row_ranges`: +inf in src_lo, -inf in src_hi), nor does a NaN or a row outside the frame."""
     height, width, channels = color.shape
     n = width * channels
     if y < 0 or y >= height:
@@ -465,13 +465,10 @@ def _range_sources(color, e, has_emission, y, rtol, src_lo, src_hi):  # pragma: 
                     whole = whole and agree(rc[i + c], re[i + c], rtol)
                 for c in range(channels):
                     value = rc[i + c] if lit and whole else rc[i + c] - re[i + c]
-                    left_out = lit and not whole and re[i + c] != 0
-                    src_lo[i + c] = np.inf if left_out else value
-                    src_hi[i + c] = -np.inf if left_out else value
+                    put_source(src_lo, src_hi, i + c, value, lit and not whole and re[i + c] != 0)
             return
     for i in range(n):  # no light in the row: its colour (less e, all 0); contiguous, vectorises
-        src_lo[i] = rc[i]
-        src_hi[i] = rc[i]
+        put_source(src_lo, src_hi, i, rc[i], False)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")

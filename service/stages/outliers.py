@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, three_row_ranges
+from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, put_source, three_row_ranges
 from service.kernels.simd import (
     bits_to_float32,
     float32_to_bits,
@@ -83,9 +83,7 @@ def _plane_sources(planes, c, y, src_lo, src_hi):  # pragma: no cover - jitted
         return
     row = planes[c, y]
     for x in range(row.shape[0]):  # branch-free: vectorises
-        v = row[x]
-        src_lo[x] = v if v == v else np.inf
-        src_hi[x] = v if v == v else -np.inf
+        put_source(src_lo, src_hi, x, row[x], False)
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")

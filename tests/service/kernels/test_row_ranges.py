@@ -4,8 +4,10 @@ import numba
 import numpy as np
 import pytest
 
-from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, three_row_ranges
+from service.kernels.row_ranges import BAND_ROWS, band_scratch, no_sources, put_source, three_row_ranges
 from service.kernels.window import window_range
+from service.stages.exact import EXACT_RTOL
+from service.stages.noise_blend import _clip_kernel
 
 
 @numba.njit
@@ -20,8 +22,7 @@ def _banded_ranges(values, excluded, centre, lo_out, hi_out):
             return
         row, out = values[y].reshape(n), excluded[y].reshape(n)
         for i in range(n):
-            src_lo[i] = np.inf if out[i] else row[i]
-            src_hi[i] = -np.inf if out[i] else row[i]
+            put_source(src_lo, src_hi, i, row[i], out[i])
 
     for band in range(-(-height // BAND_ROWS)):
         y0, y1 = band * BAND_ROWS, min((band + 1) * BAND_ROWS, height)
@@ -40,9 +41,21 @@ def _banded_ranges(values, excluded, centre, lo_out, hi_out):
 def test_banded_ranges_match_the_window_range_across_bands_and_borders(shape, centre):
     rng = np.random.default_rng(sum(shape))
     values = rng.normal(size=shape).astype(np.float32)
+    values[rng.random(shape) < 0.1] = np.nan  # a NaN takes no part, as a light does not
     excluded = rng.random(shape) < 0.2  # lights, left out of every range
     lo, hi = np.empty_like(values), np.empty_like(values)
     _banded_ranges(values, excluded, centre, lo, hi)
-    want_lo, want_hi = window_range(values, centre=centre, excluded=excluded)
+    want_lo, want_hi = window_range(values, centre=centre, excluded=excluded | np.isnan(values))
     np.testing.assert_array_equal(lo, want_lo)
     np.testing.assert_array_equal(hi, want_hi)
+
+
+@pytest.mark.parametrize("nan_row", [0, 2])
+def test_the_blends_clip_ignores_a_nan_neighbour_above_as_below(nan_row):
+    color = np.array([1.0, 1.0, 1.0], np.float32).reshape(3, 1, 1)
+    color[1] = 100.0  # a firefly between two values of 1
+    color[nan_row] = np.nan
+    a, b = color + 0.5, color - 0.5  # the halves differ: the clip applies
+    clipped = np.empty_like(color)
+    _clip_kernel(color, a, b, color, False, np.float32(2.0), np.float32(EXACT_RTOL), clipped)
+    assert clipped[1, 0, 0] == 1.0  # clipped to the one neighbour left
