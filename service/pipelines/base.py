@@ -7,7 +7,8 @@
 `Pipeline.step` does what all denoisers share, in order: check the frame against the declared layers
 and the sequence size (before any work), find the exact pixels when the frame has halves but no
 `emission` layer (`service.stages.exact`: they become its emission), split off `emission` from the
-radiance layers, call the denoiser's `denoise`, add emission back, return the pixels where nothing was hit
+radiance layers, call the denoiser's `denoise`, add emission back, clip the result below at the input's lowest
+value or 0 (`service.stages.radiance_floor`), return the pixels where nothing was hit
 and no emission is given as they came (`service.stages.background`), keep the result within the noise the
 halves show (`service.stages.noise_clamp`), blend it per tile with the input by the weight the halves
 say is best (`service.stages.noise_blend`; a temporal pipeline's input accumulated over the sequence where
@@ -33,6 +34,7 @@ from service.stages.exact import exact_emission
 from service.stages.input_history import InputHistory
 from service.stages.noise_blend import noise_blend
 from service.stages.noise_clamp import noise_clamp
+from service.stages.radiance_floor import radiance_floor
 
 
 @dataclass
@@ -132,6 +134,8 @@ class Pipeline(ABC):
         if self.guards:
             frame = with_exact_emission(frame)
         buffers, finite, state = self.denoise_split(frame, state)
+        if self.guards:  # no radiance below the input's (0 for a renderer's ordinary output): no black ring
+            buffers["color"] = radiance_floor(buffers["color"], given["color"])
         if self.guards and "normal" in given:  # before the clamp and blend: a pixel as it came stays so there
             buffers["color"] = pass_background(buffers["color"], given["color"], given["normal"],
                                                given.get("emission"))
