@@ -17,14 +17,6 @@ skipped (no padding). `edge_aware_filter` is compiled; `edge_aware_filter_numpy`
 The compiled pass works on planar (K, H, W) arrays (`atrous` keeps them planar over its passes): rows
 in parallel, each tap offset a branch-free SIMD loop along the row, exp by `bilateral.neg_exp`. Taps
 with an exponent above MAX_EXPONENT or w_n below WEIGHT_FLOOR get weight 0 (no subnormal arithmetic).
-
-|grad z| of a bar one pixel wide is its own slope, not the jump to the wall behind (`depth_gradient`). With
-the jump, svgf averaged a wall of radiance ~9 into bars of 0.09 on the held-out `data/val/veiled_light_s6`:
-svgf's relL2 there 0.490 -> 0.0945, its 16x16 tiles worse than the noisy input 111 -> 52 (`python -m bench
-run --pipelines svgf`, 2026-11-29). The other ten data/val sequences and `make bench`'s four move by at most
-0.3%; the hard cases (`python -m bench.hard_cases table --pipelines svgf`, 64x64) by +1.3% (caustics), +1.8%
-(bulb) and +8.6% (veiled, 0.0375 -> 0.0407, whose lit bars one pixel wide are now filtered only along
-themselves), all still passing.
 """
 
 from __future__ import annotations
@@ -42,10 +34,6 @@ from service.stages.reprojection import surface_hit
 B3_SPLINE = (1 / 16, 1 / 4, 3 / 8, 1 / 4, 1 / 16)  # Dammertz 2010 / Schied 2017 sec. 4.3: 1D B3-spline taps
 GAUSS_3X3 = (1 / 4, 1 / 2, 1 / 4)  # Schied 2017 sec. 4.3: 1D taps of the 3x3 variance prefilter
 DEPTH_GRADIENT_FLOOR = 1e-8  # scene units per pixel; Falcor SVGF's floor of fwidth(z)
-# relative depth step beyond which a depth extremum one pixel wide counts as a thin feature (`depth_gradient`);
-# 0.003 to 0.03 gave the same svgf errors on data/val (out/exp/s54/ridge.py)
-THIN_STEP = 0.01
-THIN_NORMAL_COS = 0.9  # cosine between a thin feature's two neighbours' normals (one surface behind it)
 VARIANCE_EPS = 1e-10  # luminance^2; Falcor SVGF's epsilon under the square root of phi_l
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # Rec. 709 / sRGB luminance of linear RGB
 MAX_EXPONENT = 40.0  # taps with w_z * w_l < e^-40 (~4e-18) are skipped by the compiled pass
@@ -91,51 +79,29 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(rgb @ np.asarray(LUMINANCE_WEIGHTS, np.float32), np.float32)
 
 
-def depth_gradient(depth: np.ndarray, normal: np.ndarray | None = None) -> np.ndarray:
+def depth_gradient(depth: np.ndarray) -> np.ndarray:
     """|dz/dx| + |dz/dy| per pixel (the GPU's fwidth), each the smaller one-sided difference so that a
-    silhouette does not inflate the gradient of the surfaces on either side of it. Along an axis where the
-    pixel is a thin feature (a bar or wire one pixel wide in front of a wall: a depth extremum whose smaller
-    step exceeds THIN_STEP times its depth, between two neighbours whose normals agree, which a crease's do
-    not), that axis adds nothing: the rasteriser's fwidth there is the bar's own slope, not the jump, which
-    would let the wall through eq. 3.
+    silhouette does not inflate the gradient of the surfaces on either side of it.
 
-    depth: (H, W) float32 scene units; normal: (H, W, 3) float32 unit normals or None (then every such
-    extremum counts as thin). Returns (H, W) float32 >= DEPTH_GRADIENT_FLOOR.
+    depth: (H, W) float32 scene units. Returns (H, W) float32 >= DEPTH_GRADIENT_FLOOR.
     """
     total = np.zeros(depth.shape, np.float32)
     for axis in (0, 1):
-        diff = np.diff(depth, axis=axis)
+        diff = np.abs(np.diff(depth, axis=axis))
         pad = [(0, 0), (0, 0)]
         pad[axis] = (1, 0)
-        backward = np.pad(diff, pad, constant_values=np.nan)
+        backward = np.pad(diff, pad, constant_values=np.inf)
         pad[axis] = (0, 1)
-        forward = np.pad(diff, pad, constant_values=np.nan)
-        one_sided = np.fmin(np.abs(backward), np.abs(forward))  # NaN only beyond a one-pixel axis
-        thin = (backward * forward < 0) & (one_sided > np.float32(THIN_STEP) * np.abs(depth))
-        if normal is not None:
-            thin &= _neighbours_agree(normal, axis)
-        total += np.where(thin | np.isnan(one_sided), np.float32(0.0), one_sided)
+        forward = np.pad(diff, pad, constant_values=np.inf)
+        one_sided = np.minimum(backward, forward)
+        total += np.where(np.isfinite(one_sided), one_sided, np.float32(0.0))
     return np.maximum(total, np.float32(DEPTH_GRADIENT_FLOOR))
-
-
-def _neighbours_agree(normal: np.ndarray, axis: int) -> np.ndarray:
-    """(H, W) bool: the normals of the pixel's two neighbours along `axis` have a cosine of at least
-    THIN_NORMAL_COS (False on the frame's edge). normal: (H, W, 3) float32."""
-    agree = np.zeros(normal.shape[:2], bool)
-    before = [slice(None), slice(None)]
-    after = [slice(None), slice(None)]
-    inner = [slice(None), slice(None)]
-    before[axis], after[axis], inner[axis] = slice(None, -2), slice(2, None), slice(1, -1)
-    cos = (normal[tuple(before)] * normal[tuple(after)]).sum(axis=-1)
-    agree[tuple(inner)] = cos >= np.float32(THIN_NORMAL_COS)
-    return agree
 
 
 def edge_guides(depth: np.ndarray, normal: np.ndarray) -> EdgeGuides:
     """EdgeGuides from frame layers: depth (H, W, 1) float32, normal (H, W, 3) float32."""
     z = np.ascontiguousarray(depth[..., 0], np.float32)
-    normal = np.ascontiguousarray(normal, np.float32)
-    return EdgeGuides(z, depth_gradient(z, normal), normal)
+    return EdgeGuides(z, depth_gradient(z), np.ascontiguousarray(normal, np.float32))
 
 
 def prefilter_variance(variance: np.ndarray) -> np.ndarray:

@@ -66,30 +66,6 @@ def test_depth_gradient_ignores_silhouettes():
     np.testing.assert_allclose(depth_gradient(ramp), 0.5)
 
 
-def test_depth_gradient_of_a_bar_one_pixel_wide_is_its_own_not_the_jump():
-    depth = np.full((5, 7), 4.5, np.float32)
-    depth[:, 3] = 3.0  # a bar in front of a wall: a depth extremum along x, flat along y
-    grad = depth_gradient(depth)
-    assert grad.max() < 1e-6
-    apex = (5.0 + 0.001 * (np.arange(7, dtype=np.float32) - 3) ** 2)[None].repeat(5, 0)  # a smooth curved surface
-    np.testing.assert_allclose(depth_gradient(apex)[:, 3], 0.001, rtol=1e-3)  # its extremum keeps its slope
-    np.testing.assert_allclose(depth_gradient(np.full((1, 1), 2.0, np.float32)), 1e-8)  # no neighbour: the floor
-    normal = np.zeros((5, 7, 3), np.float32)
-    normal[..., 2] = 1.0
-    assert depth_gradient(depth, normal).max() < 1e-6  # the wall's normals on both sides agree
-
-
-def test_a_crease_keeps_its_slope_when_normals_are_given():
-    x = np.arange(7, dtype=np.float32)
-    depth = (5.0 - 0.5 * np.abs(x - 3))[None].repeat(5, 0)  # a room's corner seen from inside: a depth maximum
-    normal = np.zeros((5, 7, 3), np.float32)
-    normal[:, :3] = (0.7071, 0.0, 0.7071)
-    normal[:, 4:] = (-0.7071, 0.0, 0.7071)
-    normal[:, 3] = (0.0, 0.0, 1.0)
-    np.testing.assert_allclose(depth_gradient(depth, normal)[:, 3], 0.5)  # the walls' normals differ
-    assert depth_gradient(depth)[:, 3].max() < 1e-6  # without normals it counts as thin
-
-
 def test_prefilter_is_normalised_at_borders():
     np.testing.assert_allclose(prefilter_variance(np.full((3, 4), 2.0, np.float32)), 2.0, rtol=1e-6)
 
