@@ -15,21 +15,29 @@ denoiser is free. A region where every sample of both halves was black keeps
 black: that is what the samples say. Exact pixels (`service.stages.exact`) come out exactly as `color`;
 other pixels with emission in the renderer's `emission` layer are not clipped.
 
-With the G-buffer (`normal`, and `depth` where the frame has it) the same holds per surface: a pixel whose
-halves are equal (every channel, exactly), and whose 3x3 neighbours on its own surface (both background, or
-both surface hits whose normals' directions are within SURFACE_COS, whatever their lengths: a normal averaged
-over a pixel's samples is short, and depths within SURFACE_DEPTH of the pixel's, relative: the reprojection's
-consistency test and thresholds, but by the normals' directions where it takes their dot product as it is) all
-have equal halves too, comes out as `color`; exact pixels and pixels with emission are then treated as above.
-The other surface's noise says nothing about this pixel's: on `make bench`'s `fireflies`, frame 7, a column one
-pixel wide of a box's side that no light reaches (every sample black) stands beside the lit floor, whose noise
-widened the 3x3 band enough to let svgf's bleed through (0.1 where the input and the reference are 0: 51x the
-input's error over the 16x16 tile, kpn 16x, flr 6x). Where the samples of a surface's pixels are this few and
-all agree (a dim region at 1-2 spp), the output is the input, as in a black region. What it costs (`make
-bench`, every pipeline, against the clamp without it): relL2 at most 0.25% higher (auto on shadows), lower on
-fireflies (svgf -5.6%, rae -4.0%, kpn -1.2%), disocclusion and textures unchanged; the hard cases all pass as
-before, relL2 from -2.0% (crossreg on `caustics`) to +4.3% (rae on `window`; docs/benchmarks.md, "Noise clamp
-per surface"). It takes 1.5 ms more of a 1280x720 frame.
+With the G-buffer (`normal`, and `depth` where the frame has it) the mean is over the window's pixels on the
+pixel's own surface: both background, or both surface hits whose normals' directions are within SURFACE_COS
+(whatever their lengths: a normal averaged over a pixel's samples is short) and depths within SURFACE_DEPTH of
+the nearer one's (the reprojection's thresholds; one relation both ways). The other surface's noise says
+nothing about this pixel's:
+- on `make bench`'s `fireflies`, frame 7, a column one pixel wide of a box's side that no light reaches (every
+  sample black) stands beside the lit floor, whose noise widened the 3x3 band enough to let svgf's bleed
+  through (0.1 where the input and the reference are 0: 51x the input's error over the 16x16 tile, kpn 16x,
+  flr 6x). Its own pixels' halves all agree: band 0, the output is the input, as in a black region;
+- on the held-out `data/val/veiled_light_s6`, dark bars one pixel wide (0.07) stand in front of a wall of ~9
+  whose noise let every filter's bleed of ~1 through: 100 times the input's error at those pixels.
+
+Measured against the 3x3 band with the all-agreeing surfaces only (the rule before, 2026-11-29; `python -m
+bench run`, relL2 0.1% trimmed, out/bench/val-s54b -> val-s54d and report-s54b -> report-s54d): on veiled_light
+svgf 0.490 -> 0.204, rae 0.326 -> 0.164, bmfr 0.0885 -> 0.0632, flr 0.0975 -> 0.0790, flnr 0.0831 -> 0.0696,
+statistical 0.0770 -> 0.0635, bilateral 0.0588 -> 0.0503, auto 0.0407 -> 0.0365, kpn 0.0373 -> 0.0352
+(OIDN-high 0.147); the 11 data/val sequences' mean relL2 lower or within 0.1% for every pipeline, at most +1.8%
+on one sequence (auto on shadows). On `make bench`'s four sequences relL2 moves by -1.7% to +1.0%, but the
+relL2 over disoccluded pixels rises 3-9% (auto 0.0308 -> 0.0328): a pixel at an object's edge takes its band
+from fewer pixels, a noisier estimate. On the hard cases (`python -m bench.hard_cases table`, 64x64, against
+the table before this and the step's radiance floor) relL2 on `veiled` (bars that are lit, not dark) rises
+2-12% (rae 0.0386 -> 0.0432) and on `window` up to 7%; all still pass. Time at 1280x720: about 20 ms a
+frame where the window band took 10 (`out/exp/s54/nc_time.py`, 2 cores).
 
 What it costs on ordinary frames, together with the other guards of `Pipeline.step` (the benchmark's
 trimmed relL2, mean over frames, `make bench`, against the commit before the guards): NOISE_K = 5 is the
@@ -46,7 +54,7 @@ import numpy as np
 
 from service.kernels.window import overlap, window_offsets
 from service.stages.exact import EXACT_MIN, EXACT_RTOL, agree, any_agree, exact_mask, pixel_exact
-from service.stages.reprojection import DEPTH_FLOOR, NORMAL_HIT, ReprojectionParams, surface_hit
+from service.stages.reprojection import DEPTH_FLOOR, NORMAL_HIT, ReprojectionParams
 from service.stages.svgf import box_mean
 
 NOISE_K = 5.0  # half-width of the allowed band, in standard deviations of the pixel estimate
@@ -56,6 +64,7 @@ NOISE_RADIUS = 1  # window half-size of the variance estimate, pixels (3x3)
 SURFACE_COS = ReprojectionParams.normal_cos_min
 SURFACE_DEPTH = ReprojectionParams.depth_tolerance
 _COS2 = np.float32(SURFACE_COS**2)  # the kernel compares dot^2 with cos^2 |n|^2 |m|^2 (dot > 0): no square root
+LINKS = ((0, 1), (1, -1), (1, 0), (1, 1))  # (dy, dx): the neighbours whose surface links a pixel stores
 
 
 def noise_clamp(
@@ -95,12 +104,11 @@ def noise_clamp(
     e = arrays[4] if emission is not None else arrays[1]
     use_normal, use_depth = normal is not None, normal is not None and depth is not None
     normal, depth = _gbuffer(normal, depth, arrays[0].shape)
-    agreeing = np.empty(arrays[0].shape[:2] if use_normal else (1, 1), np.uint8)
+    links = np.zeros((len(LINKS), *arrays[0].shape[:2]) if use_normal else (len(LINKS), 1, 1), np.uint8)
     if use_normal:
-        _agreeing_kernel(arrays[2], arrays[3], agreeing)
+        _links_kernel(normal, depth, use_depth, links)
     _clamp_kernel(*arrays[:4], e, emission is not None, exact or emission is not None, np.float32(k),
-                  np.float32(EXACT_RTOL), np.float32(EXACT_MIN), agreeing, normal, depth, use_normal, use_depth,
-                  result)
+                  np.float32(EXACT_RTOL), np.float32(EXACT_MIN), links, use_normal, result)
     return result
 
 
@@ -119,38 +127,46 @@ def _gbuffer(normal: np.ndarray | None, depth: np.ndarray | None,
     return pair[0], pair[1]
 
 
-def quiet_mask_reference(color_a: np.ndarray, color_b: np.ndarray, normal: np.ndarray,
-                         depth: np.ndarray | None = None) -> np.ndarray:
-    """(H, W) bool: pixels whose halves are equal, as are those of every 3x3 neighbour on their surface (module
-    docstring); numpy twin of `_agreeing_kernel` and `_quiet`. color_a, color_b, normal (H, W, 3) and depth (H, W, 1) or
-    None, float32."""
-    height, width = color_a.shape[:2]
-    same_halves = (color_a == color_b).all(axis=-1)
-    hit = surface_hit(normal)
-    z = None if depth is None else depth[..., 0].astype(np.float32)
-    quiet = same_halves.copy()
-    for dy, dx in window_offsets(1):
+def same_surface_reference(normal: np.ndarray, depth: np.ndarray | None, dy: int, dx: int) -> np.ndarray:
+    """(H, W) bool: pixel (y, x) and (y + dy, x + dx) are on one surface (module docstring; False where the
+    second is outside the frame); numpy twin of `_links_kernel`. normal (H, W, 3), depth (H, W, 1) or None."""
+    height, width = normal.shape[:2]
+    same = np.zeros((height, width), bool)
+    pair = overlap(height, width, dy, dx)
+    if pair is None:
+        return same
+    centre, neighbour = pair
+    n, m = normal[centre], normal[neighbour]
+    own, other = (n * n).sum(axis=-1), (m * m).sum(axis=-1)
+    hit, other_hit = own > np.float32(NORMAL_HIT), other > np.float32(NORMAL_HIT)
+    dot = (n * m).sum(axis=-1)
+    aligned = (dot > 0) & (dot * dot >= _COS2 * (own * other))
+    if depth is not None:
+        z, w = depth[centre][..., 0], depth[neighbour][..., 0]
+        aligned &= np.abs(w - z) <= np.float32(SURFACE_DEPTH) * np.maximum(np.minimum(np.abs(z), np.abs(w)),
+                                                                           np.float32(DEPTH_FLOOR))
+    same[centre] = (hit == other_hit) & (~hit | aligned)
+    return same
+
+
+def noise_sd_reference(color_a: np.ndarray, color_b: np.ndarray, normal: np.ndarray | None = None,
+                       depth: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, C) float32 sd of the pixel estimate (module docstring): over the 3x3 window, or with `normal`
+    over the window's pixels on the pixel's own surface; numpy."""
+    d = color_a.astype(np.float32) - color_b.astype(np.float32)
+    if normal is None:
+        return np.sqrt(box_mean(d * d, NOISE_RADIUS) / np.float32(4.0))
+    height, width = d.shape[:2]
+    total, count = d * d, np.ones((height, width, 1), np.float32)
+    for dy, dx in window_offsets(NOISE_RADIUS):
         pair = overlap(height, width, dy, dx)
         if pair is None or (dy, dx) == (0, 0):
             continue
         centre, neighbour = pair
-        both = hit[centre] & hit[neighbour]
-        dot = (normal[centre] * normal[neighbour]).sum(axis=-1)
-        lengths = (normal[centre] * normal[centre]).sum(axis=-1) * (normal[neighbour] * normal[neighbour]).sum(axis=-1)
-        aligned = (dot > 0) & (dot * dot >= _COS2 * lengths)
-        same = (hit[centre] == hit[neighbour]) & (~both | aligned)
-        if z is not None:
-            near = np.abs(z[neighbour] - z[centre]) <= np.float32(SURFACE_DEPTH) * np.maximum(
-                np.abs(z[centre]), np.float32(DEPTH_FLOOR))
-            same &= ~both | near
-        quiet[centre] &= ~same | same_halves[neighbour]
-    return quiet
-
-
-def noise_sd_reference(color_a: np.ndarray, color_b: np.ndarray) -> np.ndarray:
-    """(H, W, C) float32 sd of the pixel estimate (module docstring); numpy (`svgf.box_mean`)."""
-    d = color_a.astype(np.float32) - color_b.astype(np.float32)
-    return np.sqrt(box_mean(d * d, NOISE_RADIUS) / np.float32(4.0))
+        same = same_surface_reference(normal, depth, dy, dx)[centre][..., None]
+        total[centre] += np.where(same, d[neighbour] * d[neighbour], np.float32(0.0))
+        count[centre] += same
+    return np.sqrt(total / count / np.float32(4.0))
 
 
 def noise_clamp_reference(
@@ -165,10 +181,8 @@ def noise_clamp_reference(
     depth: np.ndarray | None = None,
 ) -> np.ndarray:
     """Plain-numpy twin of `noise_clamp`."""
-    band = k * noise_sd_reference(color_a, color_b)
+    band = k * noise_sd_reference(color_a, color_b, normal, depth)
     clipped = np.clip(out, color - band, color + band)
-    if normal is not None:
-        clipped = np.where(quiet_mask_reference(color_a, color_b, normal, depth)[..., None], color, clipped)
     if emission is not None:
         clipped = np.where((emission != 0).any(axis=-1, keepdims=True), out, clipped)
     exact = exact_mask(color_a, color_b, color, emission)
@@ -176,45 +190,131 @@ def noise_clamp_reference(
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _agreeing_kernel(a, b, agreeing):  # pragma: no cover - jitted
-    """agreeing (H, W) uint8: 1 where the halves a, b ((H, W, C) float32) have the same value, every channel.
-    A task per row."""
-    height, width, channels = a.shape
-    n = width * channels
+def _links_kernel(normal, depth, use_depth, links):  # pragma: no cover - jitted
+    """links (len(LINKS), H, W) uint8: 1 where pixel (y, x) and (y + dy, x + dx) of LINKS[d] are on one surface
+    (module docstring; 0 beyond the frame). normal (H, W, 3), depth (H, W, 1) float32. A task per row, on
+    planar copies of its row and the next (`_surface_row`), branch-free loops along the row (`_link_row`)."""
+    height, width = normal.shape[:2]
     for y in numba.prange(height):
-        ra, rb, flags = a[y].reshape(n), b[y].reshape(n), agreeing[y]
-        for x in range(width):
-            same = True
-            for c in range(channels):
-                same = same and ra[x * channels + c] == rb[x * channels + c]
-            flags[x] = same
+        here = _surface_row(normal, depth, use_depth, y)
+        _link_row(here, here, 0, 1, links[0, y])
+        if y + 1 < height:
+            below = _surface_row(normal, depth, use_depth, y + 1)
+            _link_row(here, below, 1, -1, links[1, y])
+            _link_row(here, below, 1, 0, links[2, y])
+            _link_row(here, below, 1, 1, links[3, y])
 
 
 @numba.njit(inline="always", cache=True)
-def _quiet(agreeing, normal, depth, use_depth, y, x):  # pragma: no cover - jitted
-    """Whether every 3x3 neighbour of pixel (y, x) on its surface (module docstring) has halves that agree.
-    agreeing: (H, W) uint8 (`_agreeing_kernel`); normal (H, W, 3), depth (H, W, 1) float32."""
-    height, width = agreeing.shape
-    n0, n1, n2 = normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]
-    own = n0 * n0 + n1 * n1 + n2 * n2
-    hit = own > np.float32(NORMAL_HIT)
-    z = depth[y, x, 0] if use_depth else np.float32(0)
-    reach = np.float32(SURFACE_DEPTH) * max(abs(z), np.float32(DEPTH_FLOOR))
-    for yy in range(max(y - 1, 0), min(y + 2, height)):
-        for xx in range(max(x - 1, 0), min(x + 2, width)):
-            if agreeing[yy, xx]:
-                continue  # whatever its surface
-            m0, m1, m2 = normal[yy, xx, 0], normal[yy, xx, 1], normal[yy, xx, 2]
-            other = m0 * m0 + m1 * m1 + m2 * m2
-            if (other > np.float32(NORMAL_HIT)) != hit:
-                continue  # background beside a surface hit: another surface
-            dot = n0 * m0 + n1 * m1 + n2 * m2
-            if hit and not (dot > 0 and dot * dot >= _COS2 * (own * other)):
-                continue
-            if hit and use_depth and not abs(depth[yy, xx, 0] - z) <= reach:
-                continue
-            return False  # a neighbour on this surface whose halves differ
-    return True
+def _surface_row(normal, depth, use_depth, y):  # pragma: no cover - jitted
+    """(5, W) float32 of row y: the normal's three components, its squared length, and depth (0 without
+    `use_depth`)."""
+    width = normal.shape[1]
+    row = np.empty((5, width), np.float32)
+    for x in range(width):
+        n0, n1, n2 = normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]
+        row[0, x], row[1, x], row[2, x] = n0, n1, n2
+        row[3, x] = n0 * n0 + n1 * n1 + n2 * n2
+        row[4, x] = depth[y, x, 0] if use_depth else np.float32(0.0)
+    return row
+
+
+@numba.njit(inline="always", cache=True)
+def _link_row(here, there, dy, dx, out):  # pragma: no cover - jitted
+    """out[x] = whether pixel x of row `here` and pixel x + dx of row `there` ((5, W) float32, `_surface_row`)
+    are on one surface: both background, or both hits whose normals' directions are within SURFACE_COS and
+    depths within SURFACE_DEPTH of the nearer one's (depth 0 when not used passes). Branch-free: vectorises."""
+    width = here.shape[1]
+    for x in range(max(0, -dx), min(width, width - dx)):
+        xx = x + dx
+        own, other = here[3, x], there[3, xx]
+        hit, other_hit = own > np.float32(NORMAL_HIT), other > np.float32(NORMAL_HIT)
+        dot = here[0, x] * there[0, xx] + here[1, x] * there[1, xx] + here[2, x] * there[2, xx]
+        z, w = abs(here[4, x]), abs(there[4, xx])
+        near = abs(there[4, xx] - here[4, x]) <= np.float32(SURFACE_DEPTH) * max(min(z, w), np.float32(DEPTH_FLOOR))
+        aligned = (dot > 0) & (dot * dot >= _COS2 * (own * other)) & near
+        out[x] = (hit == other_hit) & ((not hit) | aligned)
+
+
+@numba.njit(inline="always", cache=True)
+def _window_band(a, b, y, k, band):  # pragma: no cover - jitted
+    """band ((W * C,) float32) = k sd of row y's pixels over their 3x3 windows (clipped at the border): the
+    3-row column sums of (a - b)^2 along the interleaved row, then the 3-column sums as shifts by C."""
+    height, width, channels = a.shape
+    n = width * channels
+    y0, y1 = max(y - 1, 0), min(y + 2, height)
+    column = np.zeros(n, np.float32)
+    for yy in range(y0, y1):
+        ra, rb = a[yy].reshape(n), b[yy].reshape(n)
+        for i in range(n):
+            d = ra[i] - rb[i]
+            column[i] += d * d
+    scale = np.float32(0.25) / np.float32(y1 - y0)
+    inner = scale / np.float32(min(width, 3))  # interior pixels sum three columns
+    edge = scale / np.float32(min(width, 2))  # the first and last pixel two (one in a 1-pixel row)
+    for i in range(channels, n - channels):  # interior: contiguous, vectorises
+        band[i] = k * np.sqrt((column[i - channels] + column[i] + column[i + channels]) * inner)
+    for c in range(channels):  # the first and last pixel of the row
+        for i in (c, n - channels + c):
+            total = column[i]
+            if i >= channels:
+                total += column[i - channels]
+            if i + channels < n:
+                total += column[i + channels]
+            band[i] = k * np.sqrt(total * edge)
+
+
+@numba.njit(inline="always", cache=True)
+def _surface_band(a, b, links, y, k, band):  # pragma: no cover - jitted
+    """band ((W * C,) float32) = k sd of row y's pixels over the pixels of their 3x3 windows on their own
+    surface (`links`, (len(LINKS), H, W) uint8: the pixel and its neighbour at LINKS[d] are on one surface;
+    the neighbour in the opposite direction reads the link stored at that neighbour). Planar rows of
+    (a - b)^2 (`_squares_row`) and branch-free loops along the row."""
+    height, width, channels = a.shape
+    here = _squares_row(a, b, y)
+    total = here.copy()
+    count = np.ones(width, np.float32)
+    if y > 0:  # the row above: its links to this row (SW, S, SE of that row) read from there
+        above = _squares_row(a, b, y - 1)
+        _add_linked(above, links[1, y - 1], 1, 1, total, count)  # above's (x + 1) links to x here: NE
+        _add_linked(above, links[2, y - 1], 0, 0, total, count)
+        _add_linked(above, links[3, y - 1], -1, -1, total, count)  # above's (x - 1) links to x here: NW
+    if y + 1 < height:
+        below = _squares_row(a, b, y + 1)
+        _add_linked(below, links[1, y], 0, -1, total, count)
+        _add_linked(below, links[2, y], 0, 0, total, count)
+        _add_linked(below, links[3, y], 0, 1, total, count)
+    _add_linked(here, links[0, y], 0, 1, total, count)  # the pixel's own link to its right neighbour
+    _add_linked(here, links[0, y], -1, -1, total, count)  # the left neighbour's link to the pixel
+    for x in range(width):
+        scale = np.float32(0.25) / count[x]
+        for c in range(channels):
+            band[x * channels + c] = k * np.sqrt(total[c, x] * scale)
+
+
+@numba.njit(inline="always", cache=True)
+def _squares_row(a, b, y):  # pragma: no cover - jitted
+    """(C, W) float32: (a - b)^2 of row y of the halves ((H, W, C) float32), planar."""
+    width, channels = a.shape[1], a.shape[2]
+    row = np.empty((channels, width), np.float32)
+    for x in range(width):
+        for c in range(channels):
+            d = a[y, x, c] - b[y, x, c]
+            row[c, x] = d * d
+    return row
+
+
+@numba.njit(inline="always", cache=True)
+def _add_linked(squares, link, shift, dx, total, count):  # pragma: no cover - jitted
+    """For pixels x of the row: with l = link[x + shift] (uint8, (W,)), count[x] += l and total[:, x] += l *
+    squares[:, x + dx] ((C, W) float32), where x + shift and x + dx are in the row."""
+    width = count.shape[0]
+    x0, x1 = max(0, -dx, -shift), min(width, width - dx, width - shift)
+    for x in range(x0, x1):  # one contiguous loop per plane: vectorises
+        count[x] += np.float32(link[x + shift])
+    for c in range(squares.shape[0]):
+        for x in range(x0, x1):
+            total[c, x] += np.float32(link[x + shift]) * squares[c, x + dx]
 
 
 @numba.njit(inline="always", cache=True)
@@ -231,44 +331,24 @@ def _may_be_exact(ra, rb, rc, re, has_emission, rtol):  # pragma: no cover - jit
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, agreeing, normal, depth, use_normal,
-                  use_depth, result):  # pragma: no cover - jitted
-    """A task per row: the 3-row column sums of (a - b)^2 along the interleaved (W * C) row, then the
-    3-column sums as shifts by C, then the clip; with `use_normal`, pixels whose surface's 3x3 halves agree
-    (`_quiet` on `agreeing`, (H, W) uint8) take `color`; unless `exact` is False (and so `has_emission`),
-    exact pixels take `color`, other pixels with emission take `out` unclipped."""
+def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, links, use_normal,
+                  result):  # pragma: no cover - jitted
+    """A task per row: the band from the 3x3 window (`_window_band`), or with `use_normal` from the window's
+    pixels on the pixel's own surface (`_surface_band`, on `links` of `_links_kernel`), then the clip; unless
+    `exact` is False (and so `has_emission`), exact pixels take `color`, other pixels with emission take `out`
+    unclipped."""
     height, width, channels = out.shape
     n = width * channels
     for y in numba.prange(height):
-        y0, y1 = max(y - 1, 0), min(y + 2, height)
-        column = np.zeros(n, np.float32)
-        for yy in range(y0, y1):
-            ra, rb = a[yy].reshape(n), b[yy].reshape(n)
-            for i in range(n):
-                d = ra[i] - rb[i]
-                column[i] += d * d
+        band = np.empty(n, np.float32)
+        if use_normal:
+            _surface_band(a, b, links, y, k, band)
+        else:
+            _window_band(a, b, y, k, band)
         ra, rb = a[y].reshape(n), b[y].reshape(n)
         rc, ro, rr = color[y].reshape(n), out[y].reshape(n), result[y].reshape(n)
-        scale = np.float32(0.25) / np.float32(y1 - y0)
-        inner = scale / np.float32(min(width, 3))  # interior pixels sum three columns
-        edge = scale / np.float32(min(width, 2))  # the first and last pixel two (one in a 1-pixel row)
-        for i in range(channels, n - channels):  # interior: contiguous, vectorises
-            band = k * np.sqrt((column[i - channels] + column[i] + column[i + channels]) * inner)
-            rr[i] = min(max(ro[i], rc[i] - band), rc[i] + band)
-        for c in range(channels):  # the first and last pixel of the row
-            for i in (c, n - channels + c):
-                total = column[i]
-                if i >= channels:
-                    total += column[i - channels]
-                if i + channels < n:
-                    total += column[i + channels]
-                band = k * np.sqrt(total * edge)
-                rr[i] = min(max(ro[i], rc[i] - band), rc[i] + band)
-        if use_normal:
-            for x in range(width):  # the pixel's own halves first: in most frames few pixels have equal ones
-                if agreeing[y, x] and _quiet(agreeing, normal, depth, use_depth, y, x):
-                    for c in range(channels):
-                        rr[x * channels + c] = rc[x * channels + c]
+        for i in range(n):
+            rr[i] = min(max(ro[i], rc[i] - band[i]), rc[i] + band[i])
         re = e[y].reshape(n)
         if not exact or not _may_be_exact(ra, rb, rc, re, has_emission, rtol):
             continue

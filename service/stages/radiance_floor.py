@@ -8,11 +8,13 @@ input colour, or 0 when that is higher: for a renderer's ordinary non-negative o
 a frame with negative input (a negative light, a difference render) is clipped no lower than it came.
 Against a non-negative reference the clip can only lower each pixel's error.
 
-Measured on the 11 held-out `data/val` sequences (128x128, no halves, the renderer's emission layer;
-out/exp/s54/resid.py, 2026-11-29), on veiled_light, emissive, glossy_env and fireflies: the worst 16x16
-tile against the noisy input, flr 1542x -> 77x, bmfr 553x -> 62x; trimmed relL2 flr 0.0512 -> 0.0448,
-bmfr 0.0625 -> 0.0469; svgf, kpn and rae unchanged to 3 digits. Time at 1280x720: about 1 ms (two parallel
-passes, one for the input's minimum, one for the clip).
+Measured with `python -m bench run` (relL2 0.1% trimmed, mean over sequences; out/bench/val-s54a -> val-s54b,
+report-s53b -> report-s54b, 2026-11-29). On the 11 held-out `data/val` sequences (128x128) the worst 16x16
+tile against the noisy input: flr 1542x -> 110x, bmfr 553x -> 72x, bilateral 860x -> 52x, statistical 1032x
+-> 32x; relL2 flr 0.1195 -> 0.1175, bmfr 0.1232 -> 0.1175, bilateral 0.1147 -> 0.1114, statistical 0.1206 ->
+0.1143, auto 0.1081 -> 0.1085 (its candidates' error estimates move), the others unchanged. On `make bench`'s
+four sequences every relL2 is unchanged to 3 digits. Time at 1280x720: about 1 ms (two parallel passes, one
+for the input's minimum, one for the clip).
 """
 
 from __future__ import annotations

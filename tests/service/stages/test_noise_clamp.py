@@ -26,7 +26,8 @@ def test_matches_the_numpy_twin(shape):
     out = rng.uniform(-5, 5, shape).astype(np.float32)
     for given in (None, emission):
         np.testing.assert_allclose(noise_clamp(out, color, a, b, given),
-                                   noise_clamp_reference(out, color, a, b, given), rtol=1e-6, atol=1e-6)
+                                   noise_clamp_reference(out, color, a, b, given),
+                               rtol=1e-6, atol=1e-6)
 
 
 def test_band_is_k_standard_deviations_of_the_pixel_estimate():
@@ -132,7 +133,8 @@ def test_a_black_surface_beside_a_noisy_one_keeps_black(with_depth):
     per_surface = noise_clamp(bleed, color, a, b, normal=normal, depth=depth)
     assert (per_surface[:, 6] == 0.0).all()
     np.testing.assert_array_equal(per_surface[:, :6], plain[:, :6])  # the noisy floor: as before
-    np.testing.assert_array_equal(per_surface, noise_clamp_reference(bleed, color, a, b, normal=normal, depth=depth))
+    np.testing.assert_allclose(per_surface, noise_clamp_reference(bleed, color, a, b, normal=normal, depth=depth),
+                               rtol=1e-6, atol=1e-6)
 
 
 def test_a_black_pixel_on_a_surface_whose_samples_differ_is_not_frozen():
@@ -179,16 +181,36 @@ def test_refuses_a_gbuffer_of_another_size():
         noise_clamp(x, x, x, x, normal=x, depth=x)
 
 
-def test_halves_equal_in_some_channels_only_do_not_count_as_agreeing():
+def test_a_channel_whose_halves_differ_on_the_surface_gets_a_band_the_others_none():
     a, b, color, normal, depth = _box_beside_floor(np.random.default_rng(6))
     b[3, 6, 2] = 0.5  # one sample of the unlit column found some blue: its halves differ in one channel
     color[3, 6] = (a[3, 6] + b[3, 6]) / 2
     bleed = color.copy()
     bleed[:, 6] = 0.1
     out = noise_clamp(bleed, color, a, b, normal=normal, depth=depth)
-    assert (out[2:5, 6] == bleed[2:5, 6]).all()  # the column's pixels beside it are no longer quiet
-    assert (out[6:, 6] == 0.0).all()
-    np.testing.assert_array_equal(out, noise_clamp_reference(bleed, color, a, b, normal=normal, depth=depth))
+    assert (out[2:5, 6, 2] == 0.1).all()  # blue: the band of the column's own pixels (sd 0.25/sqrt(n)) holds 0.1
+    assert (out[2:5, 6, :2] == color[2:5, 6, :2]).all() and (out[6:, 6] == 0.0).all()  # no band: the input
+    np.testing.assert_allclose(out, noise_clamp_reference(bleed, color, a, b, normal=normal, depth=depth),
+                               rtol=1e-6, atol=1e-6)
+
+
+def test_a_bar_one_pixel_wide_takes_its_band_from_its_own_pixels():
+    """A dark bar (radiance 0.1, halves within 0.02) in front of a noisy bright wall (sd 0.5): the wall's noise
+    no longer widens the bar's band, so a filter's bleed of 1.0 from the wall is held near the bar's input."""
+    rng = np.random.default_rng(9)
+    a, b, color, normal, depth = _box_beside_floor(rng)
+    normal[:, 7:] = normal[:, :5][:, :5]  # the floor continues behind the bar (no background)
+    depth[:, 7:] = 4.0
+    a[:, 6], b[:, 6] = 0.09, 0.11
+    color[:, 6] = 0.1
+    bleed = color.copy()
+    bleed[:, 6] = 1.0
+    window = noise_clamp(bleed, color, a, b)
+    surface = noise_clamp(bleed, color, a, b, normal=normal, depth=depth)
+    assert window[:, 6].mean() > 0.6  # the wall's noise lets most of the bleed through
+    np.testing.assert_allclose(surface[:, 6], 0.1 + NOISE_K * 0.01, rtol=1e-5)  # sd of the bar: 0.02 / 2
+    np.testing.assert_allclose(surface, noise_clamp_reference(bleed, color, a, b, normal=normal, depth=depth),
+                               rtol=1e-6, atol=1e-6)
 
 
 def test_emission_and_exact_pixels_keep_their_rules_on_a_quiet_surface():
@@ -205,7 +227,8 @@ def test_emission_and_exact_pixels_keep_their_rules_on_a_quiet_surface():
     emission[4, 6] = 0.02  # only part of it emitted: not exact, kept unclipped
     out = noise_clamp(bleed, color, a, b, emission, normal=normal, depth=depth)
     assert (out[4, 6] == 0.1).all() and (out[8:, 6] == 0.0).all()
-    np.testing.assert_array_equal(out, noise_clamp_reference(bleed, color, a, b, emission, normal=normal, depth=depth))
+    np.testing.assert_allclose(out, noise_clamp_reference(bleed, color, a, b, emission, normal=normal, depth=depth),
+                               rtol=1e-6, atol=1e-6)
     a[4, 6] = b[4, 6] = color[4, 6] = 0.0
     assert (noise_clamp(bleed, color, a, b, exact=False, normal=normal, depth=depth)[:, 6] == 0.0).all()
 
@@ -217,12 +240,14 @@ def test_short_normals_of_one_direction_are_one_surface():
     normal[:, :6] *= 0.9  # |n| = 0.9: a raw dot of 0.81 against its neighbours
     out = np.full_like(color, 0.8)
     assert (noise_clamp(out, color, a, b, normal=normal, depth=depth)[4, 2] > 0).all()  # not frozen
-    np.testing.assert_array_equal(noise_clamp(out, color, a, b, normal=normal, depth=depth),
-                                  noise_clamp_reference(out, color, a, b, normal=normal, depth=depth))
+    np.testing.assert_allclose(noise_clamp(out, color, a, b, normal=normal, depth=depth),
+                               noise_clamp_reference(out, color, a, b, normal=normal, depth=depth),
+                               rtol=1e-6, atol=1e-6)
 
 
-def test_depth_is_compared_relative_to_the_pixels_own():
-    """Neighbours 10.5% deeper than the pixel are another surface (relative to the neighbour they would be 9.5%)."""
+def test_depth_is_compared_relative_to_the_nearer_pixel():
+    """A floor 10.5% deeper than the column beside it is another surface (relative to the floor's depth the
+    difference would be 9.5%, within SURFACE_DEPTH), seen from either pixel: one surface relation both ways."""
     a, b, color, normal, depth = _box_beside_floor(np.random.default_rng(10))
     normal[:, 6] = normal[:, 5]
     depth[:, 6] = 4.0 / 1.105  # the column; the floor beside it 10.5% deeper than it
