@@ -10,9 +10,9 @@ value is clipped to
 
 per channel (a band beyond float32, from half differences above ~1e19, does not clip). The 3x3 mean
 gives each sd about nine degrees of freedom, so an sd far below the true one (which would freeze noise in
-place) is rare; where the halves disagree strongly (fireflies, heavy-tailed paths) sd is large and the
-denoiser is free. A region where every sample of both halves was black keeps
-black: that is what the samples say. Exact pixels (`service.stages.exact`) come out exactly as `color`;
+place) is rare (less so on a surface of few pixels, below); where the halves disagree strongly (fireflies,
+heavy-tailed paths) sd is large and the denoiser is free. A region where every sample of both halves was
+black keeps black: that is what the samples say. Exact pixels (`service.stages.exact`) come out exactly as `color`;
 other pixels with emission in the renderer's `emission` layer are not clipped.
 
 With the G-buffer (`normal`, and `depth` where the frame has it) the mean is over the window's pixels on the
@@ -60,7 +60,7 @@ from service.stages.svgf import box_mean
 NOISE_K = 5.0  # half-width of the allowed band, in standard deviations of the pixel estimate
 NOISE_RADIUS = 1  # window half-size of the variance estimate, pixels (3x3)
 # Two pixels are on one surface (module docstring) at the reprojection's thresholds for a consistent tap: the
-# cosine between their normals' directions at least SURFACE_COS, depths within SURFACE_DEPTH of the pixel's (relative)
+# cosine between their normals' directions at least SURFACE_COS, depths within SURFACE_DEPTH of the nearer one's
 SURFACE_COS = ReprojectionParams.normal_cos_min
 SURFACE_DEPTH = ReprojectionParams.depth_tolerance
 _COS2 = np.float32(SURFACE_COS**2)  # the kernel compares dot^2 with cos^2 |n|^2 |m|^2 (dot > 0): no square root
@@ -89,8 +89,8 @@ def noise_clamp(
     a new (H, W, 3) float32 array. One parallel numba pass; `noise_clamp_reference` is the numpy twin.
     exact=False: the caller knows that no pixel is exact (`exact.exact_emission` found none in a frame
     without an emission layer), and the per-pixel test is skipped. normal: (H, W, 3) float32 (zero where
-    nothing was hit) and depth: (H, W, 1) float32 or None: pixels whose own surface's 3x3 samples all agree
-    come out as `color` (module docstring); depth is used only with normal (its shape is checked either way).
+    nothing was hit) and depth: (H, W, 1) float32 or None: the band comes from the 3x3 pixels on the pixel's
+    own surface (module docstring); depth is used only with normal (its shape is checked either way).
     """
     if not 0 <= k < np.inf:
         raise ValueError(f"noise clamp k must be finite and >= 0, got {k}")
@@ -130,6 +130,8 @@ def _gbuffer(normal: np.ndarray | None, depth: np.ndarray | None,
 def same_surface_reference(normal: np.ndarray, depth: np.ndarray | None, dy: int, dx: int) -> np.ndarray:
     """(H, W) bool: pixel (y, x) and (y + dy, x + dx) are on one surface (module docstring; False where the
     second is outside the frame); numpy twin of `_links_kernel`. normal (H, W, 3), depth (H, W, 1) or None."""
+    normal = normal.astype(np.float32)
+    depth = None if depth is None else depth.astype(np.float32)
     height, width = normal.shape[:2]
     same = np.zeros((height, width), bool)
     pair = overlap(height, width, dy, dx)
@@ -197,12 +199,12 @@ def _links_kernel(normal, depth, use_depth, links):  # pragma: no cover - jitted
     height, width = normal.shape[:2]
     for y in numba.prange(height):
         here = _surface_row(normal, depth, use_depth, y)
-        _link_row(here, here, 0, 1, links[0, y])
+        _link_row(here, here, 1, links[0, y])
         if y + 1 < height:
             below = _surface_row(normal, depth, use_depth, y + 1)
-            _link_row(here, below, 1, -1, links[1, y])
-            _link_row(here, below, 1, 0, links[2, y])
-            _link_row(here, below, 1, 1, links[3, y])
+            _link_row(here, below, -1, links[1, y])
+            _link_row(here, below, 0, links[2, y])
+            _link_row(here, below, 1, links[3, y])
 
 
 @numba.njit(inline="always", cache=True)
@@ -220,7 +222,7 @@ def _surface_row(normal, depth, use_depth, y):  # pragma: no cover - jitted
 
 
 @numba.njit(inline="always", cache=True)
-def _link_row(here, there, dy, dx, out):  # pragma: no cover - jitted
+def _link_row(here, there, dx, out):  # pragma: no cover - jitted
     """out[x] = whether pixel x of row `here` and pixel x + dx of row `there` ((5, W) float32, `_surface_row`)
     are on one surface: both background, or both hits whose normals' directions are within SURFACE_COS and
     depths within SURFACE_DEPTH of the nearer one's (depth 0 when not used passes). Branch-free: vectorises."""

@@ -26,10 +26,10 @@ import numpy as np
 def radiance_floor(out: np.ndarray, color: np.ndarray) -> np.ndarray:
     """`out` clipped below at min(0, min(color)).
 
-    out: (H, W, 3) float32 denoised linear radiance (NaN stays NaN, for the step's finite check); color:
-    (H, W, 3) float32 the frame's finite input radiance. Returns a new (H, W, 3) C-contiguous float32 array."""
+    out: (H, W, C) float32 denoised linear radiance (NaN and -inf stay, for the step's finite check); color:
+    (H, W, C) float32 the frame's finite input radiance. Returns a new (H, W, C) C-contiguous float32 array."""
     if out.shape != color.shape or out.ndim != 3:
-        raise ValueError(f"radiance floor: out {out.shape} and color {color.shape} must share one (H, W, 3) shape")
+        raise ValueError(f"radiance floor: out {out.shape} and color {color.shape} must share one (H, W, C) shape")
     out = np.ascontiguousarray(out, np.float32)
     color = np.ascontiguousarray(color, np.float32)
     rows = out.shape[0]
@@ -41,7 +41,7 @@ def radiance_floor(out: np.ndarray, color: np.ndarray) -> np.ndarray:
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _floor_kernel(out, color, clipped):  # pragma: no cover - jitted
     """clipped = max(out, floor) with floor = min(0, min(color)); all (H, N) float32, a task per row. NaN in
-    `out` stays NaN (`v < floor` is false)."""
+    `out` stays NaN (`v < floor` is false), and -inf stays -inf: a denoiser's non-finite output is not hidden."""
     rows = color.shape[0]
     lows = np.zeros(rows, np.float32)
     for y in numba.prange(rows):
@@ -55,4 +55,4 @@ def _floor_kernel(out, color, clipped):  # pragma: no cover - jitted
         src, dst = out[y], clipped[y]
         for i in range(dst.shape[0]):
             v = src[i]
-            dst[i] = floor if v < floor else v
+            dst[i] = floor if v < floor and v > -np.inf else v

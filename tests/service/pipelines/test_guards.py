@@ -135,10 +135,11 @@ def test_guards_clip_to_the_noise_and_anchors_run_without_them(tiny_layers):
     np.testing.assert_array_equal(clipped["color"][LIGHT], frame["color"][LIGHT])
 
 
-def test_a_non_finite_output_is_caught_before_the_clamp(tiny_layers):
+@pytest.mark.parametrize("value", [np.inf, -np.inf, np.nan])
+def test_a_non_finite_output_is_caught_before_the_clamp(value, tiny_layers):
     class Infinite(_Brighter):
         def denoise(self, frame, state):
-            return {"color": np.full_like(frame["color"], np.inf)}, state
+            return {"color": np.full_like(frame["color"], value)}, state
 
     pipeline = Infinite()
     with pytest.raises(FloatingPointError, match="non-finite 'color'"):

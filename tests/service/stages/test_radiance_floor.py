@@ -26,11 +26,11 @@ def test_negative_input_lowers_the_floor_to_its_minimum():
     np.testing.assert_array_equal(radiance_floor(out, color), np.maximum(out, np.float32(-2.5)))
 
 
-def test_nan_stays_for_the_finite_check_and_minus_inf_is_clipped():
+def test_non_finite_output_stays_for_the_steps_finite_check():
     out, color = _frames(2)
     out[0, 0, 0], out[3, 3, 2], out[5, 1, 0] = np.nan, -np.inf, np.inf
     clipped = radiance_floor(out, color)
-    assert np.isnan(clipped[0, 0, 0]) and clipped[3, 3, 2] == 0 and clipped[5, 1, 0] == np.inf
+    assert np.isnan(clipped[0, 0, 0]) and clipped[3, 3, 2] == -np.inf and clipped[5, 1, 0] == np.inf
 
 
 def test_the_clip_can_only_lower_the_error_against_a_non_negative_reference():
