@@ -36,7 +36,7 @@ on one sequence (auto on shadows). On `make bench`'s four sequences relL2 moves 
 relL2 over disoccluded pixels rises 1-7% (auto 0.0308 -> 0.0328): a pixel at an object's edge takes its band
 from fewer pixels, a noisier estimate. On the hard cases (`python -m bench.hard_cases table`, 64x64, against
 the table before this and the step's radiance floor) relL2 on `veiled` (bars that are lit, not dark) rises
-2-12% (rae 0.0386 -> 0.0432) and on `window` up to 7%; all still pass. Time at 1280x720: about 20 ms a
+1-12% (rae 0.0386 -> 0.0432) and on `window` up to 7%; all still pass. Time at 1280x720: about 20 ms a
 frame where the window band took 10 (`out/exp/s54/nc_time.py`, 2 cores).
 
 What it costs on ordinary frames, together with the other guards of `Pipeline.step` (the benchmark's
