@@ -170,7 +170,8 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     else:
         accumulated, input_error, floor = choice
         stats = np.zeros((3, -(-height // tile), -(-width // tile)), np.float64)
-        _choice_kernel(*arrays[:4], e, has_emission, level, input_error, tile, REL_L2_EPS, PROXY_FLOOR, stats)
+        _choice_kernel(arrays[0], arrays[2], arrays[3], e, has_emission, level, input_error, tile, REL_L2_EPS,
+                       PROXY_FLOOR, stats)
         use = takes_accumulated(stats)
     half = half_tile(tile)
 
@@ -364,28 +365,31 @@ def _level_kernel(color, e, has_emission, radius, level):  # pragma: no cover - 
 
 @numba.njit(inline="always", cache=True, error_model="numpy")
 def _pixel_weight(out, e, has_emission, level, y, x, eps, floor):  # pragma: no cover - jitted
-    """The weight 1 / (proxy^2 + eps) of pixel (y, x) (module docstring): proxy the mean of out's channels less
-    e (with `has_emission`), at most `level[y, x]` and at least `floor` (PROXY_FLOOR) times it; float64."""
+    """The weight `_proxy_weight` of pixel (y, x): mean_out the mean of out's channels less e (with
+    `has_emission`), float64 throughout (radiance up to float32's largest squares)."""
     channels = out.shape[2]
-    mean_out = 0.0  # float64 throughout: radiance up to float32's largest squares
+    mean_out = 0.0
     for c in range(channels):
         mean_out += np.float64(out[y, x, c]) - e[y, x, c] if has_emission else np.float64(out[y, x, c])
-    proxy = max(min(mean_out / channels, np.float64(level[y, x])), floor * np.float64(level[y, x]), 0.0)
+    return _proxy_weight(mean_out / channels, level[y, x], eps, floor)
+
+
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _proxy_weight(mean_out, level, eps, floor):  # pragma: no cover - jitted
+    """The weight 1 / (proxy^2 + eps) of a pixel (module docstring): proxy its output's channel mean mean_out
+    (float64, less e), at most its `level` (float32) and at least `floor` (PROXY_FLOOR) times it; float64."""
+    proxy = max(min(mean_out, np.float64(level)), floor * np.float64(level), 0.0)
     return 1.0 / (proxy * proxy + eps)
 
 
 @numba.njit(inline="always", cache=True, error_model="numpy")
-def _pixel_errors(out, color, a, b, e, has_emission, y, x):  # pragma: no cover - jitted
-    """(e, v, the colour less emission e with `has_emission`) of pixel (y, x), each summed over its channels
-    (module docstring), float64."""
-    err, var, lit = 0.0, 0.0, 0.0
-    for c in range(out.shape[2]):
-        o, col = np.float64(out[y, x, c]), np.float64(color[y, x, c])
+def _pixel_variance(a, b, y, x):  # pragma: no cover - jitted
+    """v of pixel (y, x), summed over its channels (module docstring), float64."""
+    var = 0.0
+    for c in range(a.shape[2]):
         h = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
-        err += (o - col) * (o - col) - h * h
         var += h * h
-        lit += col - e[y, x, c] if has_emission else col
-    return err, var, lit
+    return var
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -394,34 +398,67 @@ def _tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_fl
     """sums (SUM_ROWS, th, tw): per tile the weighted sums of e and of the input's error, the count of pixels
     whose halves differ, the weighted sum of the input error's floor, and over the pixels whose halves differ
     the sums of the input's channel means (at least 0) and of v's, in float64 (radiance less e); weights
-    `_pixel_weight` (eps = REL_L2_EPS, radiance^2; floor PROXY_FLOOR; level (H, W) float32, the 3x3 box mean
+    `_proxy_weight` (eps = REL_L2_EPS, radiance^2; floor PROXY_FLOOR; level (H, W) float32, the 3x3 box mean
     of the colour less e).
     The input's error and its floor are v, or, with `has_choice`, input_error and input_floor ((H, W) float64,
     the accumulated input's and a^2 v, the channels' means) where `use` ((th', tw') bool, per tile of side
-    use_tile) takes the accumulated input. tile: side in pixels. A task per row of tiles."""
+    use_tile) takes the accumulated input. tile: side in pixels. A task per row of tiles; per row, its values'
+    terms first (`_value_terms`), then each tile's pixels in order."""
     height, width, channels = out.shape
+    n = width * channels
     for ty in numba.prange(sums.shape[1]):
         acc = np.zeros((SUM_ROWS, sums.shape[2]))  # this row of tiles' sums
+        zero = np.zeros(n, np.float32)  # e's row without emission
+        less, err, var, lit = np.empty(n), np.empty(n), np.empty(n), np.empty(n)  # per value of a row, float64
         for y in range(ty * tile, min((ty + 1) * tile, height)):
-            for x in range(width):
-                tx = x // tile
-                w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor) / channels
-                err, var, lit = _pixel_errors(out, color, a, b, e, has_emission, y, x)
-                taken, least = var, var
-                if has_choice and use[y // use_tile, x // use_tile]:
-                    taken, least = input_error[y, x] * channels, input_floor[y, x] * channels
-                acc[0, tx] += w * err
-                acc[1, tx] += w * taken
-                acc[3, tx] += w * least
-                if var > 0:
-                    acc[2, tx] += 1.0
-                    acc[4, tx] += max(lit / channels, 0.0)
-                    acc[5, tx] += var / channels
+            _value_terms(out[y].reshape(n), color[y].reshape(n), a[y].reshape(n), b[y].reshape(n),
+                         e[y].reshape(n) if has_emission else zero, less, err, var, lit)
+            for tx in range(sums.shape[2]):
+                s0 = s1 = s2 = s3 = s4 = s5 = 0.0  # this row's part of the tile's sums
+                for x in range(tx * tile, min((tx + 1) * tile, width)):
+                    i = x * channels
+                    mean_out, error, variance, colour = 0.0, 0.0, 0.0, 0.0
+                    for c in range(i, i + channels):
+                        mean_out += less[c]
+                        error += err[c]
+                        variance += var[c]
+                        colour += lit[c]
+                    w = _proxy_weight(mean_out / channels, level[y, x], eps, floor) / channels
+                    taken, least = variance, variance
+                    if has_choice and use[y // use_tile, x // use_tile]:
+                        taken, least = input_error[y, x] * channels, input_floor[y, x] * channels
+                    s0 += w * error
+                    s1 += w * taken
+                    s3 += w * least
+                    if variance > 0:
+                        s2 += 1.0
+                        s4 += max(colour / channels, 0.0)
+                        s5 += variance / channels
+                acc[0, tx] += s0
+                acc[1, tx] += s1
+                acc[2, tx] += s2
+                acc[3, tx] += s3
+                acc[4, tx] += s4
+                acc[5, tx] += s5
         sums[:, ty] += acc
 
 
+@numba.njit(inline="always", cache=True, error_model="numpy")
+def _value_terms(ro, rc, ra, rb, re, less, err, var, lit):  # pragma: no cover - jitted
+    """Per value i of a row ((n,) float32 rows of out, color, the halves and e), in float64: less = out - e,
+    err = (out - color)^2 - h^2, var = h^2 with h = (a - b) / 2, and lit = color - e (the module docstring's e and v
+    before the sum over channels). Branch-free: vectorises."""
+    for i in range(ro.shape[0]):
+        o, col = np.float64(ro[i]), np.float64(rc[i])
+        h = (np.float64(ra[i]) - rb[i]) * 0.5
+        less[i] = o - re[i]
+        err[i] = (o - col) * (o - col) - h * h
+        var[i] = h * h
+        lit[i] = col - re[i]
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _choice_kernel(out, color, a, b, e, has_emission, level, input_error, tile, eps, floor,
+def _choice_kernel(out, a, b, e, has_emission, level, input_error, tile, eps, floor,
                    stats):  # pragma: no cover - jitted
     """stats (3, th, tw) float64: per tile the sum of d, of d^2 and the pixels, d the weight (`_pixel_weight`)
     times input_error ((H, W) float64, the accumulated input's error, the channels' mean) less v's channel
@@ -431,7 +468,7 @@ def _choice_kernel(out, color, a, b, e, has_emission, level, input_error, tile, 
         for y in range(ty * tile, min((ty + 1) * tile, height)):
             for x in range(width):
                 w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor)
-                var = _pixel_errors(out, color, a, b, e, has_emission, y, x)[1]
+                var = _pixel_variance(a, b, y, x)
                 d = w * (input_error[y, x] - var / channels)
                 stats[0, ty, x // tile] += d
                 stats[1, ty, x // tile] += d * d
