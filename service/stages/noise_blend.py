@@ -561,38 +561,52 @@ def _blend_kernel(out, color, a, b, e, has_emission, clipped, accumulated, use, 
         for j in range(tf.shape[1]):
             for x in range(j * half, min((j + 1) * half, width)):
                 held[x] = band[j]
-        weights = np.empty(n, np.float32)
-        source = np.empty(n, np.bool_)  # per value, whether c' is the accumulated input
+        top_row, bottom_row = t[row0[y]], t[row1[y]]
+        pixel = np.empty(width, np.float32)  # per pixel, its weight: t bilinear between the tiles' centres,
         for x in range(width):
             fx = col_w[x]
-            top = t[row0[y], col0[x]] + fx * (t[row0[y], col1[x]] - t[row0[y], col0[x]])
-            bottom = t[row1[y], col0[x]] + fx * (t[row1[y], col1[x]] - t[row1[y], col0[x]])
-            w = top + fy * (bottom - top)
+            top = top_row[col0[x]] + fx * (top_row[col1[x]] - top_row[col0[x]])
+            bottom = bottom_row[col0[x]] + fx * (bottom_row[col1[x]] - bottom_row[col0[x]])
+            pixel[x] = top + fy * (bottom - top)
+        for x in range(width):  # then at most the half tiles' weights' box mean
             x0, x1 = max(x - ramp, 0), min(x + ramp + 1, width)
             total = 0.0
             for xx in range(x0, x1):
                 total += held[xx]
-            w = min(w, np.float32(total / (x1 - x0)))
-            level = dark[y // half, x // half]
-            quiet = level >= 0 and is_dark(a, b, e, has_emission, y, x, level)
-            if quiet:
-                w = np.float32(0)
-            if has_emission:  # a pixel with emission keeps the output, as the noise clamp leaves it
-                for c in range(channels):
-                    if e[y, x, c] != 0:
-                        w = np.float32(1)
-            history = has_choice and use[y // use_tile, x // use_tile] and not quiet
-            for c in range(channels):
-                weights[x * channels + c] = w
-                source[x * channels + c] = history
+            pixel[x] = min(pixel[x], np.float32(total / (x1 - x0)))
+        source = np.zeros(width, np.bool_)  # per pixel, whether c' is the accumulated input
+        dark_row = dark[y // half]
+        for j in range(dark_row.shape[0]):
+            level = dark_row[j]
+            if level < 0 and not has_choice:  # no dark pixel, no accumulated input: nothing to change
+                continue
+            for x in range(j * half, min((j + 1) * half, width)):
+                quiet = level >= 0 and is_dark(a, b, e, has_emission, y, x, level)
+                if quiet:
+                    pixel[x] = np.float32(0)
+                source[x] = has_choice and use[y // use_tile, x // use_tile] and not quiet
         ro, rc, rr = out[y].reshape(n), color[y].reshape(n), result[y].reshape(n)
         rd = clipped[y].reshape(n)
         rh = accumulated[y].reshape(n) if has_choice else rd
         base = e[y].reshape(n) if has_emission else np.zeros(n, np.float32)
+        lit = 0  # values with emission: a pixel with any keeps the output, as the noise clamp leaves it
+        for i in range(n):  # counted branch-free: a row with none costs one vectorised pass
+            lit += 1 if base[i] != 0 else 0
+        if lit > 0:
+            for x in range(width):
+                for c in range(channels):
+                    if base[x * channels + c] != 0:
+                        pixel[x] = np.float32(1)
+        weights = np.empty(n, np.float32)  # per value, its pixel's weight and source
+        history = np.empty(n, np.bool_)
+        for x in range(width):
+            for c in range(channels):
+                weights[x * channels + c] = pixel[x]
+                history[x * channels + c] = source[x]
         for i in range(n):  # branch-free: vectorises
             v = rc[i] - base[i]
             own = np.float64(base[i]) + rd[i] if rd[i] != v else np.float64(rc[i])
-            taken = np.float64(base[i]) + rh[i] if source[i] else own
+            taken = np.float64(base[i]) + rh[i] if history[i] else own
             w = np.float64(weights[i])
             mixed = (1.0 - w) * taken + w * ro[i]  # float64, then within float32's range
             mixed = min(max(mixed, -FLOAT32_MAX), FLOAT32_MAX)
