@@ -52,6 +52,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from service.kernels.row_ranges import BAND_ROWS
 from service.kernels.window import overlap, window_offsets
 from service.stages.exact import EXACT_MIN, EXACT_RTOL, agree, any_agree, exact_mask, pixel_exact
 from service.stages.reprojection import DEPTH_FLOOR, NORMAL_HIT, ReprojectionParams
@@ -267,22 +268,21 @@ def _window_band(a, b, y, k, band):  # pragma: no cover - jitted
 
 
 @numba.njit(inline="always", cache=True)
-def _surface_band(a, b, links, y, k, band):  # pragma: no cover - jitted
+def _surface_band(above, here, below, links, y, k, band):  # pragma: no cover - jitted
     """band ((W * C,) float32) = k sd of row y's pixels over the pixels of their 3x3 windows on their own
     surface (`links`, (len(LINKS), H, W) uint8: the pixel and its neighbour at LINKS[d] are on one surface;
-    the neighbour in the opposite direction reads the link stored at that neighbour). Planar rows of
-    (a - b)^2 (`_squares_row`) and branch-free loops along the row."""
-    height, width, channels = a.shape
-    here = _squares_row(a, b, y)
+    the neighbour in the opposite direction reads the link stored at that neighbour). above, here, below:
+    (C, W) float32 planar (a - b)^2 of rows y - 1, y and y + 1 (`_squares_row`; read only within the
+    frame). Branch-free loops along the row."""
+    height, width = links.shape[1], links.shape[2]
+    channels = here.shape[0]
     total = here.copy()
     count = np.ones(width, np.float32)
     if y > 0:  # the row above: its links to this row (SW, S, SE of that row) read from there
-        above = _squares_row(a, b, y - 1)
         _add_linked(above, links[1, y - 1], 1, 1, total, count)  # above's (x + 1) links to x here: NE
         _add_linked(above, links[2, y - 1], 0, 0, total, count)
         _add_linked(above, links[3, y - 1], -1, -1, total, count)  # above's (x - 1) links to x here: NW
     if y + 1 < height:
-        below = _squares_row(a, b, y + 1)
         _add_linked(below, links[1, y], 0, -1, total, count)
         _add_linked(below, links[2, y], 0, 0, total, count)
         _add_linked(below, links[3, y], 0, 1, total, count)
@@ -295,15 +295,13 @@ def _surface_band(a, b, links, y, k, band):  # pragma: no cover - jitted
 
 
 @numba.njit(inline="always", cache=True)
-def _squares_row(a, b, y):  # pragma: no cover - jitted
-    """(C, W) float32: (a - b)^2 of row y of the halves ((H, W, C) float32), planar."""
+def _squares_row(a, b, y, row):  # pragma: no cover - jitted
+    """row ((C, W) float32) = (a - b)^2 of row y of the halves ((H, W, C) float32), planar."""
     width, channels = a.shape[1], a.shape[2]
-    row = np.empty((channels, width), np.float32)
     for x in range(width):
         for c in range(channels):
             d = a[y, x, c] - b[y, x, c]
             row[c, x] = d * d
-    return row
 
 
 @numba.njit(inline="always", cache=True)
@@ -335,43 +333,53 @@ def _may_be_exact(ra, rb, rc, re, has_emission, rtol):  # pragma: no cover - jit
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, links, use_normal,
                   result):  # pragma: no cover - jitted
-    """A task per row: the band from the 3x3 window (`_window_band`), or with `use_normal` from the window's
-    pixels on the pixel's own surface (`_surface_band`, on `links` of `_links_kernel`), then the clip; unless
+    """A task per band of BAND_ROWS rows, each row in turn: the band from the 3x3 window (`_window_band`), or with
+    `use_normal` from the window's pixels on the pixel's own surface (`_surface_band`, on `links` of
+    `_links_kernel`, each row's squares made once and kept for the rows around), then the clip; unless
     `exact` is False (and so `has_emission`), exact pixels take `color`, other pixels with emission take `out`
     unclipped."""
     height, width, channels = out.shape
     n = width * channels
-    for y in numba.prange(height):
+    for task in numba.prange(-(-height // BAND_ROWS)):
+        y0, y1 = task * BAND_ROWS, min((task + 1) * BAND_ROWS, height)
         band = np.empty(n, np.float32)
+        squares = np.zeros((3, channels, width), np.float32)  # rows y - 1, y, y + 1 in slots y % 3
         if use_normal:
-            _surface_band(a, b, links, y, k, band)
-        else:
-            _window_band(a, b, y, k, band)
-        ra, rb = a[y].reshape(n), b[y].reshape(n)
-        rc, ro, rr = color[y].reshape(n), out[y].reshape(n), result[y].reshape(n)
-        for i in range(n):
-            rr[i] = min(max(ro[i], rc[i] - band[i]), rc[i] + band[i])
-        re = e[y].reshape(n)
-        if not exact or not _may_be_exact(ra, rb, rc, re, has_emission, rtol):
-            continue
-        for x in range(width):
-            i = x * channels
-            if has_emission:  # an exact pixel is all emission: without any, only a black colour can be
-                emitted, black = False, True
-                for c in range(channels):
-                    emitted = emitted or re[i + c] != 0
-                    black = black and rc[i + c] == 0
-                if not emitted:
-                    if black and pixel_exact(ra, rb, i, channels, rtol, floor):  # (a repaired NaN colour)
-                        for c in range(channels):
-                            rr[i + c] = rc[i + c]
-                    continue
-                keep = pixel_exact(ra, rb, i, channels, rtol, floor)
-                for c in range(channels):
-                    keep = keep and agree(rc[i + c], re[i + c], rtol)
-                src = rc if keep else ro  # exact: the input; other emission: unclipped
-                for c in range(channels):
-                    rr[i + c] = src[i + c]
-            elif pixel_exact(ra, rb, i, channels, rtol, floor):
-                for c in range(channels):
-                    rr[i + c] = rc[i + c]
+            for yy in range(max(y0 - 1, 0), y0):
+                _squares_row(a, b, yy, squares[yy % 3])
+            _squares_row(a, b, y0, squares[y0 % 3])
+        for y in range(y0, y1):
+            if use_normal:
+                if y + 1 < height:
+                    _squares_row(a, b, y + 1, squares[(y + 1) % 3])
+                _surface_band(squares[(y + 2) % 3], squares[y % 3], squares[(y + 1) % 3], links, y, k, band)
+            else:
+                _window_band(a, b, y, k, band)
+            ra, rb = a[y].reshape(n), b[y].reshape(n)
+            rc, ro, rr = color[y].reshape(n), out[y].reshape(n), result[y].reshape(n)
+            for i in range(n):
+                rr[i] = min(max(ro[i], rc[i] - band[i]), rc[i] + band[i])
+            re = e[y].reshape(n)
+            if not exact or not _may_be_exact(ra, rb, rc, re, has_emission, rtol):
+                continue
+            for x in range(width):
+                i = x * channels
+                if has_emission:  # an exact pixel is all emission: without any, only a black colour can be
+                    emitted, black = False, True
+                    for c in range(channels):
+                        emitted = emitted or re[i + c] != 0
+                        black = black and rc[i + c] == 0
+                    if not emitted:
+                        if black and pixel_exact(ra, rb, i, channels, rtol, floor):  # (a repaired NaN colour)
+                            for c in range(channels):
+                                rr[i + c] = rc[i + c]
+                        continue
+                    keep = pixel_exact(ra, rb, i, channels, rtol, floor)
+                    for c in range(channels):
+                        keep = keep and agree(rc[i + c], re[i + c], rtol)
+                    src = rc if keep else ro  # exact: the input; other emission: unclipped
+                    for c in range(channels):
+                        rr[i + c] = src[i + c]
+                elif pixel_exact(ra, rb, i, channels, rtol, floor):
+                    for c in range(channels):
+                        rr[i + c] = rc[i + c]
