@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 
 from service.metrics import rel_l2_map
+from service.stages.blend_sums import level_kernel
 from service.stages.error_estimate import interpolation_matrix
 from service.stages.noise_blend import (
     LEVEL_RADIUS,
     TILE,
     _interpolation,
-    _level_kernel,
     blend_weights,
     noise_blend,
     noise_blend_reference,
@@ -67,7 +67,7 @@ def test_radiance_up_to_float32s_largest_stays_finite():
         with np.errstate(over="ignore", invalid="ignore"):  # the twin's float32 sums overflow to +-inf there
             assert np.isfinite(noise_blend_reference(out, color, a, b, given)).all()
     level = np.empty(shape[:2], np.float32)
-    _level_kernel(color, color, False, LEVEL_RADIUS, level)
+    level_kernel(color, color, False, LEVEL_RADIUS, level)
     with np.errstate(over="ignore", invalid="ignore"):  # float32 sums around 3.3e38: inf there, unused below
         expected = box_mean(color.mean(axis=-1, keepdims=True), LEVEL_RADIUS)[..., 0]
     np.testing.assert_allclose(level[6:, :], expected[6:, :], rtol=1e-5)  # rows the huge values do not reach
