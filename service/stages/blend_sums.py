@@ -42,17 +42,6 @@ def level_kernel(color, e, has_emission, radius, level):  # pragma: no cover - j
 
 
 @numba.njit(inline="always", cache=True, error_model="numpy")
-def _pixel_weight(out, e, has_emission, level, y, x, eps, floor):  # pragma: no cover - jitted
-    """The weight `_proxy_weight` of pixel (y, x): mean_out the mean of out's channels less e (with
-    `has_emission`), float64 throughout (radiance up to float32's largest squares)."""
-    channels = out.shape[2]
-    mean_out = 0.0
-    for c in range(channels):
-        mean_out += np.float64(out[y, x, c]) - e[y, x, c] if has_emission else np.float64(out[y, x, c])
-    return _proxy_weight(mean_out / channels, level[y, x], eps, floor)
-
-
-@numba.njit(inline="always", cache=True, error_model="numpy")
 def _proxy_weight(mean_out, level, eps, floor):  # pragma: no cover - jitted
     """The weight 1 / (proxy^2 + eps) of a pixel (noise_blend's docstring): proxy its output's channel mean mean_out
     (float64, less e), at most its `level` (float32) and at least `floor` (PROXY_FLOOR) times it; float64."""
@@ -60,19 +49,9 @@ def _proxy_weight(mean_out, level, eps, floor):  # pragma: no cover - jitted
     return 1.0 / (proxy * proxy + eps)
 
 
-@numba.njit(inline="always", cache=True, error_model="numpy")
-def _pixel_variance(a, b, y, x):  # pragma: no cover - jitted
-    """v of pixel (y, x), summed over its channels (noise_blend's docstring), float64."""
-    var = 0.0
-    for c in range(a.shape[2]):
-        h = (np.float64(a[y, x, c]) - b[y, x, c]) * 0.5
-        var += h * h
-    return var
-
-
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_floor, use, use_tile, has_choice,
-                 tile, eps, floor, sums):  # pragma: no cover - jitted
+                tile, eps, floor, sums):  # pragma: no cover - jitted
     """sums (SUM_ROWS, th, tw): per tile the weighted sums of e and of the input's error, the count of pixels
     whose halves differ, the weighted sum of the input error's floor, and over the pixels whose halves differ
     the sums of the input's channel means (at least 0) and of v's, in float64 (radiance less e); weights
@@ -124,8 +103,8 @@ def tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_flo
 @numba.njit(inline="always", cache=True, error_model="numpy")
 def _value_terms(ro, rc, ra, rb, re, less, err, var, lit):  # pragma: no cover - jitted
     """Per value i of a row ((n,) float32 rows of out, color, the halves and e), in float64: less = out - e,
-    err = (out - color)^2 - h^2, var = h^2 with h = (a - b) / 2, and lit = color - e (the module docstring's e and v
-    before the sum over channels). Branch-free: vectorises."""
+    err = (out - color)^2 - h^2, var = h^2 with h = (a - b) / 2, and lit = color - e (noise_blend's e and v before the
+    sum over channels). Branch-free: vectorises."""
     for i in range(ro.shape[0]):
         o, col = np.float64(ro[i]), np.float64(rc[i])
         h = (np.float64(ra[i]) - rb[i]) * 0.5
@@ -136,18 +115,27 @@ def _value_terms(ro, rc, ra, rb, re, less, err, var, lit):  # pragma: no cover -
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def choice_kernel(out, a, b, e, has_emission, level, input_error, tile, eps, floor,
-                   stats):  # pragma: no cover - jitted
-    """stats (3, th, tw) float64: per tile the sum of d, of d^2 and the pixels, d the weight (`_pixel_weight`)
+def choice_kernel(out, color, a, b, e, has_emission, level, input_error, tile, eps, floor,
+                  stats):  # pragma: no cover - jitted
+    """stats (3, th, tw) float64: per tile the sum of d, of d^2 and the pixels, d the weight (`_proxy_weight`)
     times input_error ((H, W) float64, the accumulated input's error, the channels' mean) less v's channel
-    mean (`takes_accumulated`). A task per row of tiles."""
+    mean (`takes_accumulated`). A task per row of tiles; per row, its values' terms first (`_value_terms`)."""
     height, width, channels = out.shape
+    n = width * channels
     for ty in numba.prange(stats.shape[1]):
+        zero = np.zeros(n, np.float32)  # e's row without emission
+        less, err, var, lit = np.empty(n), np.empty(n), np.empty(n), np.empty(n)  # per value of a row, float64
         for y in range(ty * tile, min((ty + 1) * tile, height)):
-            for x in range(width):
-                w = _pixel_weight(out, e, has_emission, level, y, x, eps, floor)
-                var = _pixel_variance(a, b, y, x)
-                d = w * (input_error[y, x] - var / channels)
-                stats[0, ty, x // tile] += d
-                stats[1, ty, x // tile] += d * d
-                stats[2, ty, x // tile] += 1.0
+            _value_terms(out[y].reshape(n), color[y].reshape(n), a[y].reshape(n), b[y].reshape(n),
+                         e[y].reshape(n) if has_emission else zero, less, err, var, lit)
+            for tx in range(stats.shape[2]):
+                for x in range(tx * tile, min((tx + 1) * tile, width)):
+                    mean_out, variance = 0.0, 0.0
+                    for c in range(x * channels, (x + 1) * channels):
+                        mean_out += less[c]
+                        variance += var[c]
+                    d = _proxy_weight(mean_out / channels, level[y, x], eps, floor) * (
+                        input_error[y, x] - variance / channels)
+                    stats[0, ty, tx] += d
+                    stats[1, ty, tx] += d * d
+                    stats[2, ty, tx] += 1.0

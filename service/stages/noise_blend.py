@@ -167,15 +167,14 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     else:
         accumulated, input_error, floor = choice
         stats = np.zeros((3, -(-height // tile), -(-width // tile)), np.float64)
-        choice_kernel(arrays[0], arrays[2], arrays[3], e, has_emission, level, input_error, tile, REL_L2_EPS,
-                       PROXY_FLOOR, stats)
+        choice_kernel(*arrays[:4], e, has_emission, level, input_error, tile, REL_L2_EPS, PROXY_FLOOR, stats)
         use = takes_accumulated(stats)
     half = half_tile(tile)
 
     def sums(side: int) -> np.ndarray:  # (SUM_ROWS, th, tw): `tile_kernel`'s sums over tiles of this side
         out = np.zeros((SUM_ROWS, -(-height // side), -(-width // side)), np.float64)
         tile_kernel(*arrays[:4], e, has_emission, level, input_error, floor, use, tile, choice is not None, side,
-                     REL_L2_EPS, PROXY_FLOOR, out)
+                    REL_L2_EPS, PROXY_FLOOR, out)
         return out
 
     fine = this_frame = sums(half)  # the dark pixels are judged by this frame's one-hit values and shares
@@ -348,10 +347,7 @@ def _range_sources(color, e, has_emission, y, rtol, src_lo, src_hi):  # pragma: 
     rc = color[y].reshape(n)
     if has_emission:
         re = e[y].reshape(n)
-        lit_row = False
-        for i in range(n):
-            lit_row = lit_row or re[i] != 0
-        if lit_row:
+        if _any_nonzero(re):
             for x in range(width):
                 i = x * channels
                 lit, whole = False, True
@@ -364,6 +360,16 @@ def _range_sources(color, e, has_emission, y, rtol, src_lo, src_hi):  # pragma: 
             return
     for i in range(n):  # no light in the row: its colour (less e, all 0); contiguous, vectorises
         put_source(src_lo, src_hi, i, rc[i], False)
+
+
+@numba.njit(inline="always", cache=True)
+def _any_nonzero(row):  # pragma: no cover - jitted
+    """Whether some value of `row` ((n,) float32) is nonzero, counted branch-free: a row of zeros costs one
+    vectorised pass."""
+    count = 0
+    for i in range(row.shape[0]):
+        count += 1 if row[i] != 0 else 0
+    return count > 0
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -447,10 +453,7 @@ def _blend_kernel(out, color, a, b, e, has_emission, clipped, accumulated, use, 
         rd = clipped[y].reshape(n)
         rh = accumulated[y].reshape(n) if has_choice else rd
         base = e[y].reshape(n) if has_emission else np.zeros(n, np.float32)
-        lit = 0  # values with emission: a pixel with any keeps the output, as the noise clamp leaves it
-        for i in range(n):  # counted branch-free: a row with none costs one vectorised pass
-            lit += 1 if base[i] != 0 else 0
-        if lit > 0:
+        if _any_nonzero(base):  # a pixel with emission keeps the output, as the noise clamp leaves it
             for x in range(width):
                 for c in range(channels):
                     if base[x * channels + c] != 0:

@@ -345,8 +345,8 @@ def _clamp_kernel(out, color, a, b, e, has_emission, exact, k, rtol, floor, link
         band = np.empty(n, np.float32)
         squares = np.zeros((3, channels, width), np.float32)  # rows y - 1, y, y + 1 in slots y % 3
         if use_normal:
-            for yy in range(max(y0 - 1, 0), y0):
-                _squares_row(a, b, yy, squares[yy % 3])
+            if y0 > 0:
+                _squares_row(a, b, y0 - 1, squares[(y0 - 1) % 3])
             _squares_row(a, b, y0, squares[y0 % 3])
         for y in range(y0, y1):
             if use_normal:
