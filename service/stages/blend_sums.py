@@ -65,11 +65,10 @@ def tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_flo
     n = width * channels
     for ty in numba.prange(sums.shape[1]):
         acc = np.zeros((SUM_ROWS, sums.shape[2]))  # this row of tiles' sums
-        zero = np.zeros(n, np.float32)  # e's row without emission
-        less, err, var, lit = np.empty(n), np.empty(n), np.empty(n), np.empty(n)  # per value of a row, float64
+        terms = np.empty((4, n))  # per value of a row: `_value_terms`
         for y in range(ty * tile, min((ty + 1) * tile, height)):
-            _value_terms(out[y].reshape(n), color[y].reshape(n), a[y].reshape(n), b[y].reshape(n),
-                         e[y].reshape(n) if has_emission else zero, less, err, var, lit)
+            _value_terms(out, color, a, b, e, has_emission, y, terms)
+            less, err, var, lit = terms[0], terms[1], terms[2], terms[3]
             for tx in range(sums.shape[2]):
                 s0 = s1 = s2 = s3 = s4 = s5 = 0.0  # this row's part of the tile's sums
                 for x in range(tx * tile, min((tx + 1) * tile, width)):
@@ -101,17 +100,20 @@ def tile_kernel(out, color, a, b, e, has_emission, level, input_error, input_flo
 
 
 @numba.njit(inline="always", cache=True, error_model="numpy")
-def _value_terms(ro, rc, ra, rb, re, less, err, var, lit):  # pragma: no cover - jitted
-    """Per value i of a row ((n,) float32 rows of out, color, the halves and e), in float64: less = out - e,
-    err = (out - color)^2 - h^2, var = h^2 with h = (a - b) / 2, and lit = color - e (noise_blend's e and v before the
-    sum over channels). Branch-free: vectorises."""
-    for i in range(ro.shape[0]):
+def _value_terms(out, color, a, b, e, has_emission, y, terms):  # pragma: no cover - jitted
+    """terms ((4, W * C) float64): per value of row y of out, color, the halves a, b and e ((H, W, C) float32; e
+    only with `has_emission`): less = out - e, err = (out - color)^2 - h^2, var = h^2 with h = (a - b) / 2, and
+    lit = color - e (noise_blend's e and v before the sum over channels). Branch-free: vectorises."""
+    n = terms.shape[1]
+    ro, rc, ra, rb = out[y].reshape(n), color[y].reshape(n), a[y].reshape(n), b[y].reshape(n)
+    re = e[y].reshape(n) if has_emission else np.zeros(n, np.float32)
+    for i in range(n):
         o, col = np.float64(ro[i]), np.float64(rc[i])
         h = (np.float64(ra[i]) - rb[i]) * 0.5
-        less[i] = o - re[i]
-        err[i] = (o - col) * (o - col) - h * h
-        var[i] = h * h
-        lit[i] = col - re[i]
+        terms[0, i] = o - re[i]
+        terms[1, i] = (o - col) * (o - col) - h * h
+        terms[2, i] = h * h
+        terms[3, i] = col - re[i]
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -123,11 +125,10 @@ def choice_kernel(out, color, a, b, e, has_emission, level, input_error, tile, e
     height, width, channels = out.shape
     n = width * channels
     for ty in numba.prange(stats.shape[1]):
-        zero = np.zeros(n, np.float32)  # e's row without emission
-        less, err, var, lit = np.empty(n), np.empty(n), np.empty(n), np.empty(n)  # per value of a row, float64
+        terms = np.empty((4, n))  # per value of a row: `_value_terms`
         for y in range(ty * tile, min((ty + 1) * tile, height)):
-            _value_terms(out[y].reshape(n), color[y].reshape(n), a[y].reshape(n), b[y].reshape(n),
-                         e[y].reshape(n) if has_emission else zero, less, err, var, lit)
+            _value_terms(out, color, a, b, e, has_emission, y, terms)
+            less, var = terms[0], terms[2]
             for tx in range(stats.shape[2]):
                 for x in range(tx * tile, min((tx + 1) * tile, width)):
                     mean_out, variance = 0.0, 0.0
