@@ -10,9 +10,10 @@ and the sequence size (before any work), find the exact pixels when the frame ha
 radiance layers, call the denoiser's `denoise`, add emission back, clip the result below at the input's lowest
 value or 0 (`service.stages.radiance_floor`), return the pixels where nothing was hit
 and no emission is given as they came (`service.stages.background`), keep the result within the noise the
-halves show (`service.stages.noise_clamp`), blend it per tile with the input by the weight the halves
-say is best (`service.stages.noise_blend`; a temporal pipeline's input accumulated over the sequence where
-the halves say it is better, `service.stages.input_history`), and make sure nothing non-finite leaves.
+halves show or at the input's firefly clip (`service.stages.noise_clamp`), blend it per tile with the input
+by the weight the halves say is best (`service.stages.noise_blend`; a temporal pipeline's input accumulated
+over the sequence where the halves say it is better, `service.stages.input_history`), and make sure nothing
+non-finite leaves.
 The split is `Pipeline.denoise_split`, which a denoiser able to do it inside its own passes overrides.
 """
 
@@ -32,7 +33,7 @@ from service.stages.background import pass_background
 from service.stages.emission import add_emission, subtract_emission
 from service.stages.exact import exact_emission
 from service.stages.input_history import InputHistory
-from service.stages.noise_blend import noise_blend
+from service.stages.noise_blend import firefly_clip, noise_blend
 from service.stages.noise_clamp import noise_clamp
 from service.stages.radiance_floor import radiance_floor
 
@@ -145,12 +146,13 @@ class Pipeline(ABC):
         if self.guards and "colorA" in given and "colorB" in given:  # within the noise the halves show
             halves = given["colorA"], given["colorB"]  # (finite in, finite out: the band is finite or +inf)
             exact = "emission" in frame  # the renderer's, or the exact pixels `with_exact_emission` found
+            clipped, admitted = firefly_clip(given["color"], *halves, frame.buffers.get("emission"))
             clamped = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"), exact=exact,
-                                  normal=given.get("normal"), depth=given.get("depth"))
+                                  normal=given.get("normal"), depth=given.get("depth"), admitted=admitted)
             history = state.input_history if self.temporal else None  # the accumulated input it may take back
             buffers["color"] = noise_blend(clamped, given["color"], *halves, frame.buffers.get("emission"),
                                            history=history, motion=given.get("motion"), depth=given.get("depth"),
-                                           normal=given.get("normal"))
+                                           normal=given.get("normal"), clipped=clipped)
         else:  # no blend: the accumulated input has a gap
             state.input_history.clear()
         state.frame_index += 1

@@ -118,6 +118,7 @@ PROXY_FLOOR = 0.25  # ... and the stand-in is at least this share of it (module 
 WORSE = 0.5  # a half tile whose weight is below this (its output estimated worse than its input) overrides
 NOISY_SHARE = 0.25  # ... where at least this share of its pixels have halves that differ (module docstring)
 HALF_RAMP = 1  # ... over its own pixels, eased over the (2 r + 1)^2 box of the pixels around (module docstring)
+ADMIT_K = 10.0  # `firefly_clip`'s admitted value: the clip where within this many |A - B| / 2 of the colour
 TILE_MEMORY = 0.3  # a temporal pipeline's tile sums: this share of the previous frames' average (module docstring)
 
 
@@ -136,10 +137,29 @@ def _check(arrays: list[np.ndarray], tile: int) -> None:
         raise ValueError(f"noise blend: out, color and the halves must share one (H, W, C) shape: {shapes}")
 
 
+def firefly_clip(color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
+                 emission: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The input with its fireflies clipped, c' (module docstring), twice: less the emission, as `noise_blend`
+    takes it back (the colour less e, clipped where the halves differ), and as radiance, which `noise_clamp` admits:
+    e + that where the clip moved the value to within ADMIT_K times the pixel's own spread |A - B| / 2 of the
+    colour (the two samples of a pixel that found rare bright paths independently differ far more than those of a
+    glint that both saw), the colour itself elsewhere. color, color_a, color_b: (H, W, C)
+    float32 noisy radiance and its halves; emission: (H, W, C) float32 or None, as given to `noise_blend`.
+    Returns two (H, W, C) float32 arrays."""
+    arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (color, color_a, color_b)]
+    if emission is not None:
+        arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
+    _check(arrays, TILE)
+    clipped, admitted = np.empty_like(arrays[0]), np.empty_like(arrays[0])
+    _clip_kernel(*arrays[:3], arrays[-1], emission is not None, np.float32(FIREFLY_K), np.float32(EXACT_RTOL),
+                 np.float32(ADMIT_K / 2), clipped, admitted)
+    return clipped, admitted
+
+
 def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
                 emission: np.ndarray | None = None, tile: int = TILE, history: InputHistory | None = None,
                 motion: np.ndarray | None = None, depth: np.ndarray | None = None,
-                normal: np.ndarray | None = None) -> np.ndarray:
+                normal: np.ndarray | None = None, clipped: np.ndarray | None = None) -> np.ndarray:
     """`out` blended per tile with `color` (module docstring). out: (H, W, C) float32 denoised radiance;
     color, color_a, color_b: (H, W, C) float32 noisy radiance and its two halves; emission: (H, W, C)
     float32 or None, the emission in all four (a light's value is no level for its neighbours' weights,
@@ -148,7 +168,8 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     the emitter's coverage, not noise the output should take back); all linear, finite. history: a temporal pipeline's
     accumulated input (`service.stages.input_history`), which this frame joins when it has `motion` ((H, W, 2)
     float32, pixels; depth (H, W, 1) and normal (H, W, 3) float32 check the reprojection where given) and
-    forgets otherwise. Returns a new (H, W, C) float32 array."""
+    forgets otherwise. clipped: `firefly_clip`'s first array for these colour, halves and emission, or None to
+    make it here. Returns a new (H, W, C) float32 array."""
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (out, color, color_a, color_b)]
     if emission is not None:
         arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
@@ -158,9 +179,8 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     height, width = arrays[0].shape[:2]
     level = np.empty((height, width), np.float32)
     level_kernel(arrays[1], e, has_emission, LEVEL_RADIUS, level)
-    clipped = np.empty_like(arrays[1])
-    _clip_kernel(arrays[1], arrays[2], arrays[3], e, has_emission, np.float32(FIREFLY_K), np.float32(EXACT_RTOL),
-                 clipped)
+    if clipped is None:
+        clipped = firefly_clip(*arrays[1:4], emission)[0]
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, False)
     if choice is None:
         accumulated, input_error, floor, use = clipped, np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1), np.bool_)
@@ -373,13 +393,14 @@ def _any_nonzero(row):  # pragma: no cover - jitted
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _clip_kernel(color, a, b, e, has_emission, k, rtol, clipped):  # pragma: no cover - jitted
+def _clip_kernel(color, a, b, e, has_emission, k, rtol, admit, clipped, admitted):  # pragma: no cover - jitted
     """clipped (H, W, C) float32: the colour less the emission e (with `has_emission`; color, a, b, e (H, W, C)
     float32), clipped like `outliers.clamp_fireflies` (k, float32) where the halves a, b differ, over ranges
     that take a light seen whole at its colour and leave the other lights (e nonzero) out (`_range_sources`,
     rtol: EXACT_RTOL; a value with no neighbour left keeps itself). The range is `outliers.clamp_fireflies`'
     3x3 range, taken here on the interleaved (W * C) rows (`service.kernels.row_ranges`, a task per band of
-    rows): through its (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes)."""
+    rows): through its (C, H, W) planes it cost ~3 ms more a 1280x720 frame (the transposes). admitted (H, W, C)
+    float32: e + clipped where the clip moved the value by at most admit |a - b|, the colour elsewhere."""
     height, width, channels = color.shape
     n = width * channels
     for band in numba.prange(-(-height // BAND_ROWS)):
@@ -392,11 +413,14 @@ def _clip_kernel(color, a, b, e, has_emission, k, rtol, clipped):  # pragma: no 
             three_row_ranges(src_lo, src_hi, y, channels, False, lo, hi, all_lo, all_hi)
             rc, ra, rb, rd = color[y].reshape(n), a[y].reshape(n), b[y].reshape(n), clipped[y].reshape(n)
             re = e[y].reshape(n) if has_emission else rc  # not read without emission
+            rm = admitted[y].reshape(n)
             for i in range(n):  # branch-free: vectorises
                 v = rc[i] - re[i] if has_emission else rc[i]
                 spread = k * (hi[i] - lo[i])
                 clip = min(max(v, lo[i] - spread), hi[i] + spread) if lo[i] <= hi[i] else v  # no neighbour: itself
                 rd[i] = clip if ra[i] != rb[i] else v
+                near = abs(rd[i] - v) <= admit * abs(ra[i] - rb[i])  # within the pixel's own spread
+                rm[i] = (re[i] + rd[i] if has_emission else rd[i]) if rd[i] != v and near else rc[i]
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")

@@ -12,6 +12,7 @@ from service.stages.noise_blend import (
     TILE,
     _interpolation,
     blend_weights,
+    firefly_clip,
     noise_blend,
     noise_blend_reference,
 )
@@ -468,3 +469,28 @@ def test_a_temporal_blend_judges_dark_pixels_by_this_frames_one_hit_value(monkey
     with_test = run()
     monkeypatch.setattr(dark_tiles, "EVIDENCE", np.inf)
     np.testing.assert_array_equal(with_test, run())
+
+
+@pytest.mark.parametrize("with_emission", [False, True])
+def test_firefly_clip_gives_the_blends_input_and_the_clamps_admitted_value(with_emission):
+    """`firefly_clip`: c' less the emission, as the blend makes it when not given, and as radiance: e + c' where
+    the clip moved the value, the colour itself (bit for bit) elsewhere."""
+    rng = np.random.default_rng(12)
+    truth = rng.uniform(0.2, 1.0, (20, 24, 3)).astype(np.float32)
+    a, b, color = _halves(rng, truth, 0.1)
+    a[5, 6] += 400.0  # a firefly in one half
+    b[9, 9] = a[9, 9]  # halves that agree: never clipped
+    color = ((a + b) / 2).astype(np.float32)
+    emission = np.zeros_like(truth)
+    emission[12:14, 3:8] = 50.0
+    e = emission if with_emission else None
+    shift = emission if with_emission else np.float32(0)
+    a, b, color = a + shift, b + shift, color + shift
+    clipped, admitted = firefly_clip(color, a, b, e)
+    moved = clipped != color - shift
+    assert moved[5, 6].all() and not moved[9, 9].any()
+    np.testing.assert_array_equal(admitted[~moved], color[~moved])
+    np.testing.assert_allclose(admitted[moved], (clipped + shift)[moved], rtol=1e-6)
+    assert (admitted[5, 6] < 10.0).all()  # near its neighbours' range (up to 1.1 + its spread), not the 200 given
+    out = (truth * 0.9 + shift).astype(np.float32)
+    np.testing.assert_array_equal(noise_blend(out, color, a, b, e, clipped=clipped), noise_blend(out, color, a, b, e))

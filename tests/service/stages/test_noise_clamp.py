@@ -4,6 +4,7 @@ pixels unchanged, and what it leaves alone."""
 import numpy as np
 import pytest
 
+from service.stages.noise_blend import firefly_clip
 from service.stages.noise_clamp import NOISE_K, noise_clamp, noise_clamp_reference, noise_sd_reference
 
 
@@ -276,3 +277,44 @@ def test_surface_bands_match_the_twin_on_random_surfaces(shape):
                     noise_clamp(out, color, a, b, e, normal=normal.astype(np.float32), depth=d),
                     noise_clamp_reference(out, color, a, b, e, normal=normal.astype(np.float32), depth=d),
                     rtol=1e-6, atol=1e-6)
+
+
+def test_the_band_reaches_the_inputs_firefly_clip():
+    """A firefly in both halves (both hit a bright path, its neighbours saw nothing: the halves differ too little
+    to widen the band) does not hold a denoiser that removed it: the band reaches the input's firefly clip
+    (`firefly_clip`), 0 here. Where the clip leaves the colour, nothing changes, nor where it lies far beyond the
+    pixel's own spread (a glint both halves saw alike)."""
+    a = np.zeros((9, 9, 3), np.float32)
+    b = a.copy()
+    a[4, 4], b[4, 4] = 420.0, 280.0  # colour 350; the 3x3 mean of (a - b)^2 / 4: 70^2 / 9
+    color = np.float32(0.5) * (a + b)
+    out = np.zeros_like(a)  # the denoiser removed it
+    np.testing.assert_allclose(noise_clamp(out, color, a, b)[4, 4], 350.0 - NOISE_K * 70.0 / 3.0, rtol=1e-6)
+    clipped, admitted = firefly_clip(color, a, b)
+    np.testing.assert_array_equal(admitted, np.zeros_like(a))  # clipped to its neighbours' range; the rest as given
+    np.testing.assert_array_equal(noise_clamp(out, color, a, b, admitted=admitted), out)
+    lifted = out + np.float32(1.0)  # a lift of the black neighbours is no closer to the clip: still clamped
+    np.testing.assert_array_equal(noise_clamp(lifted, color, a, b, admitted=admitted)[0, 0], 0.0)
+    a[4, 4], b[4, 4] = 1015.0, 1050.0  # a glint both samples saw: halves 3% apart, the clip 60 spreads away
+    color = np.float32(0.5) * (a + b)
+    admitted = firefly_clip(color, a, b)[1]
+    np.testing.assert_array_equal(admitted[4, 4], color[4, 4])  # not admitted: the band alone holds
+    np.testing.assert_array_equal(noise_clamp(out, color, a, b, admitted=admitted), noise_clamp(out, color, a, b))
+
+
+@pytest.mark.parametrize("with_emission", [False, True])
+def test_matches_the_twin_with_an_admitted_value(with_emission):
+    rng = np.random.default_rng(11)
+    a = rng.uniform(0.1, 1.0, (9, 11, 3)).astype(np.float32)
+    b = rng.uniform(0.1, 1.0, (9, 11, 3)).astype(np.float32)
+    a[3, 4] = 300.0  # a firefly in one half
+    color = np.float32(0.5) * (a + b)
+    emission = np.zeros_like(a)
+    emission[6, 7] = 0.3
+    given = emission if with_emission else None
+    admitted = firefly_clip(color, a, b, given)[1]
+    out = rng.uniform(0.0, 2.0, a.shape).astype(np.float32)
+    np.testing.assert_allclose(noise_clamp(out, color, a, b, given, admitted=admitted),
+                               noise_clamp_reference(out, color, a, b, given, admitted=admitted), rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="share one"):
+        noise_clamp(out, color, a, b, given, admitted=admitted[:, :2])
