@@ -56,6 +56,8 @@ def test_the_blends_clip_ignores_a_nan_neighbour_above_as_below(nan_row):
     color[1] = 100.0  # a firefly between two values of 1
     color[nan_row] = np.nan
     a, b = color + 0.5, color - 0.5  # the halves differ: the clip applies
-    clipped = np.empty_like(color)
-    _clip_kernel(color, a, b, color, False, np.float32(2.0), np.float32(EXACT_RTOL), clipped)
+    clipped, admitted = np.empty_like(color), np.empty_like(color)
+    _clip_kernel(color, a, b, color, False, np.float32(2.0), np.float32(EXACT_RTOL), np.float32(5.0), clipped,
+                 admitted)
     assert clipped[1, 0, 0] == 1.0  # clipped to the one neighbour left
+    assert admitted[1, 0, 0] == 100.0  # 99 from the colour, beyond 5 |a - b|: not admitted
