@@ -146,6 +146,7 @@ class Pipeline(ABC):
         if self.guards and "colorA" in given and "colorB" in given:  # within the noise the halves show
             halves = given["colorA"], given["colorB"]  # (finite in, finite out: the band is finite or +inf)
             exact = "emission" in frame  # the renderer's, or the exact pixels `with_exact_emission` found
+            # with the exact pixels' emission when the frame had none: the clamp's exact pass overrides them there
             clipped, admitted = firefly_clip(given["color"], *halves, frame.buffers.get("emission"))
             clamped = noise_clamp(buffers["color"], given["color"], *halves, given.get("emission"), exact=exact,
                                   normal=given.get("normal"), depth=given.get("depth"), admitted=admitted)

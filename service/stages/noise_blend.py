@@ -44,7 +44,9 @@ left a region, or a filter that smeared light into a hard shadow, is caught so (
 tiles whose weight is below WORSE, and judges by this frame's sums, not the temporal average below.
 The result is c' + t (o - c'), with c' the input with its fireflies clipped (`outliers.clamp_fireflies`, where
 the halves differ: a firefly is in one half only, while a light seen directly is in both): the part of the
-input the blend takes back should not bring them with it. Lights (pixels with emission) are left out of their
+input the blend takes back should not bring them with it. `firefly_clip` makes c' once per step, for the blend
+and for `noise_clamp`, whose band reaches it where the pixel's own halves allow (ADMIT_K; noise_clamp's
+docstring says why and what it changed). Lights (pixels with emission) are left out of their
 neighbours' ranges: beside a light whose emission pass took other samples than its colour (emission 666,
 colour 1335 on the 64-frame `fireflies` benchmark sequence), its remainder widened the range enough to let a
 one-half sample of 750 through where the truth was 25, in one pixel, which alone made up a quarter of the
@@ -145,11 +147,15 @@ def firefly_clip(color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
     colour (the two samples of a pixel that found rare bright paths independently differ far more than those of a
     glint that both saw), the colour itself elsewhere. color, color_a, color_b: (H, W, C)
     float32 noisy radiance and its halves; emission: (H, W, C) float32 or None, as given to `noise_blend`.
-    Returns two (H, W, C) float32 arrays."""
+    Returns two (H, W, C) float32 arrays, linear radiance (the second with the emission, like `color`; at a
+    pixel with emission near float32's largest it may be inf, which the clamp never reads: such a pixel keeps
+    the denoiser's output or its input there)."""
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (color, color_a, color_b)]
     if emission is not None:
         arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
-    _check(arrays, TILE)
+    shapes = {x.shape for x in arrays}
+    if len(shapes) != 1 or arrays[0].ndim != 3:
+        raise ValueError(f"firefly clip: color, the halves and emission must share one (H, W, C) shape: {shapes}")
     clipped, admitted = np.empty_like(arrays[0]), np.empty_like(arrays[0])
     _clip_kernel(*arrays[:3], arrays[-1], emission is not None, np.float32(FIREFLY_K), np.float32(EXACT_RTOL),
                  np.float32(ADMIT_K / 2), clipped, admitted)
@@ -168,8 +174,8 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     the emitter's coverage, not noise the output should take back); all linear, finite. history: a temporal pipeline's
     accumulated input (`service.stages.input_history`), which this frame joins when it has `motion` ((H, W, 2)
     float32, pixels; depth (H, W, 1) and normal (H, W, 3) float32 check the reprojection where given) and
-    forgets otherwise. clipped: `firefly_clip`'s first array for these colour, halves and emission, or None to
-    make it here. Returns a new (H, W, C) float32 array."""
+    forgets otherwise. clipped: (H, W, C) float32, `firefly_clip`'s first array for these colour, halves and
+    emission, or None to make it here. Returns a new (H, W, C) float32 array."""
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (out, color, color_a, color_b)]
     if emission is not None:
         arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
@@ -181,6 +187,8 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     level_kernel(arrays[1], e, has_emission, LEVEL_RADIUS, level)
     if clipped is None:
         clipped = firefly_clip(*arrays[1:4], emission)[0]
+    clipped = np.ascontiguousarray(clipped, dtype=np.float32)
+    _check(arrays + [clipped], tile)
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, False)
     if choice is None:
         accumulated, input_error, floor, use = clipped, np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1), np.bool_)
@@ -291,6 +299,24 @@ def _interpolation(size: int, tile: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return first, second, weight.astype(np.float32)
 
 
+def firefly_clip_reference(color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
+                           emission: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Plain-numpy twin of `firefly_clip`."""
+    e = np.zeros(color.shape, np.float64) if emission is None else emission.astype(np.float64)
+    c = (color.astype(np.float64) - e).astype(np.float32)
+    whole = np.zeros(c.shape[:2], np.bool_) if emission is None else agrees(color, emission) & (e != 0).any(axis=-1)
+    planes = np.ascontiguousarray(c.transpose(2, 0, 1))
+    ranged = np.where(whole[..., None], color, c).astype(np.float32).transpose(2, 0, 1)
+    excluded = ((e != 0) & ~whole[..., None]).transpose(2, 0, 1)
+    clipped = clamp_fireflies_reference(planes, excluded=excluded, ranged=ranged).transpose(1, 2, 0)
+    moved = (color_a != color_b) & (clipped != c)
+    clipped = np.where(moved, clipped, c)
+    spread = np.float32(ADMIT_K / 2) * np.abs(color_a.astype(np.float32) - color_b)
+    near = np.abs(clipped - c) <= spread
+    admitted = np.where(moved & near, (e + clipped).astype(np.float32), color.astype(np.float32))
+    return clipped, admitted
+
+
 def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
                           emission: np.ndarray | None = None, tile: int = TILE, history: InputHistory | None = None,
                           motion: np.ndarray | None = None, depth: np.ndarray | None = None,
@@ -306,13 +332,8 @@ def noise_blend_reference(out: np.ndarray, color: np.ndarray, color_a: np.ndarra
     weight = 1.0 / (proxy * proxy + REL_L2_EPS)
     variance = ((a - b) * 0.5) ** 2
     pixel_out, pixel_in = weight * ((o - c) ** 2 - variance).mean(axis=-1), weight * variance.mean(axis=-1)
-    whole = np.zeros(c.shape[:2], np.bool_) if emission is None else agrees(color, emission) & (e != 0).any(axis=-1)
-    planes = np.ascontiguousarray(c.astype(np.float32).transpose(2, 0, 1))
-    ranged = np.where(whole[..., None], color, c).astype(np.float32).transpose(2, 0, 1)
-    excluded = ((e != 0) & ~whole[..., None]).transpose(2, 0, 1)
-    clipped = clamp_fireflies_reference(planes, excluded=excluded, ranged=ranged).transpose(1, 2, 0)
-    moved = (color_a != color_b) & (clipped != c.astype(np.float32))
-    clipped = np.where(moved, clipped, c.astype(np.float32))
+    clipped = firefly_clip_reference(color, color_a, color_b, emission)[0]
+    moved = clipped != c.astype(np.float32)
     arrays = [np.asarray(x, np.float32) for x in (out, color, color_a, color_b)]
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, True)
     frame_input = taken = np.where(moved, e + clipped, color.astype(np.float64))

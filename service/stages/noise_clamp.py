@@ -4,7 +4,7 @@ A pixel estimate `color` = (colorA + colorB) / 2 has variance Var(color) = E[(co
 (the halves are independent estimates of the same mean). Where that variance is small the renderer has
 already resolved the pixel, and a filter that moves it far (a sky blurred with the horizon, a black
 reflection of the void lifted by its bright surround) makes it worse than it came in. So every output
-value is clipped to
+value is clipped to (the band reaching the input's firefly clip where given, below)
 
     color +- k sd,   sd^2 = mean over the 3x3 window (clipped at the border) of (colorA - colorB)^2 / 4,
 
@@ -40,7 +40,8 @@ the table before this and the step's radiance floor) relL2 on `veiled` (bars tha
 frame where the window band took 10 (`out/exp/s54/nc_time.py`, 2 cores).
 
 The band also reaches, in any case, the input's firefly clip where the pixel's own halves allow it
-(`noise_blend.firefly_clip`: the colour clipped to its 3x3 neighbours' range where its halves differ, admitted
+(`noise_blend.firefly_clip`: the colour clipped where its halves differ to its 3x3 neighbours' range widened by
+FIREFLY_K times its width, admitted
 where within ADMIT_K = 10 times the pixel's own |A - B| / 2 of the colour). A firefly in both halves (at one
 sample per half, both samples found a rare bright path while the neighbours' found none) has halves that differ
 too little to widen a band diluted by its neighbours' zeros, and the band held every denoiser that removed it:
@@ -98,7 +99,7 @@ def noise_clamp(
     depth: np.ndarray | None = None,
     admitted: np.ndarray | None = None,
 ) -> np.ndarray:
-    """`out` clipped to `color` +- k sd per pixel and channel (module docstring).
+    """`out` clipped to `color` +- k sd per pixel and channel, the band reaching `admitted` (module docstring).
 
     out: (H, W, 3) float32 denoised radiance; color, color_a, color_b: (H, W, 3) float32 noisy radiance and
     its two halves; emission: the renderer's (H, W, 3) float32 emission layer or None; all linear. Exact
@@ -110,20 +111,20 @@ def noise_clamp(
     without an emission layer), and the per-pixel test is skipped. normal: (H, W, 3) float32 (zero where
     nothing was hit) and depth: (H, W, 1) float32 or None: the band comes from the 3x3 pixels on the pixel's
     own surface (module docstring); depth is used only with normal (its shape is checked either way).
-    admitted: (H, W, 3) float32 or None: a value per pixel and channel that the band reaches in any case (the
-    input with its fireflies clipped, `noise_blend.firefly_clip`; module docstring).
+    admitted: (H, W, 3) float32 or None: a value per pixel and channel that the band reaches in any case, linear
+    radiance with the emission like `color` (the input with its fireflies clipped, `noise_blend.firefly_clip`'s
+    second array; module docstring).
     """
     if not 0 <= k < np.inf:
         raise ValueError(f"noise clamp k must be finite and >= 0, got {k}")
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (out, color, color_a, color_b)]
-    given = [np.ascontiguousarray(x, dtype=np.float32) for x in (emission, admitted) if x is not None]
-    shapes = {x.shape for x in arrays + given}
+    e = arrays[1] if emission is None else np.ascontiguousarray(emission, dtype=np.float32)  # unread without it
+    reach = arrays[1] if admitted is None else np.ascontiguousarray(admitted, dtype=np.float32)  # unread without it
+    shapes = {x.shape for x in arrays + [e, reach]}
     if len(shapes) != 1 or arrays[0].ndim != 3:
         raise ValueError(f"noise clamp: out, color, the halves, emission and admitted must share one (H, W, C) shape: "
                          f"{shapes}")
     result = np.empty_like(arrays[0])
-    e = given[0] if emission is not None else arrays[1]
-    reach = given[-1] if admitted is not None else arrays[1]  # not read without admitted
     use_normal, use_depth = normal is not None, normal is not None and depth is not None
     normal, depth = _gbuffer(normal, depth, arrays[0].shape)
     links = np.zeros((len(LINKS), *arrays[0].shape[:2]) if use_normal else (len(LINKS), 1, 1), np.uint8)

@@ -8,11 +8,13 @@ from service.metrics import rel_l2_map
 from service.stages.blend_sums import level_kernel
 from service.stages.error_estimate import interpolation_matrix
 from service.stages.noise_blend import (
+    ADMIT_K,
     LEVEL_RADIUS,
     TILE,
     _interpolation,
     blend_weights,
     firefly_clip,
+    firefly_clip_reference,
     noise_blend,
     noise_blend_reference,
 )
@@ -494,3 +496,36 @@ def test_firefly_clip_gives_the_blends_input_and_the_clamps_admitted_value(with_
     assert (admitted[5, 6] < 10.0).all()  # near its neighbours' range (up to 1.1 + its spread), not the 200 given
     out = (truth * 0.9 + shift).astype(np.float32)
     np.testing.assert_array_equal(noise_blend(out, color, a, b, e, clipped=clipped), noise_blend(out, color, a, b, e))
+
+
+@pytest.mark.parametrize("with_emission", [False, True])
+def test_firefly_clip_matches_its_twin(with_emission):
+    """Both arrays, with fireflies in one half, lights (some seen whole) and values near the admission's limit."""
+    rng = np.random.default_rng(13)
+    a = rng.uniform(0.1, 1.0, (17, 19, 3)).astype(np.float32)
+    b = rng.uniform(0.1, 1.0, (17, 19, 3)).astype(np.float32)
+    a[rng.random((17, 19)) < 0.1] *= 200.0  # fireflies: some admitted, some beyond ADMIT_K |A - B| / 2
+    color = np.float32(0.5) * (a + b)
+    emission = np.zeros_like(a)
+    if with_emission:
+        emission[2:4, 5:9] = 40.0
+        a[2:4, 5:9] += 40.0
+        b[2:4, 5:9] += 40.0
+        color[2:4, 5:9] += 40.0
+        a[2, 5] = b[2, 5] = color[2, 5] = emission[2, 5]  # a light seen whole
+    e = emission if with_emission else None
+    for got, want in zip(firefly_clip(color, a, b, e), firefly_clip_reference(color, a, b, e), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+
+
+def test_the_clip_is_admitted_up_to_admit_k_half_differences():
+    """A pixel whose neighbours are black, its halves c +- 10: its clip (0) is admitted where c <= ADMIT_K / 2 * 20
+    and not beyond."""
+    limit = np.float32(ADMIT_K / 2 * 20.0)
+    for c, admitted in ((limit, True), (limit + np.float32(0.5), False)):
+        a = np.zeros((5, 5, 3), np.float32)
+        b = a.copy()
+        a[2, 2], b[2, 2] = c + np.float32(10.0), c - np.float32(10.0)
+        color = np.float32(0.5) * (a + b)
+        got = firefly_clip(color, a, b)[1][2, 2]
+        np.testing.assert_array_equal(got, 0.0 if admitted else color[2, 2])
