@@ -131,12 +131,14 @@ def blend_weights(error_out: np.ndarray, error_in: np.ndarray) -> np.ndarray:
     return np.where(total > 0, error_in / np.where(total > 0, total, 1.0), 1.0)
 
 
-def _check(arrays: list[np.ndarray], tile: int) -> None:
+def _check(arrays: list[np.ndarray], tile: int,
+           what: str = "noise blend: out, color, the halves, emission and clipped") -> None:
+    """ValueError unless tile >= 1 and `arrays` share one (H, W, C) shape; `what` names them in the message."""
     if tile < 1:
         raise ValueError(f"noise blend tile must be >= 1, got {tile}")
     shapes = {x.shape for x in arrays}
     if len(shapes) != 1 or arrays[0].ndim != 3:
-        raise ValueError(f"noise blend: out, color and the halves must share one (H, W, C) shape: {shapes}")
+        raise ValueError(f"{what} must share one (H, W, C) shape: {shapes}")
 
 
 def firefly_clip(color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
@@ -153,9 +155,7 @@ def firefly_clip(color: np.ndarray, color_a: np.ndarray, color_b: np.ndarray,
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (color, color_a, color_b)]
     if emission is not None:
         arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
-    shapes = {x.shape for x in arrays}
-    if len(shapes) != 1 or arrays[0].ndim != 3:
-        raise ValueError(f"firefly clip: color, the halves and emission must share one (H, W, C) shape: {shapes}")
+    _check(arrays, TILE, "firefly clip: color, the halves and emission")
     clipped, admitted = np.empty_like(arrays[0]), np.empty_like(arrays[0])
     _clip_kernel(*arrays[:3], arrays[-1], emission is not None, np.float32(FIREFLY_K), np.float32(EXACT_RTOL),
                  np.float32(ADMIT_K / 2), clipped, admitted)
@@ -179,7 +179,9 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     arrays = [np.ascontiguousarray(x, dtype=np.float32) for x in (out, color, color_a, color_b)]
     if emission is not None:
         arrays.append(np.ascontiguousarray(emission, dtype=np.float32))
-    _check(arrays, tile)
+    if clipped is not None:
+        clipped = np.ascontiguousarray(clipped, dtype=np.float32)
+    _check(arrays + ([] if clipped is None else [clipped]), tile)
     has_emission = emission is not None
     e = arrays[4] if has_emission else arrays[1]  # not read without emission
     height, width = arrays[0].shape[:2]
@@ -187,8 +189,6 @@ def noise_blend(out: np.ndarray, color: np.ndarray, color_a: np.ndarray, color_b
     level_kernel(arrays[1], e, has_emission, LEVEL_RADIUS, level)
     if clipped is None:
         clipped = firefly_clip(*arrays[1:4], emission)[0]
-    clipped = np.ascontiguousarray(clipped, dtype=np.float32)
-    _check(arrays + [clipped], tile)
     choice = _accumulated(history, clipped, arrays, emission, motion, depth, normal, False)
     if choice is None:
         accumulated, input_error, floor, use = clipped, np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1), np.bool_)

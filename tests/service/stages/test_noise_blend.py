@@ -529,3 +529,11 @@ def test_the_clip_is_admitted_up_to_admit_k_half_differences():
         color = np.float32(0.5) * (a + b)
         got = firefly_clip(color, a, b)[1][2, 2]
         np.testing.assert_array_equal(got, 0.0 if admitted else color[2, 2])
+
+
+def test_a_given_clip_of_another_shape_is_refused():
+    a = np.ones((8, 8, 3), np.float32)
+    with pytest.raises(ValueError, match="noise blend: out, color, the halves, emission and clipped must share"):
+        noise_blend(a, a, a, a, clipped=a[:, :4])
+    with pytest.raises(ValueError, match="firefly clip: color, the halves and emission must share"):
+        firefly_clip(a, a, a[:4])

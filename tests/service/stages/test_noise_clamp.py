@@ -293,7 +293,7 @@ def test_the_band_reaches_the_inputs_firefly_clip():
     clipped, admitted = firefly_clip(color, a, b)
     np.testing.assert_array_equal(admitted, np.zeros_like(a))  # clipped to its neighbours' range; the rest as given
     np.testing.assert_array_equal(noise_clamp(out, color, a, b, admitted=admitted), out)
-    a[4, 4], b[4, 4] = 1015.0, 1050.0  # a glint both samples saw: halves 3% apart, the clip 60 spreads away
+    a[4, 4], b[4, 4] = 1015.0, 1050.0  # a glint both samples saw: its clip (0) lies 1032 away, 59 of its spreads
     color = np.float32(0.5) * (a + b)
     admitted = firefly_clip(color, a, b)[1]
     np.testing.assert_array_equal(admitted[4, 4], color[4, 4])  # not admitted: the band alone holds
