@@ -5,7 +5,10 @@ Passes per frame (all with a box pixel filter):
    means of the first and second half are `colorA`/`colorB`, and the per-sample Box-Cox statistics
    give `sampleCount`/`bcMean`/`bcM2`/`bcM3` (service.stages.sample_statistics).
 2. reference: `ref_spp` samples of the same path tracer, other seeds, in chunks.
-3. emission: the path tracer at max_depth 1 (directly seen emitters and environment only), stratified.
+3. emission: the path tracer at max_depth 1 (directly seen emitters and environment only), stratified,
+   `emission_spp` = 256 samples so that the layer is as noise-free as FRAME_FORMAT.md says: where a small
+   emitter covers part of a pixel, one stratum of 16 samples put 1/16 of the emitter's radiance (167 of
+   2667 on `fireflies`) into a pixel whose reference held 1.5, and pipelines take the layer as exact.
 4. G-buffer, anti-aliased: `albedo` and `normal` averaged over `gbuffer_spp` jittered samples (the
    normal renormalised; zero where no sample hit anything). The albedo comes from the scene with every
    BSDF replaced by a diffuse one of the shape's albedo (description.Shape.albedo), which keeps it in
@@ -44,7 +47,7 @@ class RenderOptions:
     ref_spp: int  # samples per pixel of the reference
     seed: int = 0  # noise seed and scene variation seed (scenes.variation)
     gbuffer_spp: int = 16  # jittered samples averaged for albedo and normal
-    emission_spp: int = 16  # stratified samples of the max-depth-1 emission pass (a square number)
+    emission_spp: int = 256  # stratified samples of the max-depth-1 emission pass (a square number)
     ao_spp: int = 64  # ambient-occlusion rays per pixel (binary visibility each: 64 keeps the layer smooth)
     max_depth: int | None = None  # path length limit; None: the scene's
 
@@ -146,15 +149,22 @@ def _radiance_layers(mi: ModuleType, spec: SceneSpec, state: SceneState, frame: 
     samples = np.stack([_render(mi, path, 1, seed_for(opts.seed, frame, STREAM_NOISE, k))[..., :3]
                         for k in range(opts.spp)])
     half = opts.spp // 2
-    emission = build_scene(state, w, h, {"type": "path", "max_depth": 1}, {"type": "stratified", "jitter": True})
     return {
         "color": samples.mean(axis=0),
         "colorA": samples[:half].mean(axis=0),
         "colorB": samples[half:].mean(axis=0),
         **statistics_from_samples(samples),
         "reference": _reference(mi, path, opts, frame),
-        "emission": _render(mi, emission, opts.emission_spp, seed_for(opts.seed, frame, STREAM_EMISSION))[..., :3],
+        "emission": render_emission(mi, state, w, h, opts.emission_spp, seed_for(opts.seed, frame, STREAM_EMISSION)),
     }
+
+
+def render_emission(mi: ModuleType, state: SceneState, width: int, height: int, spp: int, seed: int) -> np.ndarray:
+    """Pass 3: (H, W, 3) float32 radiance of directly seen emitters and environment, `spp` stratified samples."""
+    from models.data.mitsuba_scene import build_scene
+
+    scene = build_scene(state, width, height, {"type": "path", "max_depth": 1}, {"type": "stratified", "jitter": True})
+    return _render(mi, scene, spp, seed)[..., :3]
 
 
 def _surface_layers(mi: ModuleType, spec: SceneSpec, state: SceneState, frame: int,
