@@ -4,11 +4,13 @@ Passes per frame (all with a box pixel filter):
 1. noise: `spp` independent 1-spp path-tracing passes (different seeds). Their mean is `color`, the
    means of the first and second half are `colorA`/`colorB`, and the per-sample Box-Cox statistics
    give `sampleCount`/`bcMean`/`bcM2`/`bcM3` (service.stages.sample_statistics).
-2. reference: `ref_spp` samples of the same path tracer, other seeds, in chunks.
-3. emission: the path tracer at max_depth 1 (directly seen emitters and environment only), stratified,
-   `emission_spp` = 256 samples so that the layer is as noise-free as FRAME_FORMAT.md says: where a small
-   emitter covers part of a pixel, one stratum of 16 samples put 1/16 of the emitter's radiance (167 of
-   2667 on `fireflies`) into a pixel whose reference held 1.5, and pipelines take the layer as exact.
+2. emission: the path tracer at max_depth 1 (directly seen emitters and environment only), stratified,
+   `emission_spp` = 1024 samples, so that the layer is as noise-free as FRAME_FORMAT.md says. Where a small
+   light covers part of a pixel, one stratum of 16 samples put 167 (1/16 of the light's 2667) into a pixel
+   whose reference held 1.5 (`fireflies`), and pipelines take the layer as exact.
+3. reference: `ref_spp` samples of the same path tracer with directly seen emitters hidden, other seeds,
+   in chunks, plus the emission layer: the reference's directly seen emission is the layer itself, not a
+   second estimate whose sampling noise at the edges of small lights the benchmark would score.
 4. G-buffer, anti-aliased: `albedo` and `normal` averaged over `gbuffer_spp` jittered samples (the
    normal renormalised; zero where no sample hit anything). The albedo comes from the scene with every
    BSDF replaced by a diffuse one of the shape's albedo (description.Shape.albedo), which keeps it in
@@ -21,6 +23,7 @@ Passes per frame (all with a box pixel filter):
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from types import ModuleType
@@ -47,7 +50,7 @@ class RenderOptions:
     ref_spp: int  # samples per pixel of the reference
     seed: int = 0  # noise seed and scene variation seed (scenes.variation)
     gbuffer_spp: int = 16  # jittered samples averaged for albedo and normal
-    emission_spp: int = 256  # stratified samples of the max-depth-1 emission pass (a square number)
+    emission_spp: int = 1024  # stratified samples of the max-depth-1 emission pass (a square number)
     ao_spp: int = 64  # ambient-occlusion rays per pixel (binary visibility each: 64 keeps the layer smooth)
     max_depth: int | None = None  # path length limit; None: the scene's
 
@@ -140,31 +143,35 @@ def render_frame(mi: ModuleType, spec: SceneSpec, frame: int, opts: RenderOption
 
 def _radiance_layers(mi: ModuleType, spec: SceneSpec, state: SceneState, frame: int,
                      opts: RenderOptions) -> dict[str, np.ndarray]:
-    """Passes 1-3: color, colorA, colorB, the sample statistics, reference and emission ((H, W, C) float32)."""
+    """Passes 1-3: color, colorA, colorB, the sample statistics, emission and reference ((H, W, C) float32)."""
     from models.data.mitsuba_scene import build_scene
 
     w, h = opts.width, opts.height
-    path = build_scene(state, w, h, {"type": "path", "max_depth": opts.max_depth or spec.max_depth},
-                       _independent())
+    depth = opts.max_depth or spec.max_depth
+    path = build_scene(state, w, h, {"type": "path", "max_depth": depth}, _independent())
     samples = np.stack([_render(mi, path, 1, seed_for(opts.seed, frame, STREAM_NOISE, k))[..., :3]
                         for k in range(opts.spp)])
     half = opts.spp // 2
+    emission = render_emission(mi, state, opts, frame)
+    hidden = build_scene(state, w, h, {"type": "path", "max_depth": depth, "hide_emitters": True}, _independent())
     return {
         "color": samples.mean(axis=0),
         "colorA": samples[:half].mean(axis=0),
         "colorB": samples[half:].mean(axis=0),
         **statistics_from_samples(samples),
-        "reference": _reference(mi, path, opts, frame),
-        "emission": render_emission(mi, state, w, h, opts.emission_spp, seed_for(opts.seed, frame, STREAM_EMISSION)),
+        "emission": emission,
+        "reference": mean_of_calls(mi, hidden, opts.ref_spp, opts, frame, STREAM_REFERENCE) + emission,
     }
 
 
-def render_emission(mi: ModuleType, state: SceneState, width: int, height: int, spp: int, seed: int) -> np.ndarray:
-    """Pass 3: (H, W, 3) float32 radiance of directly seen emitters and environment, `spp` stratified samples."""
+def render_emission(mi: ModuleType, state: SceneState, opts: RenderOptions, frame: int) -> np.ndarray:
+    """Pass 2: (H, W, 3) float32 radiance of directly seen emitters and environment, `opts.emission_spp`
+    stratified samples."""
     from models.data.mitsuba_scene import build_scene
 
-    scene = build_scene(state, width, height, {"type": "path", "max_depth": 1}, {"type": "stratified", "jitter": True})
-    return _render(mi, scene, spp, seed)[..., :3]
+    scene = build_scene(state, opts.width, opts.height, {"type": "path", "max_depth": 1},
+                        {"type": "stratified", "jitter": True})
+    return mean_of_calls(mi, scene, opts.emission_spp, opts, frame, STREAM_EMISSION, square=True)
 
 
 def _surface_layers(mi: ModuleType, spec: SceneSpec, state: SceneState, frame: int,
@@ -184,17 +191,22 @@ def _surface_layers(mi: ModuleType, spec: SceneSpec, state: SceneState, frame: i
     }
 
 
-def _reference(mi: ModuleType, scene, opts: RenderOptions, frame: int) -> np.ndarray:
-    """(H, W, 3) float32 mean of `ref_spp` samples, rendered in calls of at most MAX_LANES_PER_CALL lanes."""
-    per_call = max(1, min(opts.ref_spp, MAX_LANES_PER_CALL // (opts.width * opts.height)))
+def mean_of_calls(mi: ModuleType, scene, spp: int, opts: RenderOptions, frame: int, stream: int, *,
+                  square: bool = False) -> np.ndarray:
+    """(H, W, 3) float32 mean of `spp` samples of `scene`, rendered in calls of at most MAX_LANES_PER_CALL
+    lanes, each seeded by (opts.seed, frame, stream, call). `square`: calls of a square sample count (a
+    stratified sampler's)."""
+    per_call = max(1, min(spp, MAX_LANES_PER_CALL // (opts.width * opts.height)))
+    if square:
+        per_call = math.isqrt(per_call) ** 2
     total = np.zeros((opts.height, opts.width, 3), np.float64)
     done, call = 0, 0
-    while done < opts.ref_spp:
-        n = min(per_call, opts.ref_spp - done)
-        total += n * _render(mi, scene, n, seed_for(opts.seed, frame, STREAM_REFERENCE, call))[..., :3]
+    while done < spp:
+        n = min(per_call, spp - done)
+        total += n * _render(mi, scene, n, seed_for(opts.seed, frame, stream, call))[..., :3]
         done += n
         call += 1
-    return (total / opts.ref_spp).astype(np.float32)
+    return (total / spp).astype(np.float32)
 
 
 def _unit_or_zero(normal: np.ndarray) -> np.ndarray:
