@@ -26,7 +26,7 @@ import numpy as np
 from service import pipelines
 from service.cli.sequence_args import parse_options
 from service.frame import Frame
-from service.pipelines.base import Pipeline, SequenceState
+from service.pipelines.base import Pipeline, SequenceState, Split
 from service.pipelines.options import build as build_options
 
 ANCHORS = ("noisy", "oidn-high", "oidn-fast")
@@ -39,7 +39,12 @@ class NoisyAnchor(Pipeline):
     guards = False
     summary = "the noisy input itself (anchor)"
     requires = ("color",)
-    optional = ("emission",)
+
+    def denoise_split(self, frame: Frame, state: SequenceState) -> Split:
+        """No emission split: at an emitter's edge the split clips the remainder (service/stages/emission.py),
+        and the anchor is the input as it came."""
+        buffers, state = self.denoise(frame, state)
+        return buffers, set(), state
 
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
         return {"color": frame["color"].copy()}, state

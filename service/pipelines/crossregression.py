@@ -2,8 +2,7 @@
 
 Stages: cross-regression of the two half buffers in log space (service/stages/cross_regression.py)
 -> the two pilot estimates back to linear radiance -> their mean -> clipped to the noisy frame's range
-over the regression window (the last three in one pass, `cross_regression_radiance`), the emission taken
-out in the packing pass and added back in the last one (`denoise_split`). No network, no
+over the regression window (the last three in one pass, `cross_regression_radiance`). No network, no
 temporal filter: the input that the online denoiser (`crossreg`) refines, useful on its own as a fast,
 detail-preserving spatial filter for frames that carry colorA/colorB.
 """
@@ -16,7 +15,7 @@ import numpy as np
 
 from service.frame import Frame
 from service.pipelines import register
-from service.pipelines.base import Pipeline, SequenceState, Split
+from service.pipelines.base import Pipeline, SequenceState
 from service.pipelines.options import MAX_SPARSITY, MAX_WINDOW, check_sparsity, option
 from service.stages.cross_regression import CrossRegressionParams, cross_regression_radiance
 from service.stages.outliers import FIREFLY_K
@@ -45,20 +44,11 @@ class CrossRegressionPipeline(Pipeline):
     optional = ("emission",)
     Options = CrossRegressionOptions
 
-    def denoise_split(self, frame: Frame, state: SequenceState) -> Split:
-        """`denoise` itself: the emission's split is fused into its packing and last pass (the same values as
-        the base class's, without its full-frame passes), and its `color` is finite (FloatingPointError
-        otherwise)."""
-        buffers, state = self.denoise(frame, state)
-        return buffers, {"color"}, state
-
     def denoise(self, frame: Frame, state: SequenceState) -> tuple[dict[str, np.ndarray], SequenceState]:
-        """Unlike other pipelines' `denoise`, takes the frame with its emission (`denoise_split`)."""
         opt = self.options
         params = CrossRegressionParams(opt.window, opt.sparsity, opt.firefly_k)
         # the pilots' mean in linear radiance, clipped to the noisy range over the window (no extrapolated energy)
         color = cross_regression_radiance(
-            frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], frame["color"], params,
-            frame.get("emission"),
+            frame["colorA"], frame["colorB"], frame["albedo"], frame["normal"], frame["color"], params
         )
         return {"color": color}, state

@@ -35,7 +35,7 @@ from service.regression.planes import from_planes, interleave_row, neighbour_mea
 from service.regression.solve import RIDGE_ABSOLUTE, RIDGE_RELATIVE
 from service.regression.terms import BlockParams, PairTerms
 from service.stages.cross_block import empty_planes, pack_row, regress_packed, regress_sums
-from service.stages.emission import add_row, nonfinite, subtract_emission, subtract_row
+from service.stages.emission import nonfinite
 from service.stages.outliers import FIREFLY_K, check_firefly_k, clamp_fireflies_reference
 from service.stages.range_clamp import emit_range_row, range_scratch, window_range
 
@@ -330,77 +330,61 @@ def pack_buffers(
     normal: np.ndarray,
     firefly_k: float | None,
     params: BlockParams,
-    emission: np.ndarray | None = None,
 ) -> np.ndarray:
     """Both buffers' phase planes for `cross_block.regress_packed`, straight from the radiance, in one numba
-    pass: each buffer less the emission (when given), in log space (3x3 firefly clamp with k = firefly_k,
+    pass: each buffer in log space (3x3 firefly clamp with k = firefly_k,
     None: off; signed log1p, musl's log1pf, within 1 ulp of log1p), its 3x3 variance, and the G-buffers,
     packed.
 
     color_a, color_b: (H, W, 3) float32 linear HDR radiance (any sign, finite); albedo, normal: (H, W, 3)
-    float32 frame layers; params: the block regression's geometry; emission: None or (H, W, 3) float32, the
-    emitted radiance (`Pipeline.step`'s split, fused: the same values as packing color_a - emission and
-    color_b - emission). Returns (S, PLANES, H, L) float32 (the layout of `cross_block.pack_cross_reference`).
-    The numpy twin is the chain `log_planes_reference`, `pixel_variance_reference`, `pack_cross_reference`.
+    float32 frame layers; params: the block regression's geometry. Returns (S, PLANES, H, L) float32 (the
+    layout of `cross_block.pack_cross_reference`). The numpy twin is the chain `log_planes_reference`,
+    `pixel_variance_reference`, `pack_cross_reference`.
     """
-    named = {"color_a": color_a, "color_b": color_b, "albedo": albedo, "normal": normal, "emission": emission}
-    shapes = {name: x.shape for name, x in named.items() if x is not None}
+    named = {"color_a": color_a, "color_b": color_b, "albedo": albedo, "normal": normal}
+    shapes = {name: x.shape for name, x in named.items()}
     if len(set(shapes.values())) != 1 or len(shapes["color_a"]) != 3 or shapes["color_a"][2] != 3:
         raise ValueError(f"pack_buffers: expected (H, W, 3) layers of one shape, got {shapes}")
     height, width = shapes["color_a"][:2]
     out = empty_planes(height, width, params)
     f32 = [np.ascontiguousarray(x, dtype=np.float32) for x in (color_a, color_b, albedo, normal)]
-    split = emission is not None
-    emitted = np.ascontiguousarray(emission, dtype=np.float32) if split else f32[0]  # f32[0]: unread
     rows = rows_per_thread(height)  # the fewest logs taken twice
     k = np.float32(1.0 if firefly_k is None else firefly_k)  # unused when the clamp is off
-    _pack_buffers_kernel(*f32, emitted, split, k, firefly_k is not None, rows, pad_lanes(params), out)
+    _pack_buffers_kernel(*f32, k, firefly_k is not None, rows, pad_lanes(params), out)
     return out
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _pack_buffers_kernel(
-    color_a, color_b, albedo, normal, emission, split, k, clamp, rows, pad, out
+    color_a, color_b, albedo, normal, k, clamp, rows, pad, out
 ):  # pragma: no cover - jitted
     """color_a, color_b, albedo, normal (H, W, 3) -> out, a task per `rows` consecutive frame rows
     (`_pack_rows`)."""
     height, width = albedo.shape[:2]
     n = 3 * width
     flat_a, flat_b = color_a.reshape(height, n), color_b.reshape(height, n)
-    albedo, normal, emitted = albedo.reshape(height, n), normal.reshape(height, n), emission.reshape(height, n)
+    albedo, normal = albedo.reshape(height, n), normal.reshape(height, n)
     for task in numba.prange(-(-height // rows)):
-        _pack_rows(flat_a, flat_b, albedo, normal, emitted, split, k, clamp, task * rows,
+        _pack_rows(flat_a, flat_b, albedo, normal, k, clamp, task * rows,
                    min(height, task * rows + rows), pad, out)  # fmt: skip
 
 
 @numba.njit(error_model="numpy")
-def _pack_rows(flat_a, flat_b, albedo, normal, emitted, split, k, clamp, first, last, pad, out):  # pragma: no cover
+def _pack_rows(flat_a, flat_b, albedo, normal, k, clamp, first, last, pad, out):  # pragma: no cover
     """Frame rows first ... last - 1 of `_pack_buffers_kernel` (the layers as (H, 3 W) rows). Each buffer's
     log rows y - 1, y, y + 1 (`_log_row`) are kept in a ring of three, frame row yy in slot yy % 3, the
     variance of row y formed from it (`_variance_row`) and the row packed (`cross_block.pack_row`); the logs
-    of the row before `first` and after `last` are taken by the neighbouring task as well. When `split`,
-    the logs read each buffer less emitted (H, 3 W) from a ring of the three rows around the row taken,
-    frame row yy in slot yy % 3, each row subtracted once (`emission.subtract_row`). A function of its own,
+    of the row before `first` and after `last` are taken by the neighbouring task as well. A function of its own,
     not the parallel loop's body: numba's parallel passes cost time superlinear in the size of that body."""
     height, n = flat_a.shape
     width = n // 3
     ring_a, ring_b = np.empty((3, 3, width), np.float32), np.empty((3, 3, width), np.float32)
     var_a, var_b = np.empty(width, np.float32), np.empty(width, np.float32)
     sums_a, sums_b = np.zeros((3, 4, width), np.float32), np.zeros((3, 4, width), np.float32)  # `_row_sums`
-    less_a, less_b = np.empty((3, n), np.float32), np.empty((3, n), np.float32)
-    taken = max(first - 2, 0)  # frame rows taken less the emission so far end here
     for after in range(max(first - 1, 0), last + 1):  # row after = y + 1 is taken, then row y is packed
         r = min(after, height - 1)  # the last row twice, not under an `if` (which stopped the vectorising)
-        if split:  # two calls in two branches: `src = less_a if split else flat_a` kept the logs scalar (2x)
-            for yy in range(taken, min(r + 2, height)):
-                subtract_row(flat_a[yy], emitted[yy], less_a[yy % 3])
-                subtract_row(flat_b[yy], emitted[yy], less_b[yy % 3])
-            taken = max(taken, min(r + 2, height))
-            _log_row(less_a, 3, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
-            _log_row(less_b, 3, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
-        else:
-            _log_row(flat_a, height, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
-            _log_row(flat_b, height, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
+        _log_row(flat_a, height, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
+        _log_row(flat_b, height, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
         _row_sums(ring_a, r, sums_a)
         _row_sums(ring_b, r, sums_b)
         y = after - 1
@@ -417,57 +401,50 @@ def cross_regression_radiance(
     normal: np.ndarray,
     noisy: np.ndarray,
     params: CrossRegressionParams | None = None,
-    emission: np.ndarray | None = None,
 ) -> np.ndarray:
     """The pipeline `crossregression`'s image: the two pilots of `cross_regression` (same arguments), their
     mean in linear radiance (`pilots_to_radiance`), clipped per pixel and channel to the range of `noisy`
     over the regression window (`range_clamp.clamp_to_local_range`, radius window // 2: no energy that
     the input cannot explain). The last three steps run as one numba pass over the regression's sums.
 
-    noisy: (H, W, 3) float32 the frame's radiance (the two halves' mean). emission: None or (H, W, 3)
-    float32, the emitted radiance: taken out of the halves and of noisy first and added back to the result
-    (`Pipeline.step`'s split, fused into the packing and the last pass; the same values). Returns (H, W, 3)
-    float32 linear HDR radiance, the same values as that chain of the separate functions, finite:
-    FloatingPointError otherwise (adding the emission back can overflow float32)."""
+    noisy: (H, W, 3) float32 the frame's radiance (the two halves' mean). Returns (H, W, 3) float32 linear
+    HDR radiance, the same values as that chain of the separate functions, finite: FloatingPointError
+    otherwise."""
     params = params or CrossRegressionParams()
     noisy = np.ascontiguousarray(noisy, dtype=np.float32)
     if noisy.shape != np.shape(color_a):
         raise ValueError(f"cross_regression_radiance: noisy {noisy.shape} != the halves {np.shape(color_a)}")
     block = params.block()
-    planes = pack_buffers(color_a, color_b, albedo, normal, params.firefly_k, block, emission)
+    planes = pack_buffers(color_a, color_b, albedo, normal, params.firefly_k, block)
     num, den = regress_sums(planes, noisy.shape[1], block)
-    split = emission is not None
-    base = subtract_emission([noisy], emission)[0] if split else noisy  # the range is taken less the emission
-    emitted = np.ascontiguousarray(emission, np.float32) if split else noisy  # noisy: unread
     out = np.empty(noisy.shape, np.float32)
-    bad = _finish_kernel(num, den, pad_lanes(block), base, emitted, split, params.window // 2,
-                         rows_per_thread(noisy.shape[0]), out)  # fmt: skip
+    bad = _finish_kernel(num, den, pad_lanes(block), noisy, params.window // 2, rows_per_thread(noisy.shape[0]), out)
     if bad:
         raise FloatingPointError(f"cross_regression_radiance: {bad} non-finite values in the result")
     return out
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _finish_kernel(num, den, pad, noisy, emission, split, radius, rows_per_task, out):  # pragma: no cover - jitted
+def _finish_kernel(num, den, pad, noisy, radius, rows_per_task, out):  # pragma: no cover - jitted
     """The sums num (2, S, 3, H, L'), den (2, S, H, L') of `cross_block.regress_sums` -> out (H, W, 3), a band
     of rows_per_task rows per task (`_finish_rows`). Returns the count of non-finite values written."""
     height = noisy.shape[0]
     bad = 0
     for task in numba.prange(-(-height // rows_per_task)):
-        bad += _finish_rows(num, den, pad, noisy, emission, split, radius, task * rows_per_task,
+        bad += _finish_rows(num, den, pad, noisy, radius, task * rows_per_task,
                             min(height, task * rows_per_task + rows_per_task), out)  # fmt: skip
     return bad
 
 
 @numba.njit(error_model="numpy")
-def _finish_rows(num, den, pad, noisy, emission, split, radius, y0, y1, out):  # pragma: no cover - jitted
+def _finish_rows(num, den, pad, noisy, radius, y0, y1, out):  # pragma: no cover - jitted
     """Rows y0 ... y1 - 1 of `_finish_kernel`: per row, both pilots (`normalise_row`), their `_linear_mean`,
-    interleaved, clipped to the window range of noisy (H, W, 3) (`window_range`), plus emission (H, W, 3)
-    when `split`. Returns the count of non-finite values written (`emission.nonfinite`). A function of its
-    own, not the parallel loop's body (see `_pack_rows`)."""
+    interleaved, clipped to the window range of noisy (H, W, 3) (`window_range`). Returns the count of
+    non-finite values written (`emission.nonfinite`). A function of its own, not the parallel loop's body
+    (see `_pack_rows`)."""
     height, width, channels = noisy.shape
     n = width * channels
-    flat, emitted = noisy.reshape(height, n), emission.reshape(height, n)
+    flat = noisy.reshape(height, n)
     bad = 0
     scans, rows = range_scratch(radius, width, channels)
     inv = np.empty((num.shape[1], num.shape[4]), np.float32)
@@ -485,11 +462,8 @@ def _finish_rows(num, den, pad, noisy, emission, split, radius, y0, y1, out):  #
         else:
             emit_range_row(rows[0], rows[1], mean, True, out[y], out[y])
         dst = out[y].reshape(n)
-        if split:
-            bad += add_row(dst, emitted[y], dst)
-        else:
-            for j in range(n):
-                bad += nonfinite(dst[j])
+        for j in range(n):
+            bad += nonfinite(dst[j])
     return bad
 
 

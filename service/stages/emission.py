@@ -4,9 +4,17 @@ Denoisers filter the radiance without its emitted part (`emission`, exact and no
 sends it) and add it back after; the step then checks that the result is finite. As numpy expressions
 the subtraction would be one single-threaded full-frame pass per radiance layer, and the sum and the check
 two more; here the subtraction from all layers is one parallel pass that reads the emission once (the
-pass is memory-bound), and the sum and the check another. A pipeline that reads its radiance layers
-in passes of its own can fuse the split into them instead (overriding `Pipeline.denoise_split`;
-`crossregression` subtracts row by row with `subtract_row` and adds back with `add_row`).
+pass is memory-bound), and the sum and the check another.
+
+Where a small emitter covers part of a pixel, the emission layer holds the covered part exactly but the
+colour holds the input's few samples of that coverage: the pixel's remainder (colour - emission) is the
+coverage's noise, +-L/spp for a light of radiance L (at 4 spp beside a light of 2667: -444 and +600 where the
+reference's remainder is 1.9), and every filter spread it into the neighbours. At a pixel with emission the
+remainder of each layer is therefore clipped, per channel, to [min(0, lo), hi], lo and hi the layer's own
+range over its 8 neighbours without emission (their remainder is the layer itself); a pixel with no such
+neighbour (inside a light or a sky) keeps it. Cost on ordinary frames: none (no pixel has emission); on
+`make bench`'s `fireflies` and data/val's `veiled_light` every pipeline's relL2 fell (docs/benchmarks.md,
+"The remainder at an emitter's edge").
 """
 
 from __future__ import annotations
@@ -20,10 +28,12 @@ MAX_LAYERS = 3  # radiance layers one `subtract_emission` pass takes (frame.RADI
 
 
 def subtract_emission(layers: list[np.ndarray], emission: np.ndarray) -> list[np.ndarray]:
-    """[layer - emission for layer in layers], 1 to MAX_LAYERS layers in one parallel pass.
+    """[layer - emission for layer in layers], clipped at pixels with emission to the layer's range over their
+    neighbours without emission (the module's docstring), 1 to MAX_LAYERS layers in one parallel pass.
 
-    layers, emission: (H, W, 3) float32 (any other layout or float dtype is converted first). Returns new
-    C-contiguous float32 arrays of that shape, in the order of `layers`."""
+    layers, emission: (H, W, 3) float32 radiance (any other layout or float dtype is converted first); a
+    pixel has emission where any channel of `emission` is not 0. Returns new C-contiguous float32 arrays of
+    that shape, in the order of `layers`. The numpy twin is `subtract_emission_reference`."""
     if not 1 <= len(layers) <= MAX_LAYERS:
         raise ValueError(f"emission: takes 1 to {MAX_LAYERS} layers, got {len(layers)}")
     emission = np.ascontiguousarray(emission, np.float32)
@@ -31,25 +41,77 @@ def subtract_emission(layers: list[np.ndarray], emission: np.ndarray) -> list[np
     for layer in layers:
         if layer.shape != emission.shape:
             raise ValueError(f"emission: a radiance layer {layer.shape} does not match the emission {emission.shape}")
-    rows = emission.shape[0] if emission.ndim > 1 else 1
-    flat = [x.reshape(rows, -1) for x in layers]
+    if emission.ndim != 3 or emission.shape[2] != 3:
+        raise ValueError(f"emission: expected (H, W, 3) layers, got {emission.shape}")
     out = np.empty((len(layers), *emission.shape), np.float32)
-    sources = flat + [flat[0]] * (MAX_LAYERS - len(flat))  # unread beyond len(layers)
-    _subtract_kernel(*sources, len(layers), emission.reshape(rows, -1), out.reshape(len(layers), rows, -1))
+    sources = layers + [layers[0]] * (MAX_LAYERS - len(layers))  # unread beyond len(layers)
+    _subtract_kernel(*sources, len(layers), emission, out)
     return list(out)
+
+
+def subtract_emission_reference(layers: list[np.ndarray], emission: np.ndarray) -> list[np.ndarray]:
+    """Plain-numpy twin of `subtract_emission` (same arguments and result)."""
+    emission = np.asarray(emission, np.float32)
+    h, w = emission.shape[:2]
+    emitting = np.any(emission != 0, axis=-1)
+    out = []
+    for layer in layers:
+        layer = np.asarray(layer, np.float32)
+        less = layer - emission
+        lo = np.full(layer.shape, np.inf, np.float32)
+        hi = np.full(layer.shape, -np.inf, np.float32)
+        padded = np.pad(layer, ((1, 1), (1, 1), (0, 0)))
+        dark = np.pad(~emitting, 1)  # neighbours without emission; outside the frame: none
+        for dy in range(3):
+            for dx in range(3):
+                if dy == dx == 1:
+                    continue
+                take = dark[dy:dy + h, dx:dx + w, None]
+                value = padded[dy:dy + h, dx:dx + w]
+                lo = np.where(take, np.minimum(lo, value), lo)
+                hi = np.where(take, np.maximum(hi, value), hi)
+        clip = emitting[..., None] & (hi >= lo)
+        out.append(np.where(clip, np.clip(less, np.minimum(lo, 0), hi), less).astype(np.float32))
+    return out
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _subtract_kernel(a, b, c, count, emission, out):  # pragma: no cover - jitted
-    """out[k] = (a, b, c)[k] - emission for k < count; all (H, N) float32 rows, out (count, H, N); a task per
-    row, each emission row read once for every layer."""
-    for y in numba.prange(emission.shape[0]):
-        e = emission[y]
-        subtract_row(a[y], e, out[0, y])
+    """out[k] = (a, b, c)[k] - emission for k < count, clipped at pixels with emission (`_clip_row`); all
+    (H, W, 3) float32, out (count, H, W, 3); a task per row, each emission row read once for every layer."""
+    height, width = emission.shape[:2]
+    for y in numba.prange(height):
+        e = emission[y].reshape(3 * width)
+        subtract_row(a[y].reshape(3 * width), e, out[0, y].reshape(3 * width))
         if count > 1:
-            subtract_row(b[y], e, out[1, y])
+            subtract_row(b[y].reshape(3 * width), e, out[1, y].reshape(3 * width))
         if count > 2:
-            subtract_row(c[y], e, out[2, y])
+            subtract_row(c[y].reshape(3 * width), e, out[2, y].reshape(3 * width))
+        for x in range(width):
+            if emission[y, x, 0] != 0 or emission[y, x, 1] != 0 or emission[y, x, 2] != 0:
+                _clip_pixel(a, emission, y, x, out[0, y, x])
+                if count > 1:
+                    _clip_pixel(b, emission, y, x, out[1, y, x])
+                if count > 2:
+                    _clip_pixel(c, emission, y, x, out[2, y, x])
+
+
+@numba.njit(inline="always")
+def _clip_pixel(layer, emission, y, x, dst):  # pragma: no cover - jitted
+    """dst (3,) float32, pixel (y, x)'s remainder, clipped per channel to [min(0, lo), hi] of `layer` (H, W, 3)
+    over the pixel's 8 neighbours whose `emission` is 0 in every channel; unchanged when there is none."""
+    height, width = emission.shape[:2]
+    for ch in range(3):
+        lo, hi = np.float32(np.inf), np.float32(-np.inf)
+        for yy in range(max(y - 1, 0), min(y + 2, height)):
+            for xx in range(max(x - 1, 0), min(x + 2, width)):
+                if (yy != y or xx != x) and emission[yy, xx, 0] == 0 and emission[yy, xx, 1] == 0 \
+                        and emission[yy, xx, 2] == 0:
+                    v = layer[yy, xx, ch]
+                    lo = min(lo, v)
+                    hi = max(hi, v)
+        if hi >= lo:
+            dst[ch] = min(max(dst[ch], min(lo, np.float32(0))), hi)
 
 
 @numba.njit(inline="always")

@@ -135,6 +135,19 @@ def test_guards_clip_to_the_noise_and_anchors_run_without_them(tiny_layers):
     np.testing.assert_array_equal(clipped["color"][LIGHT], frame["color"][LIGHT])
 
 
+def test_the_noisy_anchor_is_the_input_even_at_an_emitters_edge(tiny_layers):
+    """The emission split clips the remainder at a pixel with emission whose colour missed the light; the
+    anchor takes no split."""
+    frame = _with_light(tiny_layers[0])
+    emission = np.zeros_like(frame["color"])
+    emission[LIGHT] = 1000.0
+    emission[9, 19] = 300.0  # a light's edge the colour's samples missed
+    frame = frame.replace(emission=emission)
+    noisy = anchor_method("noisy").make()
+    out, _ = noisy.step(frame, noisy.start(24, 40))
+    np.testing.assert_array_equal(out["color"], frame["color"])
+
+
 @pytest.mark.parametrize("value", [np.inf, -np.inf, np.nan])
 def test_a_non_finite_output_is_caught_before_the_clamp(value, tiny_layers):
     class Infinite(_Brighter):

@@ -177,33 +177,11 @@ def _pack_inputs(size):
     return _radiance(*size, rng), _radiance(*size, rng), *_gbuffers(*size, rng)
 
 
-def _emission(height, width, rng):
-    """Emitters seen directly on ~30% of the pixels, 0 elsewhere: (H, W, 3) float32 up to 50, more than most
-    radiance (the halves less the emission go negative)."""
-    return np.where(rng.random((height, width, 1)) < 0.3, rng.uniform(0.0, 50.0, (height, width, 3)), 0.0).astype(
-        np.float32
-    )
-
-
-@pytest.mark.parametrize("firefly_k", [FIREFLY_K, None])
-@pytest.mark.parametrize("size", PACK_SIZES)
-def test_pack_buffers_takes_the_emission_out_of_both_halves(size, firefly_k):
-    """Packing with the emission is packing the halves less the emission, bit for bit (the pipeline step's
-    split, fused: the same float32 subtraction, row by row)."""
-    color_a, color_b, albedo, normal = _pack_inputs(size)
-    emission = _emission(*size, np.random.default_rng(12))
-    fused = pack_buffers(color_a, color_b, albedo, normal, firefly_k, BlockParams(), emission)
-    split = pack_buffers(color_a - emission, color_b - emission, albedo, normal, firefly_k, BlockParams())
-    np.testing.assert_array_equal(fused, split)
-
-
 def test_pack_buffers_refuses_layers_of_other_shapes():
     color = np.ones((4, 6, 3), np.float32)
     shapes = r"pack_buffers: expected \(H, W, 3\) layers of one shape, got .*'color_b': \(4, 5, 3\)"
     with pytest.raises(ValueError, match=shapes):
         pack_buffers(color, color[:, :5], color, color, FIREFLY_K, BlockParams())
-    with pytest.raises(ValueError, match=r"pack_buffers: expected .*'emission': \(4, 6, 1\)"):
-        pack_buffers(color, color, color, color, FIREFLY_K, BlockParams(), color[..., :1])
 
 
 @pytest.mark.parametrize("size", PACK_SIZES)
@@ -220,30 +198,6 @@ def test_cross_regression_radiance_is_the_chain_of_its_stages(size, window):
     chain = clamp_to_local_range(pilots_to_radiance(*pilots), noisy, window // 2)
     np.testing.assert_array_equal(fused, chain)  # the same float32 operations, fused
     assert fused.dtype == np.float32 and np.isfinite(fused).all()
-
-
-@pytest.mark.parametrize("size", ODD_SIZES + [(40, 70)])
-def test_cross_regression_radiance_with_emission_is_the_split_chain(size):
-    """With the emission: the result on the halves and noisy less the emission, plus the emission, bit for bit."""
-    rng = np.random.default_rng(13)
-    color_a, color_b = (rng.exponential(1.0, (*size, 3)).astype(np.float32) for _ in range(2))
-    albedo, normal = _gbuffers(*size, rng)
-    emission = _emission(*size, rng)
-    color_a, color_b = color_a + emission, color_b + emission
-    noisy = 0.5 * (color_a + color_b)
-    fused = cross_regression_radiance(color_a, color_b, albedo, normal, noisy, emission=emission)
-    split = cross_regression_radiance(color_a - emission, color_b - emission, albedo, normal, noisy - emission)
-    np.testing.assert_array_equal(fused, split + emission)
-
-
-def test_cross_regression_radiance_refuses_a_result_that_overflows_with_the_emission():
-    """One emitter of 3e38 amid radiance of 3e38: less the emission it is an isolated dark pixel, which the
-    firefly clamp lifts to its neighbours' 3e38, and adding the emission back overflows."""
-    color = np.full((5, 6, 3), 3e38, np.float32)
-    emission = np.zeros_like(color)
-    emission[2, 3] = 3e38
-    with pytest.raises(FloatingPointError, match="cross_regression_radiance: 3 non-finite values in the result"):
-        cross_regression_radiance(color, color, color, color, color, emission=emission)
 
 
 def test_cross_regression_radiance_refuses_a_noisy_frame_of_another_size():
