@@ -45,7 +45,9 @@ def subtract_emission(layers: list[np.ndarray], emission: np.ndarray) -> list[np
         raise ValueError(f"emission: expected (H, W, 3) layers, got {emission.shape}")
     out = np.empty((len(layers), *emission.shape), np.float32)
     sources = layers + [layers[0]] * (MAX_LAYERS - len(layers))  # unread beyond len(layers)
-    _subtract_kernel(*sources, len(layers), emission, out)
+    emitting = np.empty(emission.shape[:2], np.bool_)
+    _emitting_kernel(emission, emitting)
+    _subtract_kernel(*sources, len(layers), emission, emitting, out)
     return list(out)
 
 
@@ -75,11 +77,20 @@ def subtract_emission_reference(layers: list[np.ndarray], emission: np.ndarray) 
     return out
 
 
+@numba.njit(parallel=True, cache=True)
+def _emitting_kernel(emission, emitting):  # pragma: no cover - jitted
+    """emitting (H, W) bool: whether any channel of emission (H, W, 3) float32 is not 0; a task per row."""
+    for y in numba.prange(emission.shape[0]):
+        for x in range(emission.shape[1]):
+            emitting[y, x] = emission[y, x, 0] != 0 or emission[y, x, 1] != 0 or emission[y, x, 2] != 0
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _subtract_kernel(a, b, c, count, emission, out):  # pragma: no cover - jitted
-    """out[k] = (a, b, c)[k] - emission for k < count, clipped at pixels with emission (`_clip_row`); all
-    (H, W, 3) float32, out (count, H, W, 3); a task per row, each emission row read once for every layer."""
-    height, width = emission.shape[:2]
+def _subtract_kernel(a, b, c, count, emission, emitting, out):  # pragma: no cover - jitted
+    """out[k] = (a, b, c)[k] - emission for k < count, clipped at the pixels `emitting` (H, W) bool marks that
+    have a neighbour it does not (`_clip_pixel`); all (H, W, 3) float32, out (count, H, W, 3); a task per row,
+    each emission row read once for every layer."""
+    height, width = emitting.shape
     for y in numba.prange(height):
         e = emission[y].reshape(3 * width)
         subtract_row(a[y].reshape(3 * width), e, out[0, y].reshape(3 * width))
@@ -87,31 +98,37 @@ def _subtract_kernel(a, b, c, count, emission, out):  # pragma: no cover - jitte
             subtract_row(b[y].reshape(3 * width), e, out[1, y].reshape(3 * width))
         if count > 2:
             subtract_row(c[y].reshape(3 * width), e, out[2, y].reshape(3 * width))
+        y0, y1 = max(y - 1, 0), min(y + 2, height)
+        column = np.empty(width, np.bool_)  # every pixel of the column's rows y0 ... y1 - 1 emitting
         for x in range(width):
-            if emission[y, x, 0] != 0 or emission[y, x, 1] != 0 or emission[y, x, 2] != 0:
-                _clip_pixel(a, emission, y, x, out[0, y, x])
+            column[x] = emitting[y0, x] and emitting[y1 - 1, x] and emitting[y, x]
+        for x in range(width):
+            if not emitting[y, x]:
+                continue
+            x0, x1 = max(x - 1, 0), min(x + 2, width)
+            # a neighbour without emission (inside a light or a sky: none, the common case there)
+            if not (column[x0] and column[x] and column[x1 - 1]):
+                _clip_pixel(a, emitting, y0, y1, x0, x1, out[0, y, x])
                 if count > 1:
-                    _clip_pixel(b, emission, y, x, out[1, y, x])
+                    _clip_pixel(b, emitting, y0, y1, x0, x1, out[1, y, x])
                 if count > 2:
-                    _clip_pixel(c, emission, y, x, out[2, y, x])
+                    _clip_pixel(c, emitting, y0, y1, x0, x1, out[2, y, x])
 
 
 @numba.njit(inline="always")
-def _clip_pixel(layer, emission, y, x, dst):  # pragma: no cover - jitted
-    """dst (3,) float32, pixel (y, x)'s remainder, clipped per channel to [min(0, lo), hi] of `layer` (H, W, 3)
-    over the pixel's 8 neighbours whose `emission` is 0 in every channel; unchanged when there is none."""
-    height, width = emission.shape[:2]
+def _clip_pixel(layer, emitting, y0, y1, x0, x1, dst):  # pragma: no cover - jitted
+    """dst (3,) float32, a pixel's remainder, clipped per channel to [min(0, lo), hi] of `layer` (H, W, 3) over
+    the pixels of rows y0 ... y1 - 1 and columns x0 ... x1 - 1 that `emitting` (H, W) bool does not mark (at
+    least one; the pixel itself is marked)."""
     for ch in range(3):
         lo, hi = np.float32(np.inf), np.float32(-np.inf)
-        for yy in range(max(y - 1, 0), min(y + 2, height)):
-            for xx in range(max(x - 1, 0), min(x + 2, width)):
-                if (yy != y or xx != x) and emission[yy, xx, 0] == 0 and emission[yy, xx, 1] == 0 \
-                        and emission[yy, xx, 2] == 0:
+        for yy in range(y0, y1):
+            for xx in range(x0, x1):
+                if not emitting[yy, xx]:
                     v = layer[yy, xx, ch]
                     lo = min(lo, v)
                     hi = max(hi, v)
-        if hi >= lo:
-            dst[ch] = min(max(dst[ch], min(lo, np.float32(0))), hi)
+        dst[ch] = min(max(dst[ch], min(lo, np.float32(0))), hi)
 
 
 @numba.njit(inline="always")
