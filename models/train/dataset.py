@@ -74,8 +74,8 @@ def load_sequence(folder: str | Path) -> Sequence:
         emit = frame.get("emission")
         if emit is None:
             emit = np.zeros((h, w, 3), np.float32)
-        else:  # taken out as Pipeline.denoise_split takes it (subtract_emission: up to 3 layers a pass)
-            split = subtract_emission(split[:3], emit) + subtract_emission(split[3:], emit)
+        else:  # the inputs as Pipeline.denoise_split takes it (its clip at an emitter's edge); the target exact
+            split = subtract_emission(split[:3], emit) + [split[3] - emit]
         noisy.append([_planes(demodulated(x, frame["albedo"])) for x in split[:-1]])
         target.append(_planes(demodulated(split[-1], frame["albedo"])))
         guides.append(guide_planes(frame["normal"], frame["depth"], frame.get("roughness")))
