@@ -77,7 +77,7 @@ def subtract_emission_reference(layers: list[np.ndarray], emission: np.ndarray) 
     return out
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _emitting_kernel(emission, emitting):  # pragma: no cover - jitted
     """emitting (H, W) bool: whether any channel of emission (H, W, 3) float32 is not 0; a task per row."""
     for y in numba.prange(emission.shape[0]):

@@ -106,10 +106,12 @@ def test_emission_split_matches_denoising_the_emission_free_frame(name, tiny_lay
             return weights, (0, 1)
 
         monkeypatch.setattr(tiled, "choose", halves_of_the_first_two)
-    layers = {k: v for k, v in tiny_layers[0].items() if k not in ("reference", "emission")}
+    layers = {k: v.copy() for k, v in tiny_layers[0].items() if k not in ("reference", "emission")}
     height, width = layers["color"].shape[:2]
     emission = np.zeros((height, width, 3), np.float32)
     emission[5:9, 10:16] = 40.0  # an emitter seen directly
+    for k in ("color", "colorA", "colorB"):  # flat around its edge: within the split's clip (test_emission)
+        layers[k][4:10, 9:17] = layers[k][4, 9].copy()
     with_emission = {k: v + emission if k in ("color", "colorA", "colorB") else v for k, v in layers.items()}
     pipeline = pipelines.get(name)
     # a zero emission layer, so that the step treats both frames alike (no exact pixels taken as emission)
