@@ -2,8 +2,8 @@
 
 Anchors are `Pipeline` subclasses that are *not* registered (the service never offers them), so they
 go through the same `Pipeline.step` as the denoisers: the same layer check, the same emission split
-(noise-free emission removed before denoising and added back after) and the same finiteness guard.
-That keeps the comparison about the denoiser alone.
+(noise-free emission removed before denoising and added back after; not for `noisy`, the input as it came)
+and the same finiteness guard. That keeps the comparison about the denoiser alone.
 
 - `noisy`: the input `color` unchanged; the error every denoiser starts from.
 - `oidn-high`, `oidn-fast`: Intel Open Image Denoise 2 (PyPI `pyoidn`), RT filter, HDR, with albedo

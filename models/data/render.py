@@ -4,10 +4,11 @@ Passes per frame (all with a box pixel filter):
 1. noise: `spp` independent 1-spp path-tracing passes (different seeds). Their mean is `color`, the
    means of the first and second half are `colorA`/`colorB`, and the per-sample Box-Cox statistics
    give `sampleCount`/`bcMean`/`bcM2`/`bcM3` (service.stages.sample_statistics).
-2. emission: the path tracer at max_depth 1 (directly seen emitters and environment only), stratified,
-   `emission_spp` = 1024 samples, so that the layer is as noise-free as FRAME_FORMAT.md says. Where a small
-   light covers part of a pixel, one stratum of 16 samples put 167 (1/16 of the light's 2667) into a pixel
-   whose reference held 1.5 (`fireflies`), and pipelines take the layer as exact.
+2. emission: the path tracer at max_depth 1 (directly seen emitters and environment only), stratified
+   within each call of `mean_of_calls`, `emission_spp` = 1024 samples, so that the layer is as noise-free
+   as FRAME_FORMAT.md says. Where a small light covers part of a pixel, one stratum of 16 samples put 167
+   (1/16 of the light's 2667) into a pixel whose reference held 1.5 (`fireflies`), and pipelines take the
+   layer as exact.
 3. reference: `ref_spp` samples of the same path tracer with directly seen emitters hidden, other seeds,
    in chunks, plus the emission layer: the reference's directly seen emission is the layer itself, not a
    second estimate whose sampling noise at the edges of small lights the benchmark would score.
@@ -50,7 +51,7 @@ class RenderOptions:
     ref_spp: int  # samples per pixel of the reference
     seed: int = 0  # noise seed and scene variation seed (scenes.variation)
     gbuffer_spp: int = 16  # jittered samples averaged for albedo and normal
-    emission_spp: int = 1024  # stratified samples of the max-depth-1 emission pass (a square number)
+    emission_spp: int = 1024  # samples of the max-depth-1 emission pass, stratified in square sets (mean_of_calls)
     ao_spp: int = 64  # ambient-occlusion rays per pixel (binary visibility each: 64 keeps the layer smooth)
     max_depth: int | None = None  # path length limit; None: the scene's
 
@@ -194,11 +195,11 @@ def _surface_layers(mi: ModuleType, spec: SceneSpec, state: SceneState, frame: i
 def mean_of_calls(mi: ModuleType, scene, spp: int, opts: RenderOptions, frame: int, stream: int, *,
                   square: bool = False) -> np.ndarray:
     """(H, W, 3) float32 mean of `spp` samples of `scene`, rendered in calls of at most MAX_LANES_PER_CALL
-    lanes, each seeded by (opts.seed, frame, stream, call). `square`: calls of a square sample count (a
-    stratified sampler's)."""
+    lanes, each seeded by (opts.seed, frame, stream, call). `square`: every call takes the largest square
+    sample count that divides `spp` (a stratified sampler's set; the samples are stratified within a call)."""
     per_call = max(1, min(spp, MAX_LANES_PER_CALL // (opts.width * opts.height)))
-    if square:
-        per_call = math.isqrt(per_call) ** 2
+    if square:  # the largest square count that divides spp: every call a whole stratified set
+        per_call = max(k * k for k in range(1, math.isqrt(per_call) + 1) if spp % (k * k) == 0)
     total = np.zeros((opts.height, opts.width, 3), np.float64)
     done, call = 0, 0
     while done < spp:

@@ -32,6 +32,7 @@ from service.metrics import dssim, rel_l2
 from service.pipelines.crossreg import prepare_frame
 from service.process import configure
 from service.stages.cross_regression import cross_regression, pilots_to_radiance
+from service.stages.emission import subtract_emission
 
 log = logging.getLogger("models.train.crossreg_evidence")
 
@@ -47,8 +48,9 @@ def _oidn(frame: Frame) -> np.ndarray:
 
 def _pilots_alone(frame: Frame) -> np.ndarray:
     emission = frame.get("emission")
-    if emission is not None:
-        frame = frame.replace(colorA=frame["colorA"] - emission, colorB=frame["colorB"] - emission)
+    if emission is not None:  # as the step splits it (`subtract_emission`, its clip at an emitter's edge)
+        color_a, color_b = subtract_emission([frame["colorA"], frame["colorB"]], emission)
+        frame = frame.replace(colorA=color_a, colorB=color_b)
     out = np.maximum(pilots_to_radiance(*cross_regression(frame["colorA"], frame["colorB"], frame["albedo"],
                                                           frame["normal"])), 0.0)  # fmt: skip
     return out + (emission if emission is not None else 0.0)

@@ -37,6 +37,7 @@ from service.frame import RADIANCE_LAYERS, Frame
 from service.pipelines.crossreg import History, Prepared, averaged_frame_pilots, next_history, prepare_frame
 from service.process import configure
 from service.stages.cross_regression import cross_regression
+from service.stages.emission import subtract_emission
 
 log = logging.getLogger("models.train.warm_start")
 
@@ -45,7 +46,8 @@ NAME = "crossreg_unet"  # file stem of the shipped weights
 
 @dataclass
 class Sequence:
-    """Frames of one sequence (emission removed, as Pipeline.step does) with their cached pilots."""
+    """Frames of one sequence (emission removed as Pipeline.step removes it: `subtract_emission`, its clip at an
+    emitter's edge included) with their cached pilots."""
 
     name: str
     frames: list[Frame]
@@ -57,7 +59,8 @@ def _without_emission(frame: Frame) -> Frame:
     emission = frame.get("emission")
     if emission is None:
         return frame
-    return frame.replace(**{k: frame[k] - emission for k in RADIANCE_LAYERS if k in frame})
+    names = [k for k in RADIANCE_LAYERS if k in frame]
+    return frame.replace(**dict(zip(names, subtract_emission([frame[k] for k in names], emission), strict=True)))
 
 
 def _with_pilots(name: str, frames: list[Frame], source: dict[str, Any], averaged: bool = False) -> Sequence:

@@ -14,7 +14,8 @@ halves show or at the input's firefly clip (`service.stages.noise_clamp`), blend
 by the weight the halves say is best (`service.stages.noise_blend`; a temporal pipeline's input accumulated
 over the sequence where the halves say it is better, `service.stages.input_history`), and make sure nothing
 non-finite leaves.
-The split is `Pipeline.denoise_split`, which a denoiser able to do it inside its own passes overrides.
+The split is `Pipeline.denoise_split` (`service.stages.emission.subtract_emission`, which also clips the remainder
+at an emitter's edge).
 """
 
 from __future__ import annotations

@@ -114,10 +114,9 @@ def pilots_to_radiance_reference(pilot_a: np.ndarray, pilot_b: np.ndarray) -> np
 
 
 @numba.njit(inline="always")
-def _log_row(flat, period, y, height, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
-    """Row y of one buffer of an H-row frame in log space (`log_planes_reference`) into d0, d1, d2 (W,)
-    float32, its three colour planes' rows, from flat (P, 3 W) float32, the interleaved radiance, frame row
-    yy at flat[yy % period] (the whole frame, period = H, or a ring of rows around y). The clamp of
+def _log_row(flat, y, k, clamp, d0, d1, d2):  # pragma: no cover - jitted
+    """Row y of one buffer in log space (`log_planes_reference`) into d0, d1, d2 (W,) float32, its three
+    colour planes' rows, from flat (H, 3 W) float32, the frame's interleaved radiance. The clamp of
     `outliers._clamp_kernel` (the same float32 operations; min and max are exact, so the order in
     which the neighbours are taken does not matter) runs on the interleaved rows, where the neighbour in x
     of a value lies a constant 3 values away, so every loop is contiguous and vectorises; one pass per
@@ -128,11 +127,12 @@ def _log_row(flat, period, y, height, k, clamp, d0, d1, d2):  # pragma: no cover
     them, or the line, as scratch from the caller: their loops no longer vectorised.)"""
     n = flat.shape[1]
     width = n // 3
-    src = flat[y % period]
+    height = flat.shape[0]
+    src = flat[y]
     lo = filled(n, np.inf, np.float32)
     hi = filled(n, -np.inf, np.float32)
     for yy in range(max(0, y - 1), min(height, y + 2) if clamp else 0):
-        row = flat[yy % period]
+        row = flat[yy]
         if yy != y:  # the row above or below: the neighbours left, right and in line
             for i in range(3, n - 3):
                 a, b, c = row[i - 3], row[i], row[i + 3]
@@ -383,8 +383,8 @@ def _pack_rows(flat_a, flat_b, albedo, normal, k, clamp, first, last, pad, out):
     sums_a, sums_b = np.zeros((3, 4, width), np.float32), np.zeros((3, 4, width), np.float32)  # `_row_sums`
     for after in range(max(first - 1, 0), last + 1):  # row after = y + 1 is taken, then row y is packed
         r = min(after, height - 1)  # the last row twice, not under an `if` (which stopped the vectorising)
-        _log_row(flat_a, height, r, height, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
-        _log_row(flat_b, height, r, height, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
+        _log_row(flat_a, r, k, clamp, ring_a[0, r % 3], ring_a[1, r % 3], ring_a[2, r % 3])
+        _log_row(flat_b, r, k, clamp, ring_b[0, r % 3], ring_b[1, r % 3], ring_b[2, r % 3])
         _row_sums(ring_a, r, sums_a)
         _row_sums(ring_b, r, sums_b)
         y = after - 1

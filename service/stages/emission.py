@@ -12,7 +12,8 @@ coverage's noise, +-L/spp for a light of radiance L (at 4 spp beside a light of 
 reference's remainder is 1.9), and every filter spread it into the neighbours. At a pixel with emission the
 remainder of each layer is therefore clipped, per channel, to [min(0, lo), hi], lo and hi the layer's own
 range over its 8 neighbours without emission (their remainder is the layer itself); a pixel with no such
-neighbour (inside a light or a sky) keeps it. Cost on ordinary frames: none (no pixel has emission); on
+neighbour (inside a light or a sky) keeps it. Cost: a mask pass and a scan per row on frames with an `emission`
+layer, the clip only at an emitter's edge; in accuracy, on frames without emitters none; on
 `make bench`'s `fireflies` and data/val's `veiled_light` every pipeline's relL2 fell (docs/benchmarks.md,
 "The remainder at an emitter's edge").
 """
@@ -31,9 +32,10 @@ def subtract_emission(layers: list[np.ndarray], emission: np.ndarray) -> list[np
     """[layer - emission for layer in layers], clipped at pixels with emission to the layer's range over their
     neighbours without emission (the module's docstring), 1 to MAX_LAYERS layers in one parallel pass.
 
-    layers, emission: (H, W, 3) float32 radiance (any other layout or float dtype is converted first); a
-    pixel has emission where any channel of `emission` is not 0. Returns new C-contiguous float32 arrays of
-    that shape, in the order of `layers`. The numpy twin is `subtract_emission_reference`."""
+    layers, emission: (H, W, 3) float32 finite radiance (any other layout or float dtype is converted first;
+    frames come repaired); a pixel has emission where any channel of `emission` is not 0. Returns new
+    C-contiguous float32 arrays of that shape, in the order of `layers`. The numpy twin is
+    `subtract_emission_reference`."""
     if not 1 <= len(layers) <= MAX_LAYERS:
         raise ValueError(f"emission: takes 1 to {MAX_LAYERS} layers, got {len(layers)}")
     emission = np.ascontiguousarray(emission, np.float32)

@@ -53,14 +53,19 @@ def test_subtract_refuses_mismatched_shapes_and_layer_counts():
         subtract_emission([color, color[:5]], emission)
     with pytest.raises(ValueError, match="emission: takes 1 to 3 layers, got 4"):
         subtract_emission([color] * 4, emission)
+    with pytest.raises(ValueError, match=r"emission: expected \(H, W, 3\) layers, got \(6, 5, 1\)"):
+        subtract_emission([color[..., :1]], emission[..., :1])
+    transposed = np.ascontiguousarray(color.transpose(1, 0, 2)).transpose(1, 0, 2)  # not C-contiguous
+    np.testing.assert_array_equal(subtract_emission([transposed], emission.astype(np.float64))[0], color - emission)
 
 
 @pytest.mark.parametrize("count", [1, 2, 3])
-@pytest.mark.parametrize("shape", [(1, 1, 3), (1, 7, 3), (9, 1, 3), (37, 53, 3)])
-def test_subtract_with_scattered_emitters_matches_the_numpy_twin(count, shape):
+@pytest.mark.parametrize("shape", [(1, 1, 3), (1, 7, 3), (9, 1, 3), (2, 2, 3), (37, 53, 3)])
+@pytest.mark.parametrize("share", [0.3, 0.9])  # 0.9: most pixels amid emitters, the kernel's shortcut taken
+def test_subtract_with_scattered_emitters_matches_the_numpy_twin(count, shape, share):
     rng = np.random.default_rng(5)
     layers = [rng.standard_normal(shape).astype(np.float32) * 10 for _ in range(count)]
-    emission = np.where(rng.random((*shape[:2], 1)) < 0.3, rng.uniform(0, 50, shape), 0).astype(np.float32)
+    emission = np.where(rng.random((*shape[:2], 1)) < share, rng.uniform(0, 50, shape), 0).astype(np.float32)
     emission[rng.random(shape[:2]) < 0.05, 1] = 0  # pixels with emission in some channels only
     for fast, slow in zip(subtract_emission(layers, emission), subtract_emission_reference(layers, emission),
                           strict=True):
